@@ -1,0 +1,1 @@
+"""pnvlad_service.synth."""

@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Set up a virtual environment with the test extras and run the linters and the test suite.
+# Usage: bash scripts/test.sh [extra pytest args]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV="${PNVLAD_VENV:-.venv}"
+if [ ! -x "$VENV/bin/python" ]; then
+    python3 -m venv "$VENV"
+fi
+"$VENV/bin/python" -m pip install -q --upgrade pip
+"$VENV/bin/python" -m pip install -q -e '.[dev]'
+"$VENV/bin/ruff" check pnvlad_service cli tests benchmarks scripts
+"$VENV/bin/python" -m pytest -q -p no:cacheprovider "$@"

@@ -1,0 +1,30 @@
+"""Shared test fixtures."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def real_scans_dir() -> Path | None:
+    """The folder of real LiDAR scans: $PNVLAD_REAL_SCANS or ../shared/data/real_scans."""
+    env = os.environ.get("PNVLAD_REAL_SCANS")
+    candidates = [Path(env)] if env else []
+    candidates.append(REPO.parent / "shared" / "data" / "real_scans")
+    for c in candidates:
+        if (c / "kitti00_000000.bin").is_file():
+            return c
+    return None
+
+
+@pytest.fixture(scope="session")
+def real_scans() -> Path:
+    """Path of the real scans folder; skips the test where it is absent."""
+    d = real_scans_dir()
+    if d is None:
+        pytest.skip("real scans not found (set PNVLAD_REAL_SCANS or provide ../shared/data/real_scans)")
+    return d
