@@ -14,7 +14,9 @@ log = logging.getLogger("pnvlad")
 
 def setup_logging(verbosity: int) -> None:
     """Configure the root logger: WARNING at -1, INFO at 0, DEBUG at 1 and above."""
-    level = logging.INFO if verbosity == 0 else (logging.DEBUG if verbosity > 0 else logging.WARNING)
+    level = (
+        logging.INFO if verbosity == 0 else (logging.DEBUG if verbosity > 0 else logging.WARNING)
+    )
     logging.basicConfig(
         level=level,
         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",

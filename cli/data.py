@@ -1,7 +1,20 @@
-"""`pnvlad data` commands."""
+"""`pnvlad data`: everything between raw LiDAR files and a benchmark tree with its splits."""
 
 from __future__ import annotations
 
 import typer
 
-app = typer.Typer(help="data commands.", no_args_is_help=True)
+from pnvlad_cli import data_bench, data_prepare, data_preprocess
+
+app = typer.Typer(
+    help=(
+        "Turn raw LiDAR into benchmark data: preprocess one scan with the filter G, prepare a "
+        "recorded drive into submaps, check a benchmark tree, build training tuples and "
+        "evaluation sets."
+    ),
+    no_args_is_help=True,
+)
+
+data_preprocess.register(app)
+data_prepare.register(app)
+data_bench.register(app)

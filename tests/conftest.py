@@ -26,5 +26,7 @@ def real_scans() -> Path:
     """Path of the real scans folder; skips the test where it is absent."""
     d = real_scans_dir()
     if d is None:
-        pytest.skip("real scans not found (set PNVLAD_REAL_SCANS or provide ../shared/data/real_scans)")
+        pytest.skip(
+            "real scans not found (set PNVLAD_REAL_SCANS or provide ../shared/data/real_scans)"
+        )
     return d
