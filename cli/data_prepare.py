@@ -1,9 +1,291 @@
-"""Commands of `pnvlad data` (see cli/data.py)."""
+"""`pnvlad data prepare`: a recorded drive -> one benchmark run of submaps (see cli/data.py).
+
+A thin layer over :mod:`pnvlad_service.prepare`; library imports happen inside the command so
+that `pnvlad --help` stays fast.
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
+
+from pnvlad_cli.common import user_errors
+
+_INPUT = "Input drive"
+_GEOMETRY = "Submaps"
+_SPEED = "Speed"
+_OUTPUT = "Output"
+
+
+def _parse_origin(text: str) -> tuple[float, float]:
+    """'NORTHING,EASTING' -> (northing, easting) metres."""
+    from pnvlad_service.errors import InputError
+
+    parts = text.split(",")
+    try:
+        north, east = (float(p) for p in parts)
+    except ValueError:
+        raise InputError(
+            f"expected NORTHING,EASTING in metres (e.g. 5735712.8,620084.4), got {text!r}",
+            "--origin",
+        ) from None
+    return north, east
+
+
+def _parse_box(text: str) -> float:
+    """'25' or '25x25' -> 25.0 (a square box side, metres; 0 disables the crop)."""
+    from pnvlad_service.errors import InputError
+
+    parts = text.lower().split("x")
+    try:
+        sides = [float(p) for p in parts]
+    except ValueError:
+        sides = []
+    if len(sides) not in (1, 2) or len(set(sides)) != 1 or not sides[0] >= 0:
+        raise InputError(
+            f"expected a square box side like 25 or 25x25 (metres), got {text!r}", "--box"
+        )
+    return sides[0]
+
+
+def prepare(
+    kitti: Path = typer.Option(
+        None,
+        "--kitti",
+        help="KITTI-odometry sequence folder: velodyne/*.bin, poses.txt, optional times.txt "
+        "and calib.txt.",
+        rich_help_panel=_INPUT,
+    ),
+    scans: Path = typer.Option(
+        None,
+        "--scans",
+        help="Folder of scans named <timestamp>.<ext> (µs), used with --poses CSV.",
+        rich_help_panel=_INPUT,
+    ),
+    poses: Path = typer.Option(
+        None,
+        "--poses",
+        help="With --scans: pose CSV (timestamp,northing,easting,yaw_deg|heading_deg[,height] or "
+        "timestamp,r00..r23). With --kitti: a poses file other than <SEQ>/poses.txt.",
+        rich_help_panel=_INPUT,
+    ),
+    reader: str = typer.Option(
+        None,
+        "--reader",
+        help="Scan format for --scans when the suffix is ambiguous (kitti, nuscenes, nclt, "
+        "benchmark, ...).",
+        rich_help_panel=_INPUT,
+    ),
+    skip_missing: bool = typer.Option(
+        False,
+        "--skip-missing",
+        help="With --scans: drop CSV rows without a scan file and files without a row "
+        "(default: refuse).",
+        rich_help_panel=_INPUT,
+    ),
+    origin: str = typer.Option(
+        None,
+        "--origin",
+        help="With --kitti: UTM NORTHING,EASTING of the first scan (default 0,0: local metres).",
+        rich_help_panel=_INPUT,
+    ),
+    yaw: float = typer.Option(
+        0.0,
+        "--yaw",
+        help="With --kitti: direction the car faces at the first scan, degrees counter-clockwise "
+        "from east (0 = east, 90 = north).",
+        rich_help_panel=_INPUT,
+    ),
+    out: Path = typer.Option(
+        ...,
+        "--out",
+        "-o",
+        help="Run folder to write, e.g. benchmark_datasets/oxford/2024-05-01-10-00-00.",
+        rich_help_panel=_OUTPUT,
+    ),
+    layout: str = typer.Option(
+        "oxford",
+        "--layout",
+        help="oxford (20 m windows; train every 10 m, test every 20 m) or inhouse (25 m boxes; "
+        "train every 10 m, test every 25 m).",
+        rich_help_panel=_GEOMETRY,
+    ),
+    kind: str = typer.Option(
+        "both",
+        "--kind",
+        help="train, test or both (both layouts in one pass; each scan read once).",
+        rich_help_panel=_GEOMETRY,
+    ),
+    window: float = typer.Option(
+        None,
+        "--window",
+        help="Metres of trajectory accumulated per submap, centred on it (default: the "
+        "layout's, 20 oxford, 25 inhouse).",
+        rich_help_panel=_GEOMETRY,
+    ),
+    box: str = typer.Option(
+        None,
+        "--box",
+        help="Crop to a square box around the submap, UTM-aligned: 25 or 25x25 metres "
+        "(default: none for oxford, 25 for inhouse; 0 = no crop).",
+        rich_help_panel=_GEOMETRY,
+    ),
+    stride: float = typer.Option(
+        None,
+        "--stride",
+        help="Metres travelled between submaps of the train kind, or of the only kind asked "
+        "for (default: the layout's).",
+        rich_help_panel=_GEOMETRY,
+    ),
+    test_stride: float = typer.Option(
+        None,
+        "--test-stride",
+        help="With --kind both: metres between test submaps (default: the layout's, 20 or 25).",
+        rich_help_panel=_GEOMETRY,
+    ),
+    g_config: Path = typer.Option(
+        None,
+        "--g-config",
+        help="YAML or JSON file of filter G settings (GConfig fields; default: the paper's).",
+        rich_help_panel=_GEOMETRY,
+    ),
+    seed: int = typer.Option(
+        0,
+        "--seed",
+        help="Random seed; submap k uses seed + its centre scan index.",
+        rich_help_panel=_GEOMETRY,
+    ),
+    points_per_scan: int = typer.Option(
+        10_000,
+        "--points-per-scan",
+        help="Random subset of each scan accumulated (0 = every point).",
+        rich_help_panel=_SPEED,
+    ),
+    max_range: float = typer.Option(
+        None,
+        "--max-range",
+        help="Drop points farther than this from the sensor, metres (default: keep all).",
+        rich_help_panel=_SPEED,
+    ),
+    scan_step: int = typer.Option(
+        1, "--scan-step", help="Use every k-th scan of each window.", rich_help_panel=_SPEED
+    ),
+    resume: bool = typer.Option(
+        False,
+        "--resume",
+        help="Finish an interrupted run: keep submaps already written (same options needed).",
+        rich_help_panel=_OUTPUT,
+    ),
+    overwrite: bool = typer.Option(
+        False,
+        "--overwrite",
+        help="Delete the submaps the output folders hold and start again.",
+        rich_help_panel=_OUTPUT,
+    ),
+) -> None:
+    """Cut a recorded drive into benchmark submaps (filter G) with their locations CSV.
+
+    Scans are accumulated in the UTM frame over a window of trajectory centred on each submap,
+    one submap every STRIDE metres travelled; each is filtered by G to 4096 points and written
+    as <out>/<folder>/<timestamp>.bin (98,304 bytes), the timestamp and position being those of
+    the scan at the window's centre. The CSVs are written last; an interrupted run keeps only
+    whole submaps, and --resume finishes it. See docs/PREPARE.md.
+
+    Examples:
+
+      pnvlad data prepare --kitti dataset/sequences/00 --origin 5735712.8,620084.4
+      --out bench/kitti/00
+
+      pnvlad data prepare --scans drive/scans --poses drive/poses.csv --layout inhouse
+      --out bench/campus/run1
+    """
+    with user_errors():
+        from pnvlad_service.errors import InputError
+        from pnvlad_service.prepare import CsvDrive, KittiSequence, prepare_drive
+
+        if (kitti is None) == (scans is None):
+            raise InputError("give either --kitti SEQ_DIR or --scans DIR --poses CSV", "--kitti")
+        if kind not in ("train", "test", "both"):
+            raise InputError(f"expected train, test or both, got {kind!r}", "--kind")
+        if kitti is not None:
+            if reader is not None or skip_missing:
+                raise InputError("--reader and --skip-missing apply to --scans only", "--kitti")
+            drive = KittiSequence(
+                kitti,
+                poses=poses,
+                origin_ne=(0.0, 0.0) if origin is None else _parse_origin(origin),
+                yaw_deg=yaw,
+            )
+            if origin is None:
+                typer.secho(
+                    "note: no --origin given, positions are local metres from the first scan",
+                    err=True,
+                    fg=typer.colors.YELLOW,
+                )
+        else:
+            if poses is None:
+                raise InputError("--scans needs --poses CSV", "--poses")
+            if origin is not None or yaw != 0.0:
+                raise InputError("--origin and --yaw apply to --kitti only", "--origin")
+            drive = CsvDrive(scans, poses, reader=reader, skip_missing=skip_missing)
+        config = None
+        if g_config is not None:
+            config = _load_g_config(g_config)
+        kinds = ("train", "test") if kind == "both" else (kind,)
+        strides: dict[str, float] = {}
+        if stride is not None:
+            strides[kinds[0]] = stride
+        if test_stride is not None:
+            strides["test"] = test_stride
+        result = prepare_drive(
+            drive,
+            out,
+            layout=layout,  # type: ignore[arg-type]
+            kinds=kinds,  # type: ignore[arg-type]
+            window_m=window,
+            box_m=None if box is None else _parse_box(box),
+            strides_m=strides,
+            g_config=config,
+            seed=seed,
+            max_points_per_scan=points_per_scan or None,
+            max_range_m=max_range,
+            scan_step=scan_step,
+            resume=resume,
+            overwrite=overwrite,
+        )
+    for res in result.layouts:
+        line = f"{res.kind:5s} {res.folder}: {res.submaps - res.failed} submaps"
+        extra = [f"{res.written} written"]
+        if res.resumed:
+            extra.append(f"{res.resumed} kept")
+        if res.failed:
+            extra.append(f"{res.failed} failed (see log)")
+        typer.echo(f"{line} ({', '.join(extra)}), locations in {res.csv.name}")
+    typer.echo(
+        f"{len(drive)} scans ({result.scans_read} read) in {result.seconds:.1f} s, "
+        f"{result.submaps_per_second():.2f} submaps/s"
+    )
+
+
+def _load_g_config(path: Path):  # -> GConfig
+    """GConfig from a YAML or JSON file of its fields."""
+    import yaml
+    from pydantic import ValidationError
+
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.preprocess import GConfig
+
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise InputError(f"not valid YAML/JSON: {exc}", path) from None
+    try:
+        return GConfig.model_validate(data or {})
+    except ValidationError as exc:
+        raise InputError(f"bad filter G settings: {exc}", path) from None
 
 
 def register(app: typer.Typer) -> None:
     """Add this module's commands to the `pnvlad data` group."""
+    app.command("prepare")(prepare)
