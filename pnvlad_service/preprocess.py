@@ -1,0 +1,540 @@
+"""The filter G: one raw point cloud (metres) to one benchmark submap (4096 points in [-1, 1]).
+
+The steps, in order, each a public function (see docs/PREPROCESS.md for figures on real scans):
+
+1. :func:`crop_mask` / :func:`crop`: optional range (3-D distance from the origin, i.e. the
+   sensor) and axis-aligned box.
+2. :func:`ground_mask` / :func:`remove_ground`: a RANSAC plane (normal within
+   ``max_ground_tilt_deg`` of the z axis) gives the up direction and a frame; in ``"local"``
+   mode a height map on a grid of ``ground_cell`` metres (a low percentile of the height in each
+   cell, then a grey-scale closing and opening over ``ground_window`` metres) follows slopes,
+   kerbs and gentle bends of the road, and every point less than ``ground_threshold`` above
+   that surface (or below it) is ground. ``"plane"`` mode is the paper's: points within
+   ``ground_threshold`` of the single plane.
+3. :func:`voxel_average` with the leaf size found by :func:`adaptive_voxel_downsample`
+   (bracketed bisection on the leaf size until the voxel count is closest to the target), then
+   :func:`resample_to` duplicates or drops seeded random points to hit the target exactly.
+4. :func:`normalize`: centre on the centroid, scale to a mean distance of 0.5 from it, drop
+   points outside [-1, 1]^3, refill to the target; optional negation afterwards.
+
+Everything is vectorised numpy and deterministic: the same input and seed give the same bytes.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from pnvlad_service.errors import InputError
+
+log = logging.getLogger(__name__)
+
+Box = tuple[float, float, float, float, float, float]
+
+_MAX_GRID_CELLS = 4_000_000
+
+
+class GConfig(BaseModel):
+    """Settings of the filter G; defaults follow the PointNetVLAD paper where it gives a value.
+
+    Lengths are metres in the input cloud's frame (before normalisation).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    target_points: int = Field(4096, ge=1, description="Points in the output submap.")
+    min_points: int = Field(
+        16, ge=1, description="Fewest points left after ground removal; fewer is an error."
+    )
+    min_range: float | None = Field(
+        None, ge=0, description="Drop points closer than this to the origin (m, 3-D distance)."
+    )
+    max_range: float | None = Field(
+        None, gt=0, description="Drop points farther than this from the origin (m, 3-D distance)."
+    )
+    box: Box | None = Field(
+        None, description="Keep only points inside (xmin, ymin, zmin, xmax, ymax, zmax), metres."
+    )
+    remove_ground: bool = Field(True, description="Remove the ground (the paper does).")
+    ground_mode: Literal["local", "plane"] = Field(
+        "local",
+        description="'local': height above a grid surface that follows slopes and kerbs; "
+        "'plane': within the threshold of one RANSAC plane (the paper).",
+    )
+    ground_threshold: float = Field(
+        0.5, gt=0, description="Points less than this above the ground surface are ground (m)."
+    )
+    ground_cell: float = Field(1.0, gt=0, description="Cell size of the ground height map (m).")
+    ground_window: float = Field(
+        9.0,
+        gt=0,
+        description="Objects narrower than this (m) are not taken for ground (the morphological "
+        "window of the height map).",
+    )
+    ground_percentile: float = Field(
+        5.0, ge=0, le=100, description="Per-cell percentile of heights taken as the cell's ground."
+    )
+    max_ground_tilt_deg: float = Field(
+        30.0, gt=0, le=90, description="Largest angle between the ground normal and the z axis."
+    )
+    up: Literal["auto", "z", "-z"] = Field(
+        "auto",
+        description="Which side of the ground is up: 'auto' (the side most off-plane points are "
+        "on; handles z-down frames such as NCLT's), '+z' as 'z', or '-z'.",
+    )
+    ransac_iterations: int = Field(200, ge=1, description="RANSAC plane hypotheses.")
+    voxel_iterations: int = Field(30, ge=1, description="Most leaf sizes tried.")
+    normalize: bool = Field(True, description="Centre, scale and clip to [-1, 1].")
+    mean_distance: float = Field(
+        0.5, gt=0, description="Mean distance from the centroid after scaling (units of [-1,1])."
+    )
+    negate: bool = Field(False, description="Negate the output coordinates (the MATLAB script).")
+
+    @model_validator(mode="after")
+    def _check(self) -> GConfig:
+        if self.box is not None and any(
+            lo > hi for lo, hi in zip(self.box[:3], self.box[3:], strict=True)
+        ):
+            raise ValueError("box must be (xmin, ymin, zmin, xmax, ymax, zmax) with min <= max")
+        if (
+            self.min_range is not None
+            and self.max_range is not None
+            and self.min_range >= self.max_range
+        ):
+            raise ValueError("min_range must be smaller than max_range")
+        return self
+
+
+@dataclass(frozen=True)
+class GResult:
+    """Output of :func:`apply_g`: the submap and what each step left.
+
+    ``points``: float64 [target_points, 3]; ``leaf_size``: metres (0 when the cloud was smaller
+    than the target and only refilled); ``up``: unit normal of the ground plane, float64 [3],
+    pointing up (``None`` when ground removal is off).
+    """
+
+    points: np.ndarray
+    n_input: int
+    n_cropped: int
+    n_nonground: int
+    n_voxels: int
+    leaf_size: float
+    up: np.ndarray | None
+
+
+def _as_points(points: np.ndarray, source: str = "points") -> np.ndarray:
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"expected points of shape [N, 3], got {tuple(points.shape)}", source)
+    if not np.issubdtype(points.dtype, np.number):
+        raise InputError(f"points must be numeric, got dtype {points.dtype}", source)
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if not np.isfinite(points).all():
+        raise InputError("points contain NaN or infinite coordinates", source)
+    return points
+
+
+# --- 1. crop -------------------------------------------------------------------------------
+
+
+def crop_mask(
+    points: np.ndarray,
+    *,
+    min_range: float | None = None,
+    max_range: float | None = None,
+    box: Box | None = None,
+) -> np.ndarray:
+    """Boolean [N] mask of the points kept by the crop.
+
+    ``points`` float [N, 3] metres; ranges are 3-D distances from the origin (the sensor for a
+    single scan), inclusive bounds; ``box`` is (xmin, ymin, zmin, xmax, ymax, zmax), inclusive.
+    """
+    keep = np.ones(points.shape[0], dtype=bool)
+    if min_range is not None or max_range is not None:
+        r2 = np.einsum("ij,ij->i", points, points)
+        if min_range is not None:
+            keep &= r2 >= min_range * min_range
+        if max_range is not None:
+            keep &= r2 <= max_range * max_range
+    if box is not None:
+        lo = np.asarray(box[:3], dtype=np.float64)
+        hi = np.asarray(box[3:], dtype=np.float64)
+        keep &= np.all((points >= lo) & (points <= hi), axis=1)
+    return keep
+
+
+def crop(
+    points: np.ndarray,
+    *,
+    min_range: float | None = None,
+    max_range: float | None = None,
+    box: Box | None = None,
+) -> np.ndarray:
+    """The points [M, 3] inside the range and box limits (see :func:`crop_mask`)."""
+    return points[crop_mask(points, min_range=min_range, max_range=max_range, box=box)]
+
+
+# --- 2. ground -------------------------------------------------------------------------------
+
+
+def fit_ground_plane(
+    points: np.ndarray,
+    *,
+    threshold: float = 0.5,
+    max_tilt_deg: float = 30.0,
+    up: Literal["auto", "z", "-z"] = "auto",
+    iterations: int = 200,
+    rng: np.random.Generator | None = None,
+    sample: int = 8000,
+) -> tuple[np.ndarray, float]:
+    """RANSAC plane with the most inliers (within ``threshold`` m) among planes whose normal is
+    within ``max_tilt_deg`` of the z axis, refined by least squares on its inliers.
+
+    Args:
+        points: float64 [N, 3] metres.
+        up: which side is up: ``"auto"`` picks the side holding more of the points farther than
+            ``threshold`` from the plane (objects stand on the ground; few points lie below it).
+        rng: the random generator (hypotheses and the subsample of ``sample`` points).
+
+    Returns:
+        ``(normal, offset)``: unit float64 [3] pointing up and a float such that
+        ``points @ normal + offset`` is the signed height above the plane in metres.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    n = points.shape[0]
+    sub = points if n <= sample else points[np.sort(rng.choice(n, sample, replace=False))]
+    centre = sub.mean(axis=0)
+    sub = sub - centre
+    m = sub.shape[0]
+    idx = rng.integers(0, m, size=(iterations, 3))
+    a, b, c = sub[idx[:, 0]], sub[idx[:, 1]], sub[idx[:, 2]]
+    normals = np.cross(b - a, c - a)
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-9
+    normals[ok] /= norms[ok, None]
+    ok &= np.abs(normals[:, 2]) >= math.cos(math.radians(max_tilt_deg))
+    if ok.any():
+        normals = normals[ok]
+        offsets = -np.einsum("ij,ij->i", normals, a[ok])
+        dist = np.abs(sub @ normals.T + offsets)  # [m, K]
+        best = int(np.argmax((dist < threshold).sum(axis=0)))
+        inliers = sub[dist[:, best] < threshold]
+    else:  # no tilted-enough hypothesis: the lowest tenth of the points along z
+        log.warning("no RANSAC ground plane within %.0f deg of z; using z", max_tilt_deg)
+        inliers = sub[sub[:, 2] <= np.quantile(sub[:, 2], 0.1)]
+    if inliers.shape[0] >= 3:
+        mean = inliers.mean(axis=0)
+        normal = np.linalg.svd(inliers - mean, full_matrices=False)[2][2]
+        if abs(normal[2]) < math.cos(math.radians(max_tilt_deg)):  # refit tipped over
+            normal = normals[best] if ok.any() else np.array([0.0, 0.0, 1.0])
+            mean = inliers.mean(axis=0)
+    else:
+        normal, mean = np.array([0.0, 0.0, 1.0]), sub.min(axis=0)
+    offset = -float(normal @ mean)
+    if up == "auto":
+        height = sub @ normal + offset
+        if np.count_nonzero(height < -threshold) > np.count_nonzero(height > threshold):
+            normal, offset = -normal, -offset
+    elif (up == "z") != (normal[2] > 0):
+        normal, offset = -normal, -offset
+    return normal, offset - float(normal @ centre)
+
+
+def _rotation_to_z(normal: np.ndarray) -> np.ndarray:
+    """Rotation matrix float64 [3, 3] R with R @ normal = (0, 0, 1)."""
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(normal, z)
+    s, c = float(np.linalg.norm(v)), float(normal @ z)
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + k + k @ k * ((1.0 - c) / (s * s))
+
+
+def _masked_filter(grid: np.ndarray, valid: np.ndarray, size: int, op: str) -> np.ndarray:
+    from scipy import ndimage
+
+    if op == "erode":
+        return ndimage.grey_erosion(np.where(valid, grid, np.inf), size=(size, size))
+    return ndimage.grey_dilation(np.where(valid, grid, -np.inf), size=(size, size))
+
+
+def ground_surface(
+    xy: np.ndarray,
+    height: np.ndarray,
+    *,
+    cell: float = 1.0,
+    window: float = 9.0,
+    percentile: float = 5.0,
+) -> np.ndarray:
+    """Height of the ground under each point, from a grid height map.
+
+    Each ``cell`` x ``cell`` m cell gets the ``percentile`` of its points' heights; a grey-scale
+    closing (fills pits: stray low returns) then an opening (cuts bumps: cars, walls, trunks),
+    both over a square of ``window`` m, leave the ground, which may slope and step. Empty cells
+    take no part. Both filters keep any plane exactly, so a uniform slope survives.
+
+    Args:
+        xy: float64 [N, 2] metres in a frame whose z is up.
+        height: float64 [N] metres, the points' z in that frame.
+
+    Returns:
+        float64 [N]: the ground height below each point, metres.
+    """
+    lo = xy.min(axis=0)
+    span = xy.max(axis=0) - lo
+    cells_needed = float(np.prod(span / cell + 1))
+    if cells_needed > _MAX_GRID_CELLS:
+        cell = cell * math.sqrt(cells_needed / _MAX_GRID_CELLS) * 1.01
+        log.warning("cloud spans %.0f x %.0f m; ground cell enlarged to %.2f m", *span, cell)
+    ij = np.floor((xy - lo) / cell).astype(np.int64)
+    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    # One sort orders the points by cell, then by height within a cell.
+    h0 = height - height.min()
+    order = np.argsort(flat * (float(h0.max()) + 1.0) + h0, kind="stable")
+    sorted_cells = flat[order]
+    starts = np.flatnonzero(np.r_[True, sorted_cells[1:] != sorted_cells[:-1]])
+    counts = np.diff(np.r_[starts, flat.shape[0]])
+    pick = starts + np.floor((counts - 1) * (percentile / 100.0)).astype(np.int64)
+    grid = np.full(shape, np.inf)
+    valid = np.zeros(shape, dtype=bool)
+    grid.flat[sorted_cells[starts]] = height[order[pick]]
+    valid.flat[sorted_cells[starts]] = True
+    size = max(1, round(window / cell))
+    size += 1 - size % 2  # odd, centred on the cell
+    if size > 1:
+        grid = _masked_filter(_masked_filter(grid, valid, size, "dilate"), valid, size, "erode")
+        grid = _masked_filter(_masked_filter(grid, valid, size, "erode"), valid, size, "dilate")
+    return grid.flat[flat]
+
+
+def ground_mask(
+    points: np.ndarray,
+    config: GConfig | None = None,
+    *,
+    rng: np.random.Generator | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean [N] mask of the ground points and the up normal float64 [3].
+
+    ``points`` float64 [N, 3] metres. See :class:`GConfig` for ``ground_mode``,
+    ``ground_threshold``, ``ground_cell``, ``ground_window``; in ``"local"`` mode points
+    below the local surface (stray returns under the road) count as ground too.
+    """
+    cfg = config or GConfig()
+    rng = np.random.default_rng(0) if rng is None else rng
+    normal, offset = fit_ground_plane(
+        points,
+        threshold=cfg.ground_threshold,
+        max_tilt_deg=cfg.max_ground_tilt_deg,
+        up=cfg.up,
+        iterations=cfg.ransac_iterations,
+        rng=rng,
+    )
+    if cfg.ground_mode == "plane":
+        return np.abs(points @ normal + offset) < cfg.ground_threshold, normal
+    local = points @ _rotation_to_z(normal).T
+    height = local[:, 2] + offset
+    surface = ground_surface(
+        local[:, :2],
+        height,
+        cell=cfg.ground_cell,
+        window=cfg.ground_window,
+        percentile=cfg.ground_percentile,
+    )
+    return height - surface < cfg.ground_threshold, normal
+
+
+def remove_ground(
+    points: np.ndarray, config: GConfig | None = None, *, rng: np.random.Generator | None = None
+) -> np.ndarray:
+    """The non-ground points float64 [M, 3] (see :func:`ground_mask`)."""
+    return points[~ground_mask(points, config, rng=rng)[0]]
+
+
+# --- 3. voxel grid ---------------------------------------------------------------------------
+
+
+def _voxel_keys(points: np.ndarray, leaf: float) -> np.ndarray:
+    ijk = np.floor((points - points.min(axis=0)) / leaf).astype(np.int64)
+    dims = ijk.max(axis=0) + 1
+    return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+
+
+def voxel_count(points: np.ndarray, leaf: float) -> int:
+    """Number of occupied ``leaf``-metre voxels (grid anchored at the cloud's minimum corner)."""
+    keys = np.sort(_voxel_keys(points, leaf))
+    return int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
+
+
+def voxel_average(points: np.ndarray, leaf: float) -> np.ndarray:
+    """The mean of the points in each occupied voxel: float64 [V, 3], ordered by voxel index.
+
+    Voxels are cubes of ``leaf`` metres, ``floor((p - min(points)) / leaf)``.
+    """
+    keys = _voxel_keys(points, leaf)
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
+    sums = np.add.reduceat(points[order], starts, axis=0)
+    counts = np.diff(np.r_[starts, sk.shape[0]])
+    return sums / counts[:, None]
+
+
+def _leaf_bounds(points: np.ndarray) -> tuple[float, float]:
+    extent = float((points.max(axis=0) - points.min(axis=0)).max())
+    extent = max(extent, 1e-9)
+    # 2e5 cells a side keeps the int64 voxel key far from overflow (8e15 < 9.2e18).
+    return extent / 2e5, extent * 1.01
+
+
+def find_leaf_size(points: np.ndarray, target: int, *, iterations: int = 30) -> tuple[float, int]:
+    """Leaf size (m) whose voxel count is closest to ``target`` and that count.
+
+    Bracketed search on the leaf size: the bracket [small leaf: count >= target, large leaf:
+    count < target] shrinks at each step; the next leaf is interpolated in log-log space (count
+    ~ leaf^-d) and kept within the middle 80% of the bracket, so it is at worst a bisection.
+    Ties prefer the larger count (dropping points beats duplicating them).
+    """
+    lo, hi = _leaf_bounds(points)
+    c_lo, c_hi = voxel_count(points, lo), voxel_count(points, hi)
+    best = min(((lo, c_lo), (hi, c_hi)), key=lambda t: (abs(t[1] - target), -t[1]))
+    if c_lo <= target:  # even the finest grid gives too few voxels (duplicates)
+        return lo, c_lo
+    for _ in range(iterations):
+        if best[1] == target or hi / lo < 1.0 + 1e-6:
+            break
+        llo, lhi = math.log(lo), math.log(hi)
+        if c_hi > 0 and c_lo != c_hi:
+            t = (math.log(c_lo) - math.log(target)) / (math.log(c_lo) - math.log(max(c_hi, 1)))
+        else:
+            t = 0.5
+        t = min(max(t, 0.1), 0.9)
+        mid = math.exp(llo + t * (lhi - llo))
+        c = voxel_count(points, mid)
+        if c >= target:
+            lo, c_lo = mid, c
+        else:
+            hi, c_hi = mid, c
+        if (abs(c - target), -c) < (abs(best[1] - target), -best[1]):
+            best = (mid, c)
+    return best
+
+
+def resample_to(points: np.ndarray, n: int, *, rng: np.random.Generator) -> np.ndarray:
+    """Exactly ``n`` points: drop randomly chosen ones (order kept) or append duplicates of
+    randomly chosen ones. ``points`` [M, 3] with M >= 1; returns [n, 3], same dtype."""
+    m = points.shape[0]
+    if m == n:
+        return points
+    if m > n:
+        return points[np.sort(rng.choice(m, n, replace=False))]
+    extra = rng.choice(m, n - m, replace=n - m > m)
+    return np.concatenate([points, points[extra]], axis=0)
+
+
+def adaptive_voxel_downsample(
+    points: np.ndarray, target: int, *, rng: np.random.Generator, iterations: int = 30
+) -> tuple[np.ndarray, float, int]:
+    """Voxel-average to about ``target`` points, then resample to exactly ``target``.
+
+    ``points`` float64 [M, 3] metres. Returns (float64 [target, 3], leaf size in m, voxel
+    count). A cloud of at most ``target`` points is not voxelised (leaf 0) and only refilled.
+    """
+    if points.shape[0] <= target:
+        return resample_to(points, target, rng=rng), 0.0, points.shape[0]
+    leaf, count = find_leaf_size(points, target, iterations=iterations)
+    voxels = voxel_average(points, leaf)
+    return resample_to(voxels, target, rng=rng), leaf, count
+
+
+# --- 4. normalisation ------------------------------------------------------------------------
+
+
+def normalize(
+    points: np.ndarray,
+    target: int | None = None,
+    *,
+    rng: np.random.Generator,
+    mean_distance: float = 0.5,
+) -> np.ndarray:
+    """Centre on the centroid, scale so the mean distance from it is ``mean_distance``, drop
+    points with any coordinate outside [-1, 1], refill (seeded duplicates) to ``target`` points
+    (default: the input count). ``points`` float64 [M, 3]; returns float64 [target, 3].
+    """
+    target = points.shape[0] if target is None else target
+    centred = points - points.mean(axis=0)
+    spread = float(np.linalg.norm(centred, axis=1).mean())
+    if spread <= 0.0:
+        raise InputError("all points coincide; the cloud cannot be normalised", "points")
+    scaled = centred * (mean_distance / spread)
+    inside = scaled[np.all(np.abs(scaled) <= 1.0, axis=1)]
+    return resample_to(inside, target, rng=rng)
+
+
+# --- the filter ------------------------------------------------------------------------------
+
+
+def apply_g(points: np.ndarray, config: GConfig | None = None, *, seed: int = 0) -> GResult:
+    """Run the filter G and report what each step left (see :class:`GResult`).
+
+    ``points`` float [N, 3] metres (any frame; z or -z up). Raises InputError for a bad shape,
+    NaN/inf, or fewer than ``config.min_points`` points left after cropping and ground removal.
+    """
+    cfg = config or GConfig()
+    rng = np.random.default_rng(seed)
+    pts = _as_points(points)
+    n_input = pts.shape[0]
+    if cfg.min_range is not None or cfg.max_range is not None or cfg.box is not None:
+        pts = crop(pts, min_range=cfg.min_range, max_range=cfg.max_range, box=cfg.box)
+    n_cropped = pts.shape[0]
+    if n_cropped < cfg.min_points:
+        raise InputError(
+            f"{n_cropped} points left after cropping {n_input}; at least {cfg.min_points} needed",
+            "points",
+        )
+    up = None
+    if cfg.remove_ground:
+        ground, up = ground_mask(pts, cfg, rng=rng)
+        pts = pts[~ground]
+    n_nonground = pts.shape[0]
+    if n_nonground < cfg.min_points:
+        raise InputError(
+            f"{n_nonground} points left after ground removal (of {n_cropped}); at least "
+            f"{cfg.min_points} needed",
+            "points",
+        )
+    if n_nonground < cfg.target_points:
+        log.info("%d points < %d: refilled with duplicates", n_nonground, cfg.target_points)
+    out, leaf, n_voxels = adaptive_voxel_downsample(
+        pts, cfg.target_points, rng=rng, iterations=cfg.voxel_iterations
+    )
+    if cfg.normalize:
+        out = normalize(out, cfg.target_points, rng=rng, mean_distance=cfg.mean_distance)
+    if cfg.negate:
+        out = -out
+    return GResult(
+        points=np.ascontiguousarray(out, dtype=np.float64),
+        n_input=n_input,
+        n_cropped=n_cropped,
+        n_nonground=n_nonground,
+        n_voxels=n_voxels,
+        leaf_size=leaf,
+        up=up,
+    )
+
+
+def filter_g(points: np.ndarray, config: GConfig | None = None, *, seed: int = 0) -> np.ndarray:
+    """The filter G: float [N, 3] metres -> float64 [config.target_points, 3].
+
+    With ``normalize`` (default) the result is centred, of mean distance 0.5 and inside
+    [-1, 1]; without, it is the ground-free, voxel-averaged cloud in the input frame and units.
+    Same input and seed give identical bytes.
+    """
+    return apply_g(points, config, seed=seed).points
