@@ -1,0 +1,179 @@
+"""Training configuration: one pydantic model with ``model:``, ``train:`` and ``data:`` sections.
+
+A config file (YAML or TOML) holds any subset of the fields; everything missing takes the
+defaults below, which follow the paper's set-up (Uy & Lee, CVPR 2018, and its published code):
+Adam at 5e-5 with a staircase decay, lazy quadruplet loss (alpha 0.5, beta 0.2), tuples of
+1 anchor, 2 positives, 18 negatives and 1 other negative, hard negatives from a descriptor cache
+refreshed every 700 steps. ``pnvlad train --dump-config`` prints them.
+"""
+
+from __future__ import annotations
+
+import logging
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.models.config import ModelConfig
+
+log = logging.getLogger(__name__)
+
+LossName = Literal["lazy_quadruplet", "lazy_triplet", "quadruplet", "triplet"]
+
+
+class TrainSection(BaseModel):
+    """How to train: optimiser, schedule, tuples, mining, budget, checkpoints."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    epochs: int = Field(20, ge=1, description="Passes over the training anchors.")
+    batch_size: int = Field(
+        2, ge=1, description="Tuples a step (tuple mode) or anchors a step (in-batch mode)."
+    )
+    lr: float = Field(5e-5, gt=0, description="Base learning rate of Adam.")
+    lr_decay_rate: float = Field(0.7, gt=0, le=1, description="Staircase decay factor.")
+    lr_decay_samples: int = Field(
+        200_000, ge=1, description="Tuples seen between two learning-rate decays."
+    )
+    lr_min: float = Field(1e-5, ge=0, description="Floor of the learning rate.")
+    weight_decay: float = Field(0.0, ge=0)
+    bn_init_decay: float = Field(0.5, description="1 - initial BN momentum (TF convention).")
+    bn_decay_rate: float = Field(0.5, description="Staircase factor of the BN momentum.")
+    bn_decay_samples: int = Field(200_000, ge=1, description="Tuples between BN decays.")
+    bn_decay_clip: float = Field(0.99, description="Ceiling of the TF BN decay.")
+    loss: LossName = "lazy_quadruplet"
+    margin1: float = Field(0.5, description="alpha: anchor-positive vs anchor-negative margin.")
+    margin2: float = Field(0.2, description="beta: anchor-positive vs negative-other margin.")
+    positives: int = Field(2, ge=1, description="Positives a tuple.")
+    negatives: int = Field(18, ge=1, description="Negatives a tuple.")
+    mining: Literal["tuple", "in_batch"] = Field(
+        "tuple",
+        description=(
+            "'tuple': the paper's tuples with cached hard negatives; 'in_batch': a batch of "
+            "anchors and one positive each, every other batch member a candidate negative."
+        ),
+    )
+    hard_negatives: int = Field(10, ge=0, description="Hardest cached negatives a tuple.")
+    sampled_negatives: int = Field(
+        3000, ge=1, description="Random negatives searched for the hardest ones."
+    )
+    cache_warmup_epochs: int = Field(
+        1, ge=0, description="Epochs with random negatives before the first cache."
+    )
+    cache_refresh_steps: int = Field(700, ge=1, description="Steps between cache refreshes.")
+    seed: int = 0
+    device: str = Field("auto", description="'auto' (cuda when present), 'cpu', 'cuda', 'cuda:1'.")
+    amp: Literal["auto", "off", "bf16", "fp16"] = Field(
+        "auto", description="Mixed precision on CUDA ('auto': bf16 when supported, else fp16)."
+    )
+    threads: int = Field(0, ge=0, description="torch CPU threads (0: the cores of this process).")
+    workers: int = Field(4, ge=0, description="Threads loading submaps into RAM.")
+    max_minutes: float | None = Field(None, gt=0, description="Wall-clock budget of the run.")
+    max_steps: int | None = Field(None, ge=1, description="Stop after this many steps.")
+    checkpoint_every: int = Field(500, ge=1, description="Steps between checkpoints.")
+    keep_checkpoints: int = Field(2, ge=1, description="Step checkpoints kept on disk.")
+    val_every: int = Field(1000, ge=0, description="Steps between validation recalls (0: off).")
+    log_every: int = Field(10, ge=1, description="Steps between metrics-log lines.")
+
+
+class DataSection(BaseModel):
+    """Where the data is: a benchmark tree and its splits."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    root: Path | None = Field(None, description="Benchmark tree (holds oxford/, inhouse_...).")
+    splits: Path | None = Field(None, description="Splits JSON (pnvlad data splits).")
+    pickles: Path | None = Field(None, description="Folder of the published pickles instead.")
+    val_max_runs: int = Field(4, ge=2, description="Runs used by the periodic validation.")
+
+
+class TrainConfig(BaseModel):
+    """Every field of a training run."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    model: ModelConfig = Field(default_factory=ModelConfig.paper)
+    train: TrainSection = Field(default_factory=TrainSection)
+    data: DataSection = Field(default_factory=DataSection)
+
+    @model_validator(mode="after")
+    def _check(self) -> TrainConfig:
+        if self.train.hard_negatives > self.train.negatives:
+            raise ValueError("train.hard_negatives must not exceed train.negatives")
+        return self
+
+    @classmethod
+    def preset(cls, name: str) -> TrainConfig:
+        """A shipped config: ``paper`` or ``compact`` (pnvlad_service/configs/<name>.yaml)."""
+        ref = resources.files("pnvlad_service") / "configs" / f"{name}.yaml"
+        if not ref.is_file():
+            raise InputError(f"no shipped config named {name!r} (paper, compact)", source="config")
+        return cls.from_mapping(_parse(ref.read_text(encoding="utf-8"), f"{name}.yaml"), name)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> TrainConfig:
+        """Read a YAML (``.yaml``/``.yml``) or TOML (``.toml``) config; missing fields default."""
+        path = Path(path)
+        if not path.is_file():
+            # A bare name picks a shipped preset.
+            if path.suffix == "" and len(path.parts) == 1:
+                return cls.preset(str(path))
+            raise InputError("config file not found", source=path)
+        return cls.from_mapping(_parse(path.read_text(encoding="utf-8"), path.name), path)
+
+    @classmethod
+    def from_mapping(cls, data: Any, source: str | Path = "config") -> TrainConfig:
+        """Validate a nested mapping; raise InputError naming the bad field."""
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise InputError("a config is a mapping with model/train/data sections", source)
+        data = dict(data)
+        model = data.get("model")
+        if isinstance(model, dict) and "preset" in model:
+            # ``model: {preset: compact, num_points: 1024}`` starts from a shipped model config.
+            model = dict(model)
+            base = getattr(ModelConfig, str(model.pop("preset")))()
+            data["model"] = base.model_copy(update=model).model_dump()
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            field = ".".join(str(p) for p in err["loc"])
+            raise InputError(f"{field}: {err['msg']}", source=source) from None
+
+    def with_overrides(self, overrides: dict[str, Any]) -> TrainConfig:
+        """Return a copy with dotted fields (``"train.lr"``) replaced; ``None`` values ignored."""
+        data = self.model_dump()
+        for key, value in overrides.items():
+            if value is None:
+                continue
+            section, _, field = key.partition(".")
+            if section not in data or not isinstance(data[section], dict) or not field:
+                raise InputError(f"unknown config field {key!r}", source=key)
+            data[section][field] = value
+        return TrainConfig.from_mapping(data, "command line")
+
+    def to_yaml(self) -> str:
+        """The config as YAML text (every field)."""
+        import yaml
+
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+def _parse(text: str, name: str) -> Any:
+    try:
+        if name.endswith(".toml"):
+            try:
+                import tomllib
+            except ImportError:  # Python 3.10
+                raise InputError("TOML configs need Python 3.11; use YAML", source=name) from None
+            return tomllib.loads(text)
+        import yaml
+
+        return yaml.safe_load(text)
+    except Exception as exc:  # yaml.YAMLError / tomllib.TOMLDecodeError
+        raise InputError(f"cannot parse config: {exc}", source=name) from None

@@ -1,0 +1,191 @@
+"""Evaluation: recall on hand-made cases with known descriptors, the JSON report, figures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pnvlad_service import evaluate
+from pnvlad_service.dataset import EvalRun
+from pnvlad_service.errors import InputError
+
+
+def mean_embedder(points: np.ndarray) -> np.ndarray:
+    """A fixed "encoder": the mean point of each cloud (float32 [B, 3])."""
+    return points.mean(axis=1).astype(np.float32)
+
+
+def write_cloud(path: Path, code: np.ndarray) -> Path:
+    """A .npy submap whose mean point is ``code`` (so its mean_embedder descriptor is known)."""
+    rng = np.random.default_rng(abs(hash(path.name)) % 2**32)
+    pts = rng.normal(scale=0.05, size=(64, 3))
+    pts = pts - pts.mean(0) + code
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(path, pts.astype(np.float64))
+    return path
+
+
+def hand_case(tmp: Path, confuse: bool = True) -> tuple[list[EvalRun], dict]:
+    """3 runs along a line, submaps every 20 m at northings 0..180; every submap is a query.
+    Descriptors encode the position, except run 2's submaps at 100 m and 140 m, which look like
+    the place 60 m further on. Returns the runs and the descriptors by (run, k)."""
+    runs = []
+    desc = {}
+    north = np.arange(10) * 20.0
+    for r in range(3):
+        paths = []
+        for k, n in enumerate(north):
+            code = np.array([n / 100.0, 0.1 * r / 100.0, 0.0])
+            if confuse and r == 2 and n in (100.0, 140.0):
+                code[0] = (n + 60.0) / 100.0
+                code[1] += 0.0005  # no exact tie with the real place 60 m on
+            desc[(r, k)] = code
+            paths.append(write_cloud(tmp / f"run{r}" / f"{k}.npy", code))
+        xy = np.stack([north, np.zeros(10)], axis=1)
+        runs.append(EvalRun(f"run{r}", paths, xy, list(paths), xy.copy(), [], area="line"))
+    for j, run in enumerate(runs):
+        run.truth = [
+            {i: np.flatnonzero(np.abs(north - north[q]) <= 25.0) for i in range(3) if i != j}
+            for q in range(10)
+        ]
+    return runs, desc
+
+
+def expected_recall(runs: list[EvalRun], desc: dict) -> tuple[list[float], float]:
+    """recall@1..25 and @1% by a plain loop over pairs and queries (no FAISS, no metrics.py)."""
+    per_pair_n, per_pair_pct = [], []
+    for i in range(len(runs)):
+        for j in range(len(runs)):
+            if i == j:
+                continue
+            db_size = len(runs[i].db_paths)
+            n_pct = max(round(db_size / 100), 1)
+            hits = [0] * 25
+            pct = 0
+            count = 0
+            for q in range(len(runs[j].query_paths)):
+                true = set(runs[j].truth[q][i].tolist())
+                if not true:
+                    continue
+                count += 1
+                dists = []
+                for k in range(db_size):
+                    d = sum(
+                        (float(desc[(j, q)][c]) - float(desc[(i, k)][c])) ** 2 for c in range(3)
+                    )
+                    dists.append((d, k))
+                ranked = [k for _, k in sorted(dists)]
+                for n in range(25):
+                    if any(k in true for k in ranked[: n + 1]):
+                        hits[n] += 1
+                pct += any(k in true for k in ranked[:n_pct])
+            per_pair_n.append([100.0 * h / count for h in hits])
+            per_pair_pct.append(100.0 * pct / count)
+    return list(np.mean(per_pair_n, axis=0)), float(np.mean(per_pair_pct))
+
+
+def test_recall_matches_plain_loop(tmp_path: Path) -> None:
+    runs, desc = hand_case(tmp_path)
+    rep = evaluate.evaluate_runs(mean_embedder, runs, 64, progress=False, joint=True)
+    exp_n, exp_pct = expected_recall(runs, desc)
+    assert rep["recall_at_n"] == pytest.approx(exp_n)
+    assert rep["recall_at_1pct"] == pytest.approx(exp_pct)
+    # Hand-worked: only the 2 pairs where run 2 gives the queries lose anything at N = 1: its two
+    # confused submaps are wrong, 2 of 10 queries; as a database run 2 still ranks the true
+    # place first (0.002 closer than the confused one).
+    assert rep["recall_at_1"] == pytest.approx(100 - 2 * 20 / 6)
+    assert rep["n_pairs"] == 6
+    assert rep["n_unique_submaps"] == 30  # every query is also a database submap: embedded once
+    assert rep["per_area"]["line"]["recall_at_1"] == pytest.approx(rep["recall_at_1"])
+    # recall@1 by distance: at 25 m it is recall@1 (the ground-truth radius); the wrong top-1s
+    # lie 40 m (140 -> 180) and 60 m (100 -> 160) away, so 50 m forgives one of them.
+    th = rep["distance_thresholds_m"]
+    by_d = dict(zip(th, rep["recall_at_1_by_distance"], strict=True))
+    assert by_d[25.0] == pytest.approx(rep["recall_at_1"])
+    assert by_d[50.0] == pytest.approx(100 - 20 / 6)
+    assert by_d[2.5] < by_d[25.0]
+    shares = {q["run"]: q["top1_correct_share"] for q in rep["queries"]}
+    assert shares["run2"][5] == 0.0 and shares["run0"][0] == 1.0
+    j = rep["joint"]
+    assert j["n_db"] == 30 and j["n_queries"] == 30
+    assert 0 < j["recall_at_1"] < 100
+
+
+def test_perfect_descriptors_give_full_recall(tmp_path: Path) -> None:
+    runs, _ = hand_case(tmp_path, confuse=False)
+    rep = evaluate.evaluate_runs(mean_embedder, runs, 64, progress=False)
+    assert rep["recall_at_1"] == pytest.approx(100.0)
+    assert rep["recall_at_1pct"] == pytest.approx(100.0)
+
+
+def test_queries_without_truth_are_skipped(tmp_path: Path) -> None:
+    runs, desc = hand_case(tmp_path)
+    for run in runs:  # queries 0..4 lose their ground truth
+        for q in range(5):
+            run.truth[q] = {i: np.zeros(0, dtype=np.int64) for i in run.truth[q]}
+    rep = evaluate.evaluate_runs(mean_embedder, runs, 64, progress=False)
+    exp_n, _ = expected_recall(runs, desc)
+    assert rep["n_queries_evaluated"] == 6 * 5
+    assert rep["recall_at_n"] == pytest.approx(exp_n)
+
+
+def test_report_json_round_trip_and_figures(tmp_path: Path) -> None:
+    runs, _ = hand_case(tmp_path / "data")
+    rep = evaluate.evaluate_runs(
+        mean_embedder, runs, 64, progress=False, encoder_info={"kind": "test"}
+    )
+    path = evaluate.write_report(rep, tmp_path / "out" / "report.json")
+    back = evaluate.read_report(path)
+    for key in (
+        "format",
+        "version",
+        "encoder",
+        "recall_at_n",
+        "recall_at_1",
+        "recall_at_1pct",
+        "per_area",
+        "per_pair",
+        "queries",
+        "n_db",
+        "n_queries",
+        "runs",
+    ):
+        assert key in back
+    assert len(back["recall_at_n"]) == 25
+    assert back["encoder"] == {"kind": "test"}
+    assert json.loads(path.read_text())["recall_at_1"] == pytest.approx(rep["recall_at_1"])
+    pytest.importorskip("matplotlib")
+    png = evaluate.plot_recall_curves([("a", back), ("b", back)], tmp_path / "out" / "r.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    png2 = evaluate.plot_query_map(back, tmp_path / "out" / "map.png")
+    assert png2.stat().st_size > 1000
+
+
+def test_bad_inputs(tmp_path: Path) -> None:
+    runs, _ = hand_case(tmp_path)
+    with pytest.raises(InputError):
+        evaluate.evaluate_runs(mean_embedder, runs[:1], 64, progress=False)
+    (tmp_path / "x.json").write_text('{"format": "other"}')
+    with pytest.raises(InputError):
+        evaluate.read_report(tmp_path / "x.json")
+
+
+def test_real_model_path_on_tiny_model(tmp_path: Path) -> None:
+    """A tiny real network through model_embedder: descriptors of unit norm, recall in range."""
+    torch = pytest.importorskip("torch")
+    from pnvlad_service.models.config import ModelConfig
+    from pnvlad_service.models.pointnetvlad import build_model
+
+    runs, _ = hand_case(tmp_path)
+    torch.manual_seed(0)
+    cfg = ModelConfig.compact(num_points=64, cluster_size=4, output_dim=16)
+    model = build_model(cfg)
+    emb = evaluate.model_embedder(model)
+    d = evaluate.embed_paths(emb, runs[0].db_paths, 64, chunk=3)
+    assert d.shape == (10, 16) and d.dtype == np.float32
+    assert np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4)
+    rep = evaluate.evaluate_runs(emb, runs, 64, progress=False)
+    assert 0.0 <= rep["recall_at_1"] <= rep["recall_at_n"][-1] <= 100.0

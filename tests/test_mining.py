@@ -1,0 +1,156 @@
+"""Mining: hard negatives, other negatives, in-batch tuples, the anchor sampler."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pnvlad_service import mining
+from pnvlad_service.dataset import TrainingSet
+
+
+def line_set(n: int = 60, spacing: float = 5.0) -> TrainingSet:
+    """Submaps every ``spacing`` m along a line; positives within 10 m, negatives beyond 50 m."""
+    pos = np.stack([np.arange(n) * spacing, np.zeros(n)], axis=1)
+    positives = [
+        np.array([j for j in range(n) if j != i and abs(pos[j, 0] - pos[i, 0]) <= 10.0])
+        for i in range(n)
+    ]
+    return TrainingSet([f"s{i}.bin" for i in range(n)], pos, positives)
+
+
+def test_closest_matches_plain_loop() -> None:
+    rng = np.random.default_rng(3)
+    cand = rng.normal(size=(200, 8)).astype(np.float32)
+    a = rng.normal(size=8).astype(np.float32)
+    got = mining.closest(a, cand, 7)
+    dists = []
+    for i in range(len(cand)):
+        s = 0.0
+        for k in range(8):
+            s += (float(cand[i, k]) - float(a[k])) ** 2
+        dists.append((s, i))
+    assert got.tolist() == [i for _, i in sorted(dists)[:7]]
+
+
+def test_pick_negatives_takes_the_closest_cached_ones() -> None:
+    ts = line_set()
+    rng = np.random.default_rng(0)
+    cache = np.random.default_rng(1).normal(size=(len(ts), 16)).astype(np.float32)
+    anchor = 5
+    # sampled >= number of negatives: the pool is every negative, so the hard ones are the
+    # globally closest negatives in descriptor space
+    neg = mining.pick_negatives(rng, ts, anchor, 18, cache=cache, hard=10, sampled=10_000)
+    true_negs = [
+        j for j in range(len(ts)) if abs(ts.positions[j, 0] - ts.positions[anchor, 0]) > 50
+    ]
+    expected = sorted(true_negs, key=lambda j: (float(((cache[j] - cache[anchor]) ** 2).sum()), j))
+    assert neg[:10].tolist() == expected[:10]
+    assert len(set(neg.tolist())) == 18
+    assert set(neg.tolist()) <= set(true_negs)
+
+
+def test_pick_negatives_without_cache_are_random_negatives() -> None:
+    ts = line_set()
+    rng = np.random.default_rng(0)
+    a = mining.pick_negatives(rng, ts, 30, 18)
+    b = mining.pick_negatives(rng, ts, 30, 18)
+    for neg in (a, b):
+        assert len(set(neg.tolist())) == 18
+        assert np.all(np.abs(ts.positions[neg, 0] - ts.positions[30, 0]) > 50)
+    assert a.tolist() != b.tolist()
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 59), st.integers(0, 2**31))
+def test_other_negative_is_far_from_the_whole_tuple(anchor: int, seed: int) -> None:
+    ts = line_set()
+    rng = np.random.default_rng(seed)
+    pos = rng.choice(ts.positives[anchor], 2)
+    neg = mining.pick_negatives(rng, ts, anchor, 6)
+    o = mining.pick_other_negative(rng, ts, anchor, pos, neg)
+    assert o not in {anchor, *pos.tolist(), *neg.tolist()}
+    assert abs(ts.positions[o, 0] - ts.positions[anchor, 0]) > 50
+    for n in neg.tolist():
+        assert o not in ts.positives[n].tolist()
+
+
+def test_sample_tuples_shapes_and_membership() -> None:
+    ts = line_set()
+    rng = np.random.default_rng(0)
+    anchors = np.array([3, 40])
+    tb = mining.sample_tuples(rng, ts, anchors, positives=2, negatives=18)
+    assert tb.table().shape == (2, 22)
+    for r, a in enumerate(anchors.tolist()):
+        assert set(tb.positives[r].tolist()) <= set(ts.positives[a].tolist())
+
+
+def test_anchor_sampler_state_round_trip() -> None:
+    s = mining.AnchorSampler(np.arange(10), seed=4)
+    for _ in range(3):
+        s.next(3)
+    saved = s.state()
+    ahead = [s.next(3).tolist() for _ in range(5)]
+    s2 = mining.AnchorSampler(np.arange(10), seed=99)
+    s2.load_state(saved)
+    assert [s2.next(3).tolist() for _ in range(5)] == ahead
+    # every epoch visits distinct anchors
+    s3 = mining.AnchorSampler(np.arange(10), seed=1)
+    epoch = np.concatenate([s3.next(3) for _ in range(3)])
+    assert len(set(epoch.tolist())) == 9
+
+
+def test_anchors_skip_submaps_with_fewer_than_two_positives() -> None:
+    pos = np.array([[0.0, 0], [5, 0], [100, 0], [200, 0], [206, 0], [213, 0]])
+    positives = [
+        np.array([j for j in range(6) if j != i and np.hypot(*(pos[j] - pos[i])) <= 10])
+        for i in range(6)
+    ]
+    ts = TrainingSet([f"{i}" for i in range(6)], pos, positives)
+    assert ts.anchors().tolist() == [4]  # only 206 m has two positives (200 and 213)
+
+
+def test_in_batch_tuples_against_plain_loop() -> None:
+    ts = line_set(40)
+    rng = np.random.default_rng(2)
+    members = mining.in_batch_members(rng, ts, np.array([0, 12, 25, 38]))
+    pos, neg = mining.pair_masks(ts, members)
+    for i, a in enumerate(members.tolist()):
+        for j, b in enumerate(members.tolist()):
+            d = abs(ts.positions[a, 0] - ts.positions[b, 0])
+            assert pos[i, j] == (i != j and d <= 10)
+            assert neg[i, j] == (d > 50)
+    desc = rng.normal(size=(len(members), 4)).astype(np.float32)
+    tb = mining.in_batch_tuples(desc, pos, neg, negatives=18)
+    assert tb is not None
+    k = tb.negatives.shape[1]
+    assert k == min(18, min(neg[i].sum() for i in range(len(members)) if pos[i].any()))
+    for r, i in enumerate(tb.anchors.tolist()):
+        d2 = [float(((desc[i] - desc[j]) ** 2).sum()) for j in range(len(members))]
+        p_list = [j for j in range(len(members)) if pos[i, j]]
+        assert tb.positives[r, 0] == max(p_list, key=lambda j: d2[j])
+        n_list = sorted((j for j in range(len(members)) if neg[i, j]), key=lambda j: (d2[j], j))
+        assert tb.negatives[r].tolist() == n_list[:k]
+        assert neg[i, tb.others[r]]
+
+
+def test_in_batch_tuples_none_when_no_pairs() -> None:
+    desc = np.zeros((3, 2), dtype=np.float32)
+    z = np.zeros((3, 3), dtype=bool)
+    assert mining.in_batch_tuples(desc, z, z, 5) is None
+
+
+def test_negative_lists_from_pickle_style_sets() -> None:
+    ts = TrainingSet(
+        ["a", "b", "c", "d"],
+        np.zeros((4, 2)),
+        [[1], [0], [3], [2]],
+        near=[[0, 1], [0, 1], [2, 3], [2, 3]],
+    )
+    rng = np.random.default_rng(0)
+    assert sorted(ts.sample_negatives(rng, 0, 5).tolist()) == [2, 3]
+    assert ts.negative_mask(2, np.array([0, 1, 3])).tolist() == [True, True, False]
+    with pytest.raises(ValueError):
+        mining.AnchorSampler(np.array([], dtype=np.int64), 0)
