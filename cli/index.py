@@ -1,7 +1,215 @@
-"""`pnvlad index` commands."""
+"""`pnvlad index`: build a FAISS index bundle of a map, append runs, inspect a bundle.
+
+Library imports happen inside the commands so that `pnvlad --help` stays fast.
+"""
 
 from __future__ import annotations
 
+import json
+import re
+from pathlib import Path
+
 import typer
 
-app = typer.Typer(help="index commands.", no_args_is_help=True)
+from pnvlad_cli.common import user_errors
+
+app = typer.Typer(
+    help="Build and inspect FAISS index bundles (the map `pnvlad serve` searches).\n\n"
+    "A bundle is a directory: index.faiss, metadata.npz (one row per submap: run, timestamp, "
+    "UTM northing/easting, path) and manifest.json (model and file sha256s).",
+    no_args_is_help=True,
+)
+
+_UNITS = {"": 1, "b": 1, "k": 1e3, "kb": 1e3, "kib": 2**10, "m": 1e6, "mb": 1e6, "mib": 2**20,
+          "g": 1e9, "gb": 1e9, "gib": 2**30, "t": 1e12, "tb": 1e12, "tib": 2**40}  # fmt: skip
+
+
+def parse_size(text: str) -> int:
+    """'8GB', '512MiB', '1e9' -> bytes."""
+    m = re.fullmatch(r"\s*([0-9.eE+]+)\s*([a-zA-Z]*)\s*", text)
+    if not m or m.group(2).lower() not in _UNITS:
+        raise typer.BadParameter(f"not a size: {text!r} (e.g. 8GB, 512MiB)")
+    try:
+        return int(float(m.group(1)) * _UNITS[m.group(2).lower()])
+    except ValueError:
+        raise typer.BadParameter(f"not a size: {text!r} (e.g. 8GB, 512MiB)") from None
+
+
+_CHECKPOINT = typer.Option(
+    ..., "--checkpoint", "-c", help="Model checkpoint directory (model.json + model.safetensors)."
+)
+_ROOT = typer.Option(..., "--root", "-r", help="Benchmark tree root (holds oxford/ etc.).")
+_DATASET = typer.Option(
+    None, "--dataset", "-d", help="Dataset folder to index (repeatable; default: all)."
+)
+_RUNS = typer.Option(None, "--run", help="Run folder to index (repeatable; default: all).")
+_LAYOUT = typer.Option(
+    "test",
+    "--layout",
+    help="Which submaps: 'test' (pointcloud_20m, every 20 m: the evaluation database) or "
+    "'train' (pointcloud_20m_10overlap, every 10 m).",
+)
+_BATCH = typer.Option(32, "--batch-size", "-b", help="Clouds embedded per forward pass.")
+
+
+@app.command()
+def build(
+    checkpoint: Path = _CHECKPOINT,
+    root: Path = _ROOT,
+    out: Path = typer.Option(..., "--out", "-o", help="Bundle directory to write."),
+    dataset: list[str] = _DATASET,
+    run: list[str] = _RUNS,
+    layout: str = _LAYOUT,
+    index_key: str = typer.Option(
+        "Flat",
+        "--index-key",
+        "-k",
+        help="FAISS factory string: Flat (exact, default), HNSW32, IVF1024,Flat, "
+        "IVF1024,PQ32, ... or 'auto' (by vector count and --memory-budget, FAISS guidelines).",
+    ),
+    memory_budget: str = typer.Option(
+        "8GiB", "--memory-budget", help="Memory the index may use, for --index-key auto."
+    ),
+    batch_size: int = _BATCH,
+    recall_sample: int = typer.Option(
+        1000, help="Database vectors used to measure recall@1 of approximate indexes."
+    ),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing bundle."),
+) -> None:
+    """Embed every database submap of a benchmark tree and write an index bundle.
+
+    The bundle is built in a temporary directory and renamed at the end: an interrupted build
+    leaves nothing that looks complete. Prints the embedding throughput and, for approximate
+    indexes, recall@1 against exact search on a sample of the map's own descriptors.
+
+    Sharded: run under torchrun (e.g. torchrun --nproc-per-node 2 -m pnvlad_cli.main index
+    build ...); each rank embeds a contiguous shard, rank 0 writes the same bundle.
+
+    Example: pnvlad index build -c runs/model -r benchmark_datasets -d oxford -o map.index
+    """
+    from pnvlad_service.index import build_bundle
+
+    budget = parse_size(memory_budget)
+    with user_errors():
+        rep = build_bundle(
+            out,
+            checkpoint,
+            root,
+            datasets=dataset or None,
+            runs=run or None,
+            layout=layout,
+            index_key=index_key,
+            memory_budget=budget,
+            batch_size=batch_size,
+            recall_sample=recall_sample,
+            overwrite=overwrite,
+        )
+    if rep.path is None:  # a non-zero torchrun rank
+        return
+    typer.echo(
+        f"embedded {rep.count} submaps in {rep.embed_seconds:.1f} s "
+        f"({rep.clouds_per_second:.1f} clouds/s); index {rep.index_key} built in "
+        f"{rep.index_seconds:.2f} s"
+    )
+    if rep.recall_at_1 is not None:
+        typer.echo(f"recall@1 against exact search: {rep.recall_at_1:.4f}")
+    typer.echo(f"wrote {rep.path}")
+
+
+@app.command()
+def add(
+    bundle: Path = typer.Argument(..., help="Existing bundle directory (rewritten atomically)."),
+    checkpoint: Path = _CHECKPOINT,
+    root: Path = _ROOT,
+    dataset: list[str] = _DATASET,
+    run: list[str] = _RUNS,
+    layout: str = _LAYOUT,
+    batch_size: int = _BATCH,
+) -> None:
+    """Append new runs to a bundle.
+
+    The checkpoint must be the one the bundle was built with (same weights sha256); submaps
+    already in the bundle are refused.
+
+    Example: pnvlad index add map.index -c runs/model -r benchmark_datasets \
+      --run 2015-02-03-08-45-10
+    """
+    from pnvlad_service.index import add_to_bundle
+
+    with user_errors():
+        rep = add_to_bundle(
+            bundle,
+            checkpoint,
+            root,
+            datasets=dataset or None,
+            runs=run or None,
+            layout=layout,
+            batch_size=batch_size,
+        )
+    typer.echo(
+        f"added {rep.count} submaps ({rep.clouds_per_second:.1f} clouds/s); "
+        f"{rep.manifest['count']} vectors in {rep.path}"
+    )
+
+
+@app.command()
+def info(
+    bundle: Path = typer.Argument(..., help="Bundle directory."),
+    as_json: bool = typer.Option(False, "--json", help="Print the whole manifest as JSON."),
+) -> None:
+    """Print a bundle's manifest and check every file's sha256 (and the model's, if present).
+
+    Exits 1 when a file does not match its recorded hash.
+
+    Example: pnvlad index info map.index
+    """
+    from pnvlad_service.index import read_manifest, verify_bundle
+
+    with user_errors():
+        manifest = read_manifest(bundle)
+        checks = verify_bundle(bundle, manifest)
+    model = manifest.get("model", {})
+    ckpt = model.get("checkpoint")
+    ckpt_state = "not recorded"
+    if ckpt:
+        wfile = Path(ckpt) / "model.safetensors"
+        if wfile.is_file():
+            from pnvlad_service.index import sha256_file
+
+            same = sha256_file(wfile) == model.get("weights_sha256")
+            ckpt_state = "OK (same weights)" if same else "DIFFERENT weights"
+        else:
+            ckpt_state = "missing"
+    if as_json:
+        typer.echo(json.dumps({"manifest": manifest, "files_ok": checks}, indent=2))
+    else:
+        rows = [
+            ("bundle", str(bundle)),
+            ("format", f"{manifest['format']} v{manifest['version']}"),
+            ("index", f"{manifest['index_key']} ({manifest['metric']}, d={manifest['dim']})"),
+            ("vectors", str(manifest["count"])),
+            ("search params", json.dumps(manifest.get("search_params", {}))),
+            ("recall@1 vs exact", str(manifest.get("recall_at_1_vs_exact"))),
+            ("model weights", model.get("weights_sha256", "?")),
+            ("model config", model.get("config_sha256", "?")),
+            ("checkpoint", f"{ckpt} [{ckpt_state}]"),
+            ("created", manifest.get("created", "?")),
+            ("modified", manifest.get("modified", "?")),
+        ]
+        for entry in manifest.get("indexed", []):
+            rows.append(
+                (
+                    "indexed",
+                    f"{entry['count']} {entry['layout']} submaps of "
+                    f"{', '.join(entry['datasets'])}: {len(entry['runs'])} runs from "
+                    f"{entry['root']}",
+                )
+            )
+        for name, ok in checks.items():
+            rows.append((name, "sha256 OK" if ok else "sha256 MISMATCH"))
+        width = max(len(k) for k, _ in rows)
+        for k, v in rows:
+            typer.echo(f"{k:<{width}}  {v}")
+    if not all(checks.values()):
+        typer.secho("error: some files do not match the manifest", err=True, fg="red")
+        raise typer.Exit(code=1)

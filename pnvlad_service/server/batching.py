@@ -1,0 +1,155 @@
+"""A micro-batcher: one worker thread embeds and searches queued clouds together.
+
+Handlers call :meth:`MicroBatcher.submit` with a preprocessed cloud float32 [4096, 3] and get a
+``concurrent.futures.Future``. The worker takes the first queued cloud, every other one already
+queued (up to ``max_size``) and, for up to ``wait_ms``, the ones whose requests are still being
+parsed (announced with :meth:`MicroBatcher.announce`). A lone request therefore never waits,
+while concurrent ones share one forward pass and one FAISS search.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: (clouds float32 [B, N, 3], k) -> (distances float32 [B, k], ids int64 [B, k], embed s, search s)
+BatchFn = Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray, float, float]]
+
+
+@dataclass
+class BatchResult:
+    """One cloud's answer: its row of distances and ids, and its stage times (seconds)."""
+
+    distances: np.ndarray
+    ids: np.ndarray
+    queue_s: float
+    embed_s: float
+    search_s: float
+    batch_size: int
+
+
+@dataclass
+class _Item:
+    cloud: np.ndarray
+    top_n: int
+    future: Future
+    enqueued: float
+
+
+class MicroBatcher:
+    """Collect clouds from many requests; run ``fn`` on small batches in one thread."""
+
+    def __init__(
+        self,
+        fn: BatchFn,
+        max_size: int = 32,
+        wait_ms: float = 2.0,
+        on_batch: Callable[[int], None] | None = None,
+        name: str = "pnvlad-batcher",
+    ) -> None:
+        self.fn = fn
+        self.max_size = max_size
+        self.wait_s = wait_ms / 1000.0
+        self.on_batch = on_batch
+        self._queue: queue.Queue[_Item | None] = queue.Queue()
+        self._announced = 0
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._closed = False
+        self._thread.start()
+
+    @contextlib.contextmanager
+    def announce(self, count: int = 1) -> Iterator[None]:
+        """Tell the worker ``count`` clouds are on their way (while a request is parsed)."""
+        with self._lock:
+            self._announced += count
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._announced -= count
+
+    def submit(self, cloud: np.ndarray, top_n: int) -> Future:
+        """Queue one cloud float32 [N, 3]; the future resolves to a :class:`BatchResult`."""
+        if self._closed:
+            raise RuntimeError("batcher is closed")
+        fut: Future = Future()
+        self._queue.put(_Item(cloud, top_n, fut, time.perf_counter()))
+        return fut
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Finish queued work and stop the worker."""
+        if not self._closed:
+            self._closed = True
+            self._queue.put(None)
+            self._thread.join(timeout)
+
+    def _collect(self, first: _Item) -> tuple[list[_Item], bool]:
+        batch = [first]
+        stop = False
+        deadline = time.perf_counter() + self.wait_s
+        while len(batch) < self.max_size:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                with self._lock:
+                    expecting = self._announced > 0
+                remaining = deadline - time.perf_counter()
+                if not expecting or remaining <= 0:
+                    break
+                try:
+                    item = self._queue.get(timeout=remaining)
+                except queue.Empty:
+                    break
+            if item is None:
+                stop = True
+                break
+            batch.append(item)
+        return batch, stop
+
+    def _run(self) -> None:
+        while True:
+            first = self._queue.get()
+            if first is None:
+                return
+            batch, stop = self._collect(first)
+            batch = [it for it in batch if it.future.set_running_or_notify_cancel()]
+            if batch:
+                self._process(batch)
+            if stop:
+                return
+
+    def _process(self, batch: list[_Item]) -> None:
+        start = time.perf_counter()
+        try:
+            clouds = np.stack([it.cloud for it in batch]).astype(np.float32, copy=False)
+            k = max(it.top_n for it in batch)
+            distances, ids, embed_s, search_s = self.fn(clouds, k)
+        except BaseException as exc:  # handed to the waiting requests, worker lives on
+            log.exception("batch of %d failed", len(batch))
+            for it in batch:
+                it.future.set_exception(exc)
+            return
+        if self.on_batch:
+            self.on_batch(len(batch))
+        for row, it in enumerate(batch):
+            it.future.set_result(
+                BatchResult(
+                    distances=distances[row, : it.top_n],
+                    ids=ids[row, : it.top_n],
+                    queue_s=start - it.enqueued,
+                    embed_s=embed_s,
+                    search_s=search_s,
+                    batch_size=len(batch),
+                )
+            )

@@ -1,0 +1,116 @@
+"""Request and response schemas, for the OpenAPI document and for clients.
+
+The handlers parse bodies themselves (JSON, raw float arrays and ``.npy`` share one endpoint),
+so these models describe the JSON forms; :mod:`pnvlad_service.server.service` enforces them.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Point = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class LocalizeRequest(BaseModel):
+    """One query cloud."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    points: list[Point] = Field(
+        ...,
+        min_length=1,
+        description="Exactly 4096 preprocessed points in the benchmark's normalised frame "
+        "([-1, 1]), or with preprocess=true a raw scan (sensor frame, metres) of any size up "
+        "to the server's limit.",
+    )
+    top_n: int = Field(5, ge=1, description="Matches to return (at most the server's max_top_n).")
+    preprocess: bool = Field(False, description="Run the filter G on a raw scan first.")
+
+
+class BatchQuery(BaseModel):
+    """One cloud of a batch."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    points: list[Point] = Field(..., min_length=1)
+    preprocess: bool = False
+
+
+class BatchRequest(BaseModel):
+    """Several clouds, embedded as one batch."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    queries: list[BatchQuery] = Field(..., min_length=1)
+    top_n: int = Field(5, ge=1)
+
+
+class MatchOut(BaseModel):
+    """A database submap, nearest first; distance is Euclidean in descriptor space."""
+
+    rank: int
+    submap_id: str
+    dataset: str
+    run: str
+    timestamp: int = Field(..., description="Microseconds.")
+    northing: float = Field(..., description="UTM metres.")
+    easting: float = Field(..., description="UTM metres.")
+    utm_zone: str | None = None
+    distance: float | None
+
+
+class Timings(BaseModel):
+    """Milliseconds spent per stage."""
+
+    parse: float = 0.0
+    preprocess: float = 0.0
+    queue: float = 0.0
+    embed: float = 0.0
+    search: float = 0.0
+    total: float = 0.0
+
+
+class ModelOut(BaseModel):
+    weights_sha256: str
+    config_sha256: str
+    arch: str | None = None
+    dim: int
+
+
+class IndexOut(BaseModel):
+    id: str
+    key: str
+    count: int
+
+
+class LocalizeResponse(BaseModel):
+    matches: list[MatchOut]
+    timings_ms: Timings
+    batch_size: int = Field(..., description="Clouds embedded together with this one.")
+    model: ModelOut
+    index: IndexOut
+
+
+class BatchItem(BaseModel):
+    matches: list[MatchOut]
+    timings_ms: Timings
+    batch_size: int
+
+
+class BatchResponse(BaseModel):
+    results: list[BatchItem]
+    timings_ms: Timings
+    model: ModelOut
+    index: IndexOut
+
+
+class Health(BaseModel):
+    status: str
+
+
+class Info(BaseModel):
+    manifest: dict[str, Any]
+    model: dict[str, Any]
+    limits: dict[str, Any]

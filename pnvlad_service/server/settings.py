@@ -1,0 +1,50 @@
+"""Server settings: environment variables with the prefix ``PNVLAD_`` (e.g. ``PNVLAD_INDEX``).
+
+``pnvlad serve`` turns its options into these variables, so a container or a process manager
+configures the service the same way.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class ServerSettings(BaseSettings):
+    """Everything the HTTP service reads at start-up."""
+
+    model_config = SettingsConfigDict(env_prefix="PNVLAD_", extra="ignore")
+
+    index: Path | None = Field(None, description="Index bundle directory (pnvlad index build).")
+    checkpoint: Path | None = Field(
+        None,
+        description="Model checkpoint directory; default: the one recorded in the bundle. "
+        "Its weights must be the ones the bundle was built with.",
+    )
+    host: str = Field("127.0.0.1", description="Interface to bind (loopback unless told).")
+    port: int = Field(8000, ge=0, le=65535)
+    workers: int = Field(1, ge=1, description="Server processes (each loads model and index).")
+    api_key: SecretStr | None = Field(
+        None, description="When set, /localize* and /info need 'Authorization: Bearer <key>'."
+    )
+    max_body_bytes: int = Field(
+        32 * 1024 * 1024, ge=1024, description="Largest request body accepted (bytes)."
+    )
+    max_raw_points: int = Field(
+        500_000, ge=4096, description="Most points of a raw scan sent with preprocess=true."
+    )
+    max_top_n: int = Field(100, ge=1, description="Largest top_n a request may ask for.")
+    max_batch_queries: int = Field(64, ge=1, description="Most queries in /localize/batch.")
+    batch_max_size: int = Field(32, ge=1, description="Most clouds embedded in one batch.")
+    batch_wait_ms: float = Field(
+        2.0,
+        ge=0.0,
+        le=100.0,
+        description="How long the batcher waits for requests already being parsed (ms).",
+    )
+    torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
+    faiss_threads: int | None = Field(None, ge=1, description="FAISS OpenMP threads.")
+    device: str | None = Field(None, description="torch device for the encoder (default cpu).")
+    verify_bundle: bool = Field(True, description="Check the bundle's sha256s at start-up.")
