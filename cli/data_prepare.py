@@ -232,6 +232,10 @@ def prepare(
         config = None
         if g_config is not None:
             config = _load_g_config(g_config)
+        if test_stride is not None and kind != "both":
+            raise InputError("--test-stride goes with --kind both (else use --stride)", "--kind")
+        if resume and overwrite:
+            raise InputError("--resume and --overwrite exclude each other", "--resume")
         kinds = ("train", "test") if kind == "both" else (kind,)
         strides: dict[str, float] = {}
         if stride is not None:

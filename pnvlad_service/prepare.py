@@ -799,16 +799,26 @@ def prepare_drive(
     travelled = travelled_distance(poses)
 
     # Plan: for each kind its cuts; windows are keyed by their centre distance.
+    resolved = [
+        (kind, *_resolve(layout, kind, window_m, box_m, strides.get(kind)))
+        for kind in dict.fromkeys(kinds)
+    ]
     plans: list[tuple[LayoutResult, float | None, list[Cut]]] = []
     jobs: dict[tuple[float, float], dict[str, Any]] = {}
-    for kind in dict.fromkeys(kinds):
-        folder, csv_name, window, box, stride = _resolve(
-            layout, kind, window_m, box_m, strides.get(kind)
-        )
+    for kind, folder, csv_name, window, box, stride in resolved:
         res = LayoutResult(kind=kind, folder=out / folder, csv=out / csv_name)
         cuts = submap_cuts(travelled, window, stride)
         res.submaps = len(cuts)
         plans.append((res, box, cuts))
+        for cut in cuts:
+            key = (round(cut.distance_m, 6), window)
+            job = jobs.setdefault(key, {"cut": cut, "box": box, "targets": []})
+            if job["box"] != box:
+                raise InputError("kinds sharing a window must share the box", "box_m")
+            job["targets"].append((res, res.folder / f"{stamps[cut.scan]}.bin"))
+    # Only now, with every argument checked, touch the output folders.
+    manifests: list[tuple[LayoutResult, dict[str, Any]]] = []
+    for (res, box, _), (kind, _, _, window, _, stride) in zip(plans, resolved, strict=True):
         manifest = {
             "format": "pnvlad-prepare",
             "version": 1,
@@ -825,13 +835,12 @@ def prepare_drive(
             "scan_step": scan_step,
             "g_config": _config_dump(config),
         }
-        _claim_output(res, manifest, out, resume=resume, overwrite=overwrite)
-        for cut in cuts:
-            key = (round(cut.distance_m, 6), window)
-            job = jobs.setdefault(key, {"cut": cut, "box": box, "targets": []})
-            if job["box"] != box:
-                raise InputError("kinds sharing a window must share the box", "box_m")
-            job["targets"].append((res, res.folder / f"{stamps[cut.scan]}.bin"))
+        manifests.append((res, manifest))
+    for check_only in (True, False):  # refuse before touching anything
+        for res, manifest in manifests:
+            _claim_output(
+                res, manifest, out, resume=resume, overwrite=overwrite, check_only=check_only
+            )
 
     cache = _ScanCache(
         drive, seed=seed, max_points_per_scan=max_points_per_scan, max_range_m=max_range_m
@@ -902,7 +911,13 @@ def prepare_drive(
 
 
 def _claim_output(
-    res: LayoutResult, manifest: dict[str, Any], out: Path, *, resume: bool, overwrite: bool
+    res: LayoutResult,
+    manifest: dict[str, Any],
+    out: Path,
+    *,
+    resume: bool,
+    overwrite: bool,
+    check_only: bool = False,
 ) -> None:
     """Check (resume) or reset (overwrite) a layout folder and record the run's parameters.
 
@@ -927,14 +942,16 @@ def _claim_output(
                     f"({', '.join(diff)}); pass the same options or --overwrite",
                     manifest_path,
                 )
-        elif existing:
+        elif existing and not check_only:
             log.warning("%s: no record of the previous parameters; resuming anyway", res.folder)
-    elif existing or res.csv.exists():
-        if not overwrite:
-            raise FileExistsError(
-                f"{res.folder}: already holds {len(existing)} submaps (pass --resume to finish "
-                "an interrupted run or --overwrite to start again)"
-            )
+    elif (existing or res.csv.exists()) and not overwrite:
+        raise FileExistsError(
+            f"{res.folder}: already holds {len(existing)} submaps or {res.csv.name} exists (pass "
+            "--resume to finish an interrupted run or --overwrite to start again)"
+        )
+    if check_only:
+        return
+    if not resume:
         for f in existing:
             f.unlink()
     if res.csv.exists() and not resume:

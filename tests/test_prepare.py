@@ -1,0 +1,550 @@
+"""Tests of pnvlad_service.prepare (drives -> submaps) and `pnvlad data prepare`.
+
+Drives are built in tmp_path from the real KITTI scans (symlinked, never copied into the repo)
+with poses along a straight line, so several submaps are cut; expectations are computed
+independently (hand-worked pose conversions, a plain loop over travelled distance).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.prepare import (
+    SUBMAP_BYTES,
+    CsvDrive,
+    Drive,
+    KittiSequence,
+    kitti_poses_to_world,
+    prepare_drive,
+    prepare_run,
+    submap_cuts,
+    travelled_distance,
+)
+
+FRAMES = 40  # scans in the synthetic KITTI sequence
+STEP_M = 1.5  # metres between consecutive scans (camera z, i.e. forward)
+FAST = {"max_points_per_scan": 2000, "progress": False}  # small windows keep G quick
+
+
+def make_kitti_sequence(
+    root: Path, real_scans: Path, frames: int = FRAMES, step: float = STEP_M
+) -> Path:
+    """A KITTI-style sequence: the two real scans alternating, camera moving along z."""
+    seq = root / "seq"
+    (seq / "velodyne").mkdir(parents=True)
+    names = ["kitti00_000000.bin", "kitti00_000005.bin"]
+    lines = []
+    for i in range(frames):
+        os.symlink(real_scans / names[i % 2], seq / "velodyne" / f"{i:06d}.bin")
+        lines.append(f"1 0 0 0 0 1 0 0 0 0 1 {step * i!r}")
+    (seq / "poses.txt").write_text("\n".join(lines) + "\n")
+    (seq / "times.txt").write_text("".join(f"{0.1 * i:.6f}\n" for i in range(frames)))
+    return seq
+
+
+class CountingDrive:
+    """A drive that counts scan reads and can fail at one scan (to interrupt a run)."""
+
+    def __init__(self, inner: Drive, fail_at: int | None = None) -> None:
+        self.inner = inner
+        self.name = inner.name
+        self.timestamps = inner.timestamps
+        self.poses = inner.poses
+        self.fail_at = fail_at
+        self.reads: list[int] = []
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def scan(self, i: int) -> np.ndarray:
+        if i == self.fail_at:
+            raise RuntimeError(f"simulated crash reading scan {i}")
+        self.reads.append(i)
+        return self.inner.scan(i)
+
+
+def read_csv_rows(path: Path) -> list[tuple[int, float, float]]:
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["timestamp", "northing", "easting"]
+    return [(int(t), float(n), float(e)) for t, n, e in rows[1:]]
+
+
+def tree_bytes(run: Path) -> dict[str, bytes]:
+    """Every submap and CSV of a run folder, by relative path."""
+    return {
+        str(p.relative_to(run)): p.read_bytes()
+        for p in sorted(run.rglob("*"))
+        if p.is_file() and not p.name.startswith(".")
+    }
+
+
+def plain_cuts(d: list[float], window: float, stride: float) -> list[tuple[int, list[int]]]:
+    """Reference cutting: (centre scan, window scans) by plain loops over travelled distance."""
+    out: list[tuple[int, list[int]]] = []
+    half = window / 2
+    k = 0
+    while half + k * stride + half <= d[-1]:
+        s = half + k * stride
+        k += 1
+        best = 0
+        for i in range(len(d)):
+            if abs(d[i] - s) < abs(d[best] - s):
+                best = i
+        if out and out[-1][0] == best:
+            continue
+        out.append((best, [i for i in range(len(d)) if s - half <= d[i] <= s + half]))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Pose conversion
+
+
+def test_kitti_forward_motion_becomes_velodyne_x_and_east() -> None:
+    cam = np.zeros((2, 3, 4))
+    cam[:, :, :3] = np.eye(3)
+    cam[1, 2, 3] = 4.3  # 4.3 m forward along the camera's z
+    world = kitti_poses_to_world(cam)
+    np.testing.assert_allclose(world[1, :3, 3], [4.3, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(world[1, :3, :3], np.eye(3), atol=1e-12)
+    # Facing north (yaw 90 deg) and placed in UTM: forward is +northing.
+    world = kitti_poses_to_world(cam, origin_ne=(5_700_000.0, 620_000.0), yaw_deg=90.0)
+    np.testing.assert_allclose(world[0, :3, 3], [620_000.0, 5_700_000.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(world[1, :3, 3], [620_000.0, 5_700_004.3, 0.0], atol=1e-6)
+    # Camera moving right (+x) and down (+y) = velodyne right (-y) and down (-z).
+    cam[1, :, 3] = [1.0, 2.0, 0.0]
+    np.testing.assert_allclose(kitti_poses_to_world(cam)[1, :3, 3], [0.0, -1.0, -2.0], atol=1e-9)
+
+
+def test_kitti_left_turn_becomes_counter_clockwise_yaw() -> None:
+    # Camera turned 90 deg to the left: its forward axis z points along camera-0's -x.
+    turn = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    assert np.allclose(turn @ [0, 0, 1], [-1, 0, 0])
+    cam = np.zeros((1, 3, 4))
+    cam[0, :, :3] = turn
+    world = kitti_poses_to_world(cam)
+    rz90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(world[0, :3, :3], rz90, atol=1e-12)
+
+
+def test_real_kitti_poses_register_the_real_scans(real_scans: Path) -> None:
+    from scipy.spatial import cKDTree
+
+    cam = np.loadtxt(real_scans / "kitti00_poses_0-5.txt").reshape(-1, 3, 4)
+    world = kitti_poses_to_world(cam[[0, 5]])
+    # Hand-worked: velodyne (x, y, z) = camera (z, -x, -y) for the frame-5 translation.
+    t = cam[5, :, 3]
+    np.testing.assert_allclose(world[1, :3, 3], [t[2], -t[0], -t[1]], atol=1e-6)
+    assert world[1, 0, 3] == pytest.approx(4.291335, abs=1e-6)
+
+    def load(name: str) -> np.ndarray:
+        """Points within 40 m and above the road (z > -1.2 m: the sensor is 1.73 m up)."""
+        pts = np.fromfile(real_scans / name, dtype=np.float32).reshape(-1, 4)[:, :3]
+        pts = pts.astype(np.float64)
+        pts = pts[np.linalg.norm(pts, axis=1) < 40.0]
+        return pts[pts[:, 2] > -1.2][::4]
+
+    a, b = load("kitti00_000000.bin"), load("kitti00_000005.bin")
+    tree = cKDTree(a @ world[0, :3, :3].T + world[0, :3, 3])
+
+    def misfit(points: np.ndarray) -> float:
+        """Mean distance to the nearest point of scan 0, each capped at 0.5 m."""
+        return float(np.mean(np.minimum(tree.query(points)[0], 0.5)))
+
+    aligned = misfit(b @ world[1, :3, :3].T + world[1, :3, 3])
+    # Every sign or axis mistake in the conversion moves scan 5 the wrong way; the converted
+    # pose must fit clearly better than each (and than no motion at all). (The fit is best
+    # near 3.6 m rather than 4.3 m: the scans are not motion-compensated.)
+    wrong = {
+        "no motion": b,
+        "backwards": b - np.array([4.29, 0.0, 0.0]),
+        "sideways": b + np.array([0.0, 4.29, 0.0]),
+        "camera z read as up": b + np.array([0.0, 0.0, 4.29]),
+        "camera axes unconverted": b + cam[5, :, 3],
+    }
+    for name, points in wrong.items():
+        assert aligned < 0.8 * misfit(points), (name, aligned, misfit(points))
+
+
+def test_kitti_calib_file_is_used(tmp_path: Path, real_scans: Path) -> None:
+    seq = make_kitti_sequence(tmp_path, real_scans, frames=2)
+    # A Tr equal to the nominal rotation plus an offset: pure translations are unaffected.
+    (seq / "calib.txt").write_text(
+        "P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 0 -1 0 0.1 0 0 -1 0.2 1 0 0 -0.3\n"
+    )
+    drive = KittiSequence(seq)
+    np.testing.assert_allclose(drive.poses[1, :3, 3], [STEP_M, 0.0, 0.0], atol=1e-9)
+    (seq / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(InputError, match="Tr"):
+        KittiSequence(seq)
+
+
+def test_kitti_sequence_reads_times_and_rejects_mismatches(
+    tmp_path: Path, real_scans: Path
+) -> None:
+    seq = make_kitti_sequence(tmp_path, real_scans, frames=3)
+    drive = KittiSequence(seq, time_offset_us=1_000_000)
+    assert drive.timestamps.dtype == np.int64
+    assert drive.timestamps.tolist() == [1_000_000, 1_100_000, 1_200_000]
+    pts = drive.scan(0)
+    assert pts.shape == (124_668, 3)
+    (seq / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(InputError, match="1 poses for 3 scans") as exc:
+        KittiSequence(seq)
+    assert exc.value.source == str(seq / "poses.txt")
+    (seq / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1\n" * 3)
+    with pytest.raises(InputError, match="expected 12 numbers"):
+        KittiSequence(seq)
+
+
+# --------------------------------------------------------------------------------------------
+# Cutting
+
+
+def test_travelled_distance_is_horizontal_and_cumulative() -> None:
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    poses[:, :3, 3] = [[0, 0, 0], [3, 4, 10], [3, 4, 10], [3, 10, -5]]
+    assert travelled_distance(poses).tolist() == [0.0, 5.0, 5.0, 11.0]
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    steps=st.lists(st.sampled_from([0.0, 0.25, 0.5, 1.0, 1.5, 3.0, 12.5]), min_size=1, max_size=80),
+    window=st.sampled_from([5.0, 10.0, 20.0, 25.0]),
+    stride=st.sampled_from([2.5, 10.0, 20.0, 25.0]),
+)
+def test_cuts_match_a_plain_loop(steps: list[float], window: float, stride: float) -> None:
+    d = [0.0]
+    for s in steps:
+        d.append(d[-1] + s)
+    cuts = submap_cuts(np.array(d), window, stride)
+    expected = plain_cuts(d, window, stride)
+    assert [c.scan for c in cuts] == [e[0] for e in expected]
+    assert [list(range(c.first, c.last + 1)) for c in cuts] == [e[1] for e in expected]
+
+
+def test_cuts_on_a_regular_drive() -> None:
+    d = np.arange(FRAMES) * STEP_M  # 0 .. 58.5 m
+    train = submap_cuts(d, 20.0, 10.0)
+    test = submap_cuts(d, 20.0, 20.0)
+    # Centres at 10, 20, 30, 40 m (50 m + 10 m > 58.5 m); nearest scans 10.5, 19.5, 30, 40.5.
+    assert [c.scan for c in train] == [7, 13, 20, 27]
+    assert [c.scan for c in test] == [7, 20]
+    assert (train[0].first, train[0].last) == (0, 13)
+
+
+# --------------------------------------------------------------------------------------------
+# Preparing runs
+
+
+@pytest.fixture(scope="module")
+def reference_run(tmp_path_factory: pytest.TempPathFactory, real_scans: Path):
+    """An uninterrupted two-layout run of the synthetic sequence: (sequence, run dir, result)."""
+    root = tmp_path_factory.mktemp("prepare_ref")
+    seq = make_kitti_sequence(root, real_scans)
+    drive = CountingDrive(KittiSequence(seq))
+    run = root / "tree" / "oxford" / "2024-01-01-00-00-00"
+    result = prepare_drive(drive, run, **FAST)
+    return seq, run, result, drive
+
+
+def test_run_has_benchmark_files(reference_run) -> None:
+    seq, run, result, _ = reference_run
+    kitti = KittiSequence(seq)
+    d = [i * STEP_M for i in range(FRAMES)]
+    for folder, csv_name, stride in [
+        ("pointcloud_20m_10overlap", "pointcloud_locations_20m_10overlap.csv", 10.0),
+        ("pointcloud_20m", "pointcloud_locations_20m.csv", 20.0),
+    ]:
+        expected = plain_cuts(d, 20.0, stride)
+        rows = read_csv_rows(run / csv_name)
+        assert [r[0] for r in rows] == [int(kitti.timestamps[c]) for c, _ in expected]
+        for (ts, north, east), (c, _) in zip(rows, expected, strict=True):
+            assert ts == round(0.1 * c * 1e6)
+            assert (north, east) == pytest.approx((0.0, c * STEP_M), abs=1e-6)
+        files = sorted((run / folder).iterdir())
+        assert sorted(f.name for f in files) == sorted(f"{r[0]}.bin" for r in rows)
+        for f in files:
+            assert f.stat().st_size == SUBMAP_BYTES
+            pts = np.fromfile(f, dtype="<f8").reshape(-1, 3)
+            assert np.all(np.abs(pts) <= 1.0)
+            assert np.mean(np.linalg.norm(pts - pts.mean(axis=0), axis=1)) == pytest.approx(
+                0.5, abs=0.05
+            )
+    assert [r.submaps for r in result.layouts] == [4, 2]
+    assert not list(run.rglob("*.tmp"))
+
+
+def test_each_scan_is_read_once(reference_run) -> None:
+    _, _, result, drive = reference_run
+    d = [i * STEP_M for i in range(FRAMES)]
+    needed = {i for _, window in plain_cuts(d, 20.0, 10.0) for i in window}
+    assert sorted(drive.reads) == sorted(needed)
+    assert result.scans_read == len(needed)
+
+
+def test_check_tree_accepts_the_run(reference_run) -> None:
+    from pnvlad_service.benchmark import check_tree
+
+    _, run, _, _ = reference_run
+    report = check_tree(run.parent.parent)
+    assert report.ok, report
+
+
+def test_single_kind_gives_the_same_bytes(reference_run, tmp_path: Path) -> None:
+    seq, run, _, _ = reference_run
+    out = tmp_path / "run"
+    prepare_run(KittiSequence(seq), out, kind="test", **FAST)
+    ref = {k: v for k, v in tree_bytes(run).items() if k.startswith("pointcloud_20m/")}
+    ref["pointcloud_locations_20m.csv"] = (run / "pointcloud_locations_20m.csv").read_bytes()
+    assert tree_bytes(out) == ref
+    # A test submap shares its window (and seed) with the train submap at the same place.
+    for name, data in ref.items():
+        if name.endswith(".bin"):
+            assert data == (run / "pointcloud_20m_10overlap" / Path(name).name).read_bytes()
+
+
+def test_utm_origin_gives_the_same_bytes(reference_run, tmp_path: Path) -> None:
+    seq, _, _, _ = reference_run
+    local = prepare_run(KittiSequence(seq, yaw_deg=30.0), tmp_path / "local", kind="test", **FAST)
+    utm = prepare_run(
+        KittiSequence(seq, origin_ne=(5_735_712.768124, 620_084.402381), yaw_deg=30.0),
+        tmp_path / "utm",
+        kind="test",
+        **FAST,
+    )
+    a, b = tree_bytes(local.out_run_dir), tree_bytes(utm.out_run_dir)
+    bins = [k for k in a if k.endswith(".bin")]
+    assert len(bins) == 2 and bins == [k for k in b if k.endswith(".bin")]
+    for k in bins:
+        assert a[k] == b[k], k
+    rows_a = read_csv_rows(tmp_path / "local" / "pointcloud_locations_20m.csv")
+    rows_b = read_csv_rows(tmp_path / "utm" / "pointcloud_locations_20m.csv")
+    for (ta, na, ea), (tb, nb, eb) in zip(rows_a, rows_b, strict=True):
+        assert ta == tb
+        assert nb - na == pytest.approx(5_735_712.768124, abs=1e-5)
+        assert eb - ea == pytest.approx(620_084.402381, abs=1e-5)
+    # Yaw 30 deg: the first test submap (10.5 m travelled) lies along 30 deg from east.
+    assert (na, ea) != (0.0, 0.0)
+    n0, e0 = rows_a[0][1], rows_a[0][2]
+    assert math.degrees(math.atan2(n0, e0)) == pytest.approx(30.0, abs=1e-6)
+
+
+def test_interrupted_run_leaves_no_partial_output_and_resume_completes(
+    reference_run, tmp_path: Path
+) -> None:
+    seq, run, _, _ = reference_run
+    out = tmp_path / "run"
+    crashing = CountingDrive(KittiSequence(seq), fail_at=24)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        prepare_drive(crashing, out, **FAST)
+    left = [p for p in out.rglob("*") if p.is_file() and not p.name.startswith(".prepare-")]
+    assert left, "the submaps before the crash should stay on disk"
+    assert not [p for p in left if p.suffix != ".bin"], left  # no CSV, no temporary file
+    assert all(p.stat().st_size == SUBMAP_BYTES for p in left)
+    assert not list(out.rglob("*.tmp"))
+
+    with pytest.raises(FileExistsError, match="--resume"):
+        prepare_drive(KittiSequence(seq), out, **FAST)
+    with pytest.raises(InputError, match="stride_m"):
+        prepare_drive(KittiSequence(seq), out, resume=True, strides_m={"train": 5.0}, **FAST)
+
+    again = CountingDrive(KittiSequence(seq))
+    result = prepare_drive(again, out, resume=True, **FAST)
+    assert sum(r.resumed for r in result.layouts) == len(left)
+    assert sum(r.written for r in result.layouts) == 6 - len(left)
+    assert tree_bytes(out) == tree_bytes(run)
+    # Windows already written were not read again.
+    assert 0 not in again.reads
+
+
+def test_overwrite_starts_again(reference_run, tmp_path: Path) -> None:
+    seq, run, _, _ = reference_run
+    out = tmp_path / "run"
+    prepare_run(KittiSequence(seq), out, kind="test", stride_m=10.0, **FAST)
+    assert len(list((out / "pointcloud_20m").iterdir())) == 4
+    prepare_run(KittiSequence(seq), out, kind="test", overwrite=True, **FAST)
+    assert sorted(p.name for p in (out / "pointcloud_20m").iterdir()) == sorted(
+        p.name for p in (run / "pointcloud_20m").iterdir()
+    )
+
+
+def test_inhouse_layout_crops_to_the_box(reference_run, tmp_path: Path) -> None:
+    seq, _, _, _ = reference_run
+    result = prepare_drive(KittiSequence(seq), tmp_path / "run", layout="inhouse", **FAST)
+    names = sorted(p.name for p in (tmp_path / "run").iterdir() if not p.name.startswith("."))
+    assert names == [
+        "pointcloud_25m_10",
+        "pointcloud_25m_25",
+        "pointcloud_centroids_10.csv",
+        "pointcloud_centroids_25.csv",
+    ]
+    # 58.5 m of travel, 25 m windows: train centres 12.5, 22.5, 32.5, 42.5; test 12.5, 37.5.
+    assert [r.submaps for r in result.layouts] == [4, 2]
+
+
+def test_accumulate_subtracts_the_centre_before_float32_precision_matters() -> None:
+    from pnvlad_service.prepare import accumulate
+
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[0, :3, 3] = [620_000.0, 5_735_000.0, 0.0]
+    poses[1, :3, 3] = [620_000.0 + 0.001, 5_735_000.0 + 0.002, 0.0]
+    scans = [np.array([[1.0, 2.0, 3.0]]), np.array([[0.0, 0.0, 0.0]])]
+    local = accumulate(poses, scans, [0, 1], poses[0, :3, 3])
+    # Millimetres survive next to 5.7e6 m (float32 UTM would be off by up to 0.25 m); the only
+    # loss is the 15 nm snapping grid.
+    np.testing.assert_allclose(local, [[1.0, 2.0, 3.0], [0.001, 0.002, 0.0]], atol=1e-7)
+    boxed = accumulate(poses, scans, [0, 1], poses[0, :3, 3], box_m=2.0)
+    np.testing.assert_allclose(boxed, [[0.001, 0.002, 0.0]], atol=1e-7)
+
+
+def test_bad_drives_are_refused(tmp_path: Path) -> None:
+    class Bad:
+        name = "bad"
+        timestamps = np.array([5, 5], dtype=np.int64)
+        poses = np.tile(np.eye(4), (2, 1, 1))
+
+        def __len__(self) -> int:
+            return 2
+
+        def scan(self, i: int) -> np.ndarray:
+            return np.zeros((10, 3))
+
+    with pytest.raises(InputError, match="increase strictly"):
+        prepare_run(Bad(), tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
+    Bad.timestamps = np.array([5, 6], dtype=np.int64)
+    with pytest.raises(InputError, match="layout"):
+        prepare_run(Bad(), tmp_path / "run", layout="nope", progress=False)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="stride_m"):
+        prepare_run(Bad(), tmp_path / "run", stride_m=-1.0, progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# CsvDrive
+
+
+def write_street(scans: Path, stamps: list[int], rng: np.random.Generator) -> None:
+    """Scans of a street (ground + two walls), sensor frame, as .npy files."""
+    scans.mkdir(parents=True, exist_ok=True)
+    for ts in stamps:
+        x = rng.uniform(-15, 15, 3000)
+        ground = np.c_[x[:1000], rng.uniform(-8, 8, 1000), np.full(1000, -1.7)]
+        walls = np.c_[x[1000:], np.repeat([-8.0, 8.0], 1000), rng.uniform(-1.7, 6, 2000)]
+        np.save(scans / f"{ts}.npy", np.vstack([ground, walls]))
+
+
+def test_csv_drive_headings_and_matrices_agree(tmp_path: Path) -> None:
+    stamps = [1_000_000 + 100_000 * i for i in range(3)]
+    write_street(tmp_path / "scans", stamps, np.random.default_rng(0))
+    base = [(ts, 5_735_000.0 + i, 620_000.0 + 2 * i) for i, ts in enumerate(stamps)]
+    (tmp_path / "yaw.csv").write_text(
+        "timestamp,northing,easting,yaw_deg,height\n"
+        + "".join(f"{t},{n},{e},30,1.5\n" for t, n, e in base)
+    )
+    (tmp_path / "heading.csv").write_text(
+        "timestamp,northing,easting,heading_rad\n"
+        + "".join(f"{t},{n},{e},{math.radians(60)!r}\n" for t, n, e in base)
+    )
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    (tmp_path / "matrix.csv").write_text(
+        "timestamp,"
+        + ",".join(f"r{r}{k}" for r in range(3) for k in range(4))
+        + "\n"
+        + "".join(
+            f"{t},{c!r},{-s!r},0,{e},{s!r},{c!r},0,{n},0,0,1,0\n" for t, n, e in reversed(base)
+        )
+    )
+    yaw = CsvDrive(tmp_path / "scans", tmp_path / "yaw.csv")
+    heading = CsvDrive(tmp_path / "scans", tmp_path / "heading.csv")
+    matrix = CsvDrive(tmp_path / "scans", tmp_path / "matrix.csv")
+    assert yaw.timestamps.tolist() == stamps == matrix.timestamps.tolist()
+    # The sensor's x axis points 30 deg north of east.
+    np.testing.assert_allclose(yaw.poses[0, :3, 0], [c, s, 0.0], atol=1e-12)
+    np.testing.assert_allclose(yaw.poses[2, :3, 3], [620_004.0, 5_735_002.0, 1.5], atol=1e-6)
+    np.testing.assert_allclose(heading.poses[:, :3, :3], yaw.poses[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(matrix.poses[:, :3, :3], yaw.poses[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(matrix.poses[:, :2, 3], yaw.poses[:, :2, 3], atol=1e-6)
+    assert yaw.scan(1).shape == (3000, 3)
+
+
+def test_csv_drive_missing_files_and_rows(tmp_path: Path) -> None:
+    stamps = [1_000_000, 1_100_000, 1_200_000]
+    write_street(tmp_path / "scans", stamps, np.random.default_rng(1))
+    poses = tmp_path / "poses.csv"
+    rows = "".join(f"{t},{5_735_000 + i},620000,0\n" for i, t in enumerate([*stamps, 1_300_000]))
+    poses.write_text("timestamp,northing,easting,yaw_rad\n" + rows)
+    with pytest.raises(InputError, match="1300000") as exc:
+        CsvDrive(tmp_path / "scans", poses)
+    assert exc.value.source == str(poses)
+    assert len(CsvDrive(tmp_path / "scans", poses, skip_missing=True)) == 3
+
+    poses.write_text("timestamp,northing,easting,yaw_rad\n" + rows.split("\n", 1)[1])
+    (tmp_path / "scans" / "1300000.npy").write_bytes(
+        (tmp_path / "scans" / "1000000.npy").read_bytes()
+    )
+    with pytest.raises(InputError, match=r"1000000\.npy") as exc:
+        CsvDrive(tmp_path / "scans", poses)
+    assert exc.value.source == str(tmp_path / "scans" / "1000000.npy")
+
+    poses.write_text("timestamp,northing,easting\n1000000,1,2\n")
+    with pytest.raises(InputError, match="heading"):
+        CsvDrive(tmp_path / "scans", poses)
+    poses.write_text("timestamp,northing,easting,yaw_deg\n1000000,nan,2,0\n")
+    with pytest.raises(InputError, match="row 2, column northing"):
+        CsvDrive(tmp_path / "scans", poses)
+
+
+def test_csv_drive_prepares_a_run(tmp_path: Path) -> None:
+    stamps = [2_000_000 + 100_000 * i for i in range(32)]
+    write_street(tmp_path / "scans", stamps, np.random.default_rng(2))
+    (tmp_path / "poses.csv").write_text(
+        "timestamp,northing,easting,heading_deg\n"
+        + "".join(f"{t},{5_735_000 + 1.0 * i},620000,0\n" for i, t in enumerate(stamps))
+    )
+    drive = CsvDrive(tmp_path / "scans", tmp_path / "poses.csv")
+    result = prepare_run(drive, tmp_path / "run", kind="train", progress=False)
+    rows = read_csv_rows(tmp_path / "run" / "pointcloud_locations_20m_10overlap.csv")
+    # 31 m travelled northwards: centres at 10 and 20 m, scans 10 and 20.
+    assert rows == [(3_000_000, 5_735_010.0, 620_000.0), (4_000_000, 5_735_020.0, 620_000.0)]
+    assert result.layouts[0].written == 2
+
+
+# --------------------------------------------------------------------------------------------
+# CLI
+
+
+def test_cli_prepare(reference_run, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    seq, run, _, _ = reference_run
+    runner = CliRunner()
+    out = tmp_path / "run"
+    args = ["data", "prepare", "--kitti", str(seq), "--out", str(out), "--points-per-scan", "2000"]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "pointcloud_20m_10overlap: 4 submaps" in res.output
+    assert "pointcloud_20m: 2 submaps" in res.output
+    assert tree_bytes(out) == tree_bytes(run)
+
+    res = runner.invoke(app, args)
+    assert res.exit_code == 2 and "--resume" in res.output
+    res = runner.invoke(app, [*args, "--resume"])
+    assert res.exit_code == 0 and "4 kept" in res.output
+    res = runner.invoke(app, ["data", "prepare", "--out", str(out)])
+    assert res.exit_code == 2 and "--kitti" in res.output
+    res = runner.invoke(app, [*args, "--origin", "5735712"])
+    assert res.exit_code == 2 and "NORTHING,EASTING" in res.output
