@@ -283,10 +283,13 @@ def embed_submaps(
 
 
 def ivf_lists(n: int) -> int:
-    """Inverted lists for ``n`` vectors: the power of two nearest 8·√n (within 4√n..16√n),
-    at most n / 39 (FAISS wants 39 training points a centroid) and at least 1."""
-    k = 2 ** round(math.log2(max(8.0 * math.sqrt(max(n, 1)), 1.0)))
-    return int(max(1, min(k, n // 39 if n >= 39 else 1)))
+    """Inverted lists for ``n`` vectors: the power of two nearest 8·√n (so within 4√n..16√n),
+    lowered to a power of two of at most n / 39 (FAISS wants 39 training points a list)."""
+    k = 2 ** round(math.log2(8.0 * math.sqrt(max(n, 1))))
+    cap = max(1, n // 39)
+    while k > cap:
+        k //= 2
+    return int(k)
 
 
 def pq_subquantizers(d: int, n: int, memory_budget: int) -> int:
