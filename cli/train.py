@@ -1,10 +1,175 @@
-"""`pnvlad train`."""
+"""`pnvlad train`: train the encoder on a benchmark tree (one process, or several with torchrun)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
+from pnvlad_cli.common import user_errors
 
-def train() -> None:
-    """Train the encoder (not implemented yet)."""
-    raise typer.Exit(1)
+_DATA = "Data"
+_RUN = "Run"
+_MODEL = "Model and optimiser"
+
+
+def train(
+    config: str = typer.Option(
+        None,
+        "--config",
+        "-c",
+        help="YAML/TOML config file, or a shipped preset name: 'paper' (default) or 'compact'.",
+        rich_help_panel=_RUN,
+    ),
+    root: Path = typer.Option(
+        None, "--root", help="Benchmark tree root (holds oxford/, ...).", rich_help_panel=_DATA
+    ),
+    splits: Path = typer.Option(
+        None,
+        "--splits",
+        help="Splits JSON from 'pnvlad data splits' (default: built from the tree).",
+        rich_help_panel=_DATA,
+    ),
+    pickles: Path = typer.Option(
+        None,
+        "--pickles",
+        help="Folder of the published pickles instead of --splits.",
+        rich_help_panel=_DATA,
+    ),
+    out: Path = typer.Option(
+        None,
+        "--out",
+        "-o",
+        help="Run directory: checkpoints/, metrics.jsonl, config.yaml and the final model/.",
+        rich_help_panel=_RUN,
+    ),
+    resume: bool = typer.Option(
+        False,
+        "--resume",
+        help="Continue the run in --out from its newest checkpoint (its config.yaml unless "
+        "--config is given; options given here still apply).",
+        rich_help_panel=_RUN,
+    ),
+    epochs: int = typer.Option(None, "--epochs", help="Epochs (paper: 20).", rich_help_panel=_RUN),
+    max_steps: int = typer.Option(
+        None, "--max-steps", help="Stop after N steps.", rich_help_panel=_RUN
+    ),
+    max_minutes: float = typer.Option(
+        None,
+        "--max-minutes",
+        help="Wall-clock budget; checkpoint and stop when spent.",
+        rich_help_panel=_RUN,
+    ),
+    batch_size: int = typer.Option(
+        None, "--batch-size", "-b", help="Tuples a step (paper: 2).", rich_help_panel=_MODEL
+    ),
+    lr: float = typer.Option(
+        None, "--lr", help="Base learning rate (paper: 5e-5).", rich_help_panel=_MODEL
+    ),
+    arch: str = typer.Option(
+        None, "--arch", help="pointnetvlad | pointnet-max.", rich_help_panel=_MODEL
+    ),
+    num_points: int = typer.Option(
+        None,
+        "--num-points",
+        help="Points a cloud (4096; fewer for quick tests).",
+        rich_help_panel=_MODEL,
+    ),
+    loss: str = typer.Option(
+        None,
+        "--loss",
+        help="lazy_quadruplet (paper) | lazy_triplet | quadruplet | triplet.",
+        rich_help_panel=_MODEL,
+    ),
+    mining: str = typer.Option(
+        None,
+        "--mining",
+        help="tuple (paper: cached hard negatives) | in_batch (reuse every embedding).",
+        rich_help_panel=_MODEL,
+    ),
+    device: str = typer.Option(
+        None,
+        "--device",
+        help="auto (CUDA when present) | cpu | cuda | cuda:N.",
+        rich_help_panel=_RUN,
+    ),
+    seed: int = typer.Option(
+        None, "--seed", help="Seed of every random choice.", rich_help_panel=_RUN
+    ),
+    workers: int = typer.Option(
+        None,
+        "--workers",
+        help="Threads reading submaps into RAM (default 4).",
+        rich_help_panel=_RUN,
+    ),
+    dump_config: bool = typer.Option(
+        False,
+        "--dump-config",
+        help="Print the resolved config (defaults, file, options) as YAML and exit.",
+        rich_help_panel=_RUN,
+    ),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+) -> None:
+    """Train PointNetVLAD on a benchmark tree and its splits.
+
+    Each step takes tuples of 1 anchor, 2 positives, 18 negatives (hard ones chosen with a
+    descriptor cache refreshed on schedule) and 1 other negative, embeds every distinct cloud
+    once and applies the lazy quadruplet loss; Adam with the paper's learning rate and decay.
+    Writes OUT/checkpoints/ (resumable with --resume), OUT/metrics.jsonl (loss, learning rate,
+    cache refreshes, validation recall) and the final weights in OUT/model/ for 'pnvlad eval'.
+
+    Several processes or machines: torchrun --nproc-per-node 2 -m pnvlad_cli.main train ...
+
+    Examples:
+
+      pnvlad train --dump-config > my.yaml
+
+      pnvlad train -c compact --root city/ --splits city/splits.json -o runs/a --max-minutes 10
+
+      pnvlad train -c compact -o runs/a --resume
+    """
+    with user_errors():
+        from pnvlad_service.errors import InputError
+        from pnvlad_service.trainconfig import TrainConfig
+
+        if resume and out is None:
+            raise InputError("--resume needs --out, the run directory to continue", "--out")
+        if config is not None:
+            cfg = TrainConfig.from_file(config)
+        elif resume and (out / "config.yaml").is_file():
+            cfg = TrainConfig.from_file(out / "config.yaml")
+        else:
+            cfg = TrainConfig.preset("paper")
+        cfg = cfg.with_overrides(
+            {
+                "data.root": root,
+                "data.splits": splits,
+                "data.pickles": pickles,
+                "train.epochs": epochs,
+                "train.max_steps": max_steps,
+                "train.max_minutes": max_minutes,
+                "train.batch_size": batch_size,
+                "train.lr": lr,
+                "train.loss": loss,
+                "train.mining": mining,
+                "train.device": device,
+                "train.seed": seed,
+                "train.workers": workers,
+                "model.arch": arch,
+                "model.num_points": num_points,
+            }
+        )
+        if dump_config:
+            typer.echo(cfg.to_yaml(), nl=False)
+            return
+        if out is None:
+            raise InputError("give --out, the run directory", "--out")
+        from pnvlad_service.train import train as run
+
+        res = run(cfg, out, resume=resume, progress=progress)
+        if res.model_dir is not None:
+            last = res.losses[max(res.losses)] if res.losses else float("nan")
+            typer.echo(
+                f"{res.steps} steps ({res.stopped}) in {res.seconds:.0f} s, last loss {last:.4f}; "
+                f"model: {res.model_dir}"
+            )

@@ -153,12 +153,12 @@ def make_loss(cfg: TrainConfig) -> Callable[..., torch.Tensor]:
     from pnvlad_service import losses
 
     t = cfg.train
-    fn = losses.LOSSES[t.loss] if hasattr(losses, "LOSSES") else getattr(losses, f"{t.loss}_loss")
+    fn = losses.get_loss(t.loss)
 
     def loss(q: torch.Tensor, p: torch.Tensor, n: torch.Tensor, o: torch.Tensor) -> torch.Tensor:
         if "quadruplet" in t.loss:
-            return fn(q, p, n, o, margin1=t.margin1, margin2=t.margin2)
-        return fn(q, p, n, margin=t.margin1)
+            return fn(q, p, n, o, margin=t.margin1, second_margin=t.margin2)
+        return fn(q, p, n, o, margin=t.margin1)
 
     return loss
 
@@ -383,9 +383,10 @@ def train(
     if t.max_steps is not None:
         total = min(total, t.max_steps)
 
-    mlog = _Log(out / "metrics.jsonl" if d.main else None)
     if d.main:
         out.mkdir(parents=True, exist_ok=True)
+    mlog = _Log(out / "metrics.jsonl" if d.main else None)
+    if d.main:
         atomic_write_text(out / "config.yaml", cfg.to_yaml())
         mlog.write(
             event="start",
@@ -473,6 +474,7 @@ def train(
             else:
                 members = mining.in_batch_members(tuple_rng, training_set, share)
                 uniq = members
+                table = members
             x = clouds[torch.from_numpy(uniq)].to(device, non_blocking=True)
             with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
                 emb = net(x)
@@ -511,10 +513,10 @@ def train(
                 "loss": lv,
                 "lr": lr,
                 "bn_momentum": mom,
-                "clouds": int(len(uniq)),
+                "clouds": len(uniq),
             }
             if on_step is not None:
-                on_step(rec)
+                on_step({**rec, "indices": table})
             if step % t.log_every == 0 or step == total:
                 rec["steps_per_s"] = round(bar.format_dict.get("rate") or 0.0, 4)
                 mlog.write(**rec)

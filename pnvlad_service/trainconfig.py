@@ -137,7 +137,7 @@ class TrainConfig(BaseModel):
             # ``model: {preset: compact, num_points: 1024}`` starts from a shipped model config.
             model = dict(model)
             base = getattr(ModelConfig, str(model.pop("preset")))()
-            data["model"] = base.model_copy(update=model).model_dump()
+            data["model"] = {**base.model_dump(), **model}
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
