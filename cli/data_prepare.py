@@ -171,6 +171,13 @@ def prepare(
     scan_step: int = typer.Option(
         1, "--scan-step", help="Use every k-th scan of each window.", rich_help_panel=_SPEED
     ),
+    min_spacing: float = typer.Option(
+        0.05,
+        "--min-spacing",
+        help="Skip scans less than this many metres of travel after the last one used "
+        "(a stop at a light adds one scan; 0 = use all).",
+        rich_help_panel=_SPEED,
+    ),
     resume: bool = typer.Option(
         False,
         "--resume",
@@ -255,6 +262,7 @@ def prepare(
             max_points_per_scan=points_per_scan or None,
             max_range_m=max_range,
             scan_step=scan_step,
+            min_scan_spacing_m=min_spacing,
             resume=resume,
             overwrite=overwrite,
         )

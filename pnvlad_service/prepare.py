@@ -523,6 +523,22 @@ def travelled_distance(poses: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(steps)])
 
 
+def spaced_scans(travelled: np.ndarray, min_spacing_m: float) -> np.ndarray:
+    """bool [T]: scans at least ``min_spacing_m`` of travel after the previous one kept.
+
+    Scan 0 is always kept; with ``min_spacing_m`` = 0 every scan is. The choice depends on the
+    whole drive, not on a window, so every window uses the same scans (each read once).
+    """
+    d = np.asarray(travelled, dtype=np.float64)
+    keep = np.zeros(len(d), dtype=bool)
+    last = -math.inf
+    for i, value in enumerate(d.tolist()):
+        if value - last >= min_spacing_m:
+            keep[i] = True
+            last = value
+    return keep
+
+
 @dataclass(frozen=True)
 class Cut:
     """One submap position along the trajectory.
@@ -765,6 +781,7 @@ def prepare_drive(
     max_points_per_scan: int | None = 10_000,
     max_range_m: float | None = None,
     scan_step: int = 1,
+    min_scan_spacing_m: float = 0.05,
     resume: bool = False,
     overwrite: bool = False,
     progress: bool = True,
@@ -790,6 +807,8 @@ def prepare_drive(
     config = g_config if g_config is not None else GConfig()
     if scan_step < 1:
         raise InputError(f"must be >= 1, got {scan_step}", "scan_step")
+    if not (math.isfinite(min_scan_spacing_m) and min_scan_spacing_m >= 0):
+        raise InputError(f"must be >= 0 metres, got {min_scan_spacing_m}", "min_scan_spacing_m")
     if max_points_per_scan is not None and max_points_per_scan < 1:
         raise InputError(f"must be >= 1, got {max_points_per_scan}", "max_points_per_scan")
     if not kinds:
@@ -797,6 +816,8 @@ def prepare_drive(
     strides = strides_m or {}
     n_bytes = _target_points(config) * 24
     travelled = travelled_distance(poses)
+    use = spaced_scans(travelled, min_scan_spacing_m)
+    use[np.arange(len(use)) % scan_step != 0] = False
 
     # Plan: for each kind its cuts; windows are keyed by their centre distance.
     resolved = [
@@ -833,6 +854,7 @@ def prepare_drive(
             "max_points_per_scan": max_points_per_scan,
             "max_range_m": max_range_m,
             "scan_step": scan_step,
+            "min_scan_spacing_m": min_scan_spacing_m,
             "g_config": _config_dump(config),
         }
         manifests.append((res, manifest))
@@ -861,7 +883,7 @@ def prepare_drive(
         if not todo:
             continue
         cache.evict_before(cut.first)
-        indices = [i for i in range(cut.first, cut.last + 1) if i % scan_step == 0]
+        indices = [i for i in range(cut.first, cut.last + 1) if use[i]]
         if cut.first <= cut.scan <= cut.last and cut.scan not in indices:
             indices.append(cut.scan)
         scans = {i: cache.get(i) for i in indices}
@@ -974,6 +996,7 @@ def prepare_run(
     max_points_per_scan: int | None = 10_000,
     max_range_m: float | None = None,
     scan_step: int = 1,
+    min_scan_spacing_m: float = 0.05,
     resume: bool = False,
     overwrite: bool = False,
     progress: bool = True,
@@ -989,7 +1012,9 @@ def prepare_run(
     - ``g_config`` / ``seed``: the filter G's settings; submap ``k`` uses ``seed`` + the index of
       its centre scan, so results do not depend on the order submaps are made in.
     - ``max_points_per_scan`` (random subset per scan, seeded by scan index), ``max_range_m``
-      (drop points farther from the sensor) and ``scan_step`` (every k-th scan) keep the
+      (drop points farther from the sensor), ``scan_step`` (every k-th scan) and
+      ``min_scan_spacing_m`` (skip scans less than this far along the trajectory from the last
+      one used: a car waiting at a light adds one scan, not hundreds) keep the
       accumulation fast on dense drives.
     - ``resume``: keep submaps already on disk with the right size (same parameters required);
       ``overwrite``: remove what the folder holds first.
@@ -1010,6 +1035,7 @@ def prepare_run(
         max_points_per_scan=max_points_per_scan,
         max_range_m=max_range_m,
         scan_step=scan_step,
+        min_scan_spacing_m=min_scan_spacing_m,
         resume=resume,
         overwrite=overwrite,
         progress=progress,

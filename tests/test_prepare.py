@@ -8,6 +8,7 @@ independently (hand-worked pose conversions, a plain loop over travelled distanc
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 import os
 from pathlib import Path
@@ -36,16 +37,26 @@ FAST = {"max_points_per_scan": 2000, "progress": False}  # small windows keep G 
 
 
 def make_kitti_sequence(
-    root: Path, real_scans: Path, frames: int = FRAMES, step: float = STEP_M
+    root: Path,
+    real_scans: Path,
+    frames: int = FRAMES,
+    step: float = STEP_M,
+    forward: list[float] | None = None,
 ) -> Path:
-    """A KITTI-style sequence: the two real scans alternating, camera moving along z."""
+    """A KITTI-style sequence: the two real scans alternating, camera moving along z.
+
+    ``forward``: the camera's z position of each frame (default ``step * i``).
+    """
     seq = root / "seq"
     (seq / "velodyne").mkdir(parents=True)
     names = ["kitti00_000000.bin", "kitti00_000005.bin"]
+    if forward is None:
+        forward = [step * i for i in range(frames)]
+    frames = len(forward)
     lines = []
-    for i in range(frames):
+    for i, z in enumerate(forward):
         os.symlink(real_scans / names[i % 2], seq / "velodyne" / f"{i:06d}.bin")
-        lines.append(f"1 0 0 0 0 1 0 0 0 0 1 {step * i!r}")
+        lines.append(f"1 0 0 0 0 1 0 0 0 0 1 {z!r}")
     (seq / "poses.txt").write_text("\n".join(lines) + "\n")
     (seq / "times.txt").write_text("".join(f"{0.1 * i:.6f}\n" for i in range(frames)))
     return seq
@@ -291,6 +302,28 @@ def test_each_scan_is_read_once(reference_run) -> None:
     needed = {i for _, window in plain_cuts(d, 20.0, 10.0) for i in window}
     assert sorted(drive.reads) == sorted(needed)
     assert result.scans_read == len(needed)
+
+
+def test_a_stop_adds_one_scan_not_all(tmp_path: Path, real_scans: Path) -> None:
+    # 10 m driven, 30 scans standing still (with 13 mm of jitter), 20 m more.
+    forward = [1.0 * i for i in range(10)]
+    forward += [10.0 + 0.013 * (i % 2) for i in range(30)]
+    forward += [10.0 + 1.0 * i for i in range(1, 21)]
+    seq = make_kitti_sequence(tmp_path, real_scans, forward=forward)
+    drive = CountingDrive(KittiSequence(seq))
+    prepare_run(drive, tmp_path / "run", kind="test", **FAST)
+    # Reference: plain loop keeping scans at least 0.05 m of travel after the last kept one.
+    d = [0.0]
+    for a, b in itertools.pairwise(forward):
+        d.append(d[-1] + abs(b - a))
+    kept, last = [], -math.inf
+    for i, value in enumerate(d):
+        if value - last >= 0.05:
+            kept.append(i)
+            last = value
+    (_, window), *_ = plain_cuts(d, 20.0, 20.0)
+    assert sorted(drive.reads) == sorted(set(window) & set(kept))
+    assert len(drive.reads) < len(window) - 15
 
 
 def test_check_tree_accepts_the_run(reference_run) -> None:
