@@ -189,3 +189,144 @@ def test_real_model_path_on_tiny_model(tmp_path: Path) -> None:
     assert np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4)
     rep = evaluate.evaluate_runs(emb, runs, 64, progress=False)
     assert 0.0 <= rep["recall_at_1"] <= rep["recall_at_n"][-1] <= 100.0
+
+
+# ---------------------------------------------------------------------------------------------
+# the commands, end to end on a tiny tree
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """A tiny tree with splits and a 2-step training run through `pnvlad train`."""
+    pytest.importorskip("torch")
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+    from test_train import make_tiny_tree, tiny_config
+
+    root = tmp_path_factory.mktemp("evaltree")
+    splits = make_tiny_tree(root, runs=3, train_step=10.0)
+    cfg = root / "tiny.yaml"
+    cfg.write_text(tiny_config(root, splits).to_yaml())
+    run = root / "run"
+    res = CliRunner().invoke(
+        app, ["-q", "train", "-c", str(cfg), "-o", str(run), "--max-steps", "2", "--no-progress"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "2 steps" in res.output
+    return root, splits, run
+
+
+def test_cli_eval_checkpoint_report_and_figures(
+    trained: tuple[Path, Path, Path], tmp_path: Path
+) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    root, splits, run = trained
+    out = tmp_path / "rep.json"
+    res = CliRunner().invoke(
+        app,
+        [
+            "-q",
+            "eval",
+            "--checkpoint",
+            str(run),
+            "--root",
+            str(root),
+            "--splits",
+            str(splits),
+            "-o",
+            str(out),
+            "--joint",
+            "--no-progress",
+        ]
+        + (["--figures", str(tmp_path / "fig")] if _has_matplotlib() else []),
+    )
+    assert res.exit_code == 0, res.output
+    rep = evaluate.read_report(out)
+    assert rep["n_runs"] == 3 and rep["n_pairs"] == 6
+    assert rep["encoder"]["kind"] == "checkpoint" and len(rep["encoder"]["weights_sha256"]) == 64
+    assert rep["n_unique_submaps"] == rep["n_db"]  # queries are database submaps: embedded once
+    assert 0 <= rep["recall_at_1"] <= 100
+    # 30 submaps a database: the 1% cut-off is N = max(round(0.3), 1) = 1
+    assert rep["recall_at_1pct"] == pytest.approx(rep["recall_at_1"])
+    assert rep["recall_at_n"] == sorted(rep["recall_at_n"])  # cumulative
+    assert "joint" in rep and rep["joint"]["n_queries"] > 0
+    assert f"recall@1 {rep['recall_at_1']:.2f}" in res.output
+    if _has_matplotlib():
+        assert (tmp_path / "fig" / "recall_at_n.png").is_file()
+        assert (tmp_path / "fig" / "query_map.png").is_file()
+        res2 = CliRunner().invoke(
+            app,
+            [
+                "-q",
+                "eval",
+                "--plot",
+                str(out),
+                "--plot",
+                str(out),
+                "--figures",
+                str(tmp_path / "fig2"),
+            ],
+        )
+        assert res2.exit_code == 0, res2.output
+        assert (tmp_path / "fig2" / "recall_at_n.png").is_file()
+
+
+def test_cli_eval_from_published_pickles_matches_splits(
+    trained: tuple[Path, Path, Path], tmp_path: Path
+) -> None:
+    """The same model on the same sets, read from our JSON and from exported pickles."""
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+    from pnvlad_service import splits as sp
+
+    root, splits, run = trained
+    sp.export_pickles(sp.load_splits(splits), tmp_path / "pk")
+    (tmp_path / "pk" / "training_queries_baseline.pickle").unlink(missing_ok=True)
+    reps = []
+    for src in (["--splits", str(splits)], ["--pickles", str(tmp_path / "pk")]):
+        out = tmp_path / f"{src[0][2:]}.json"
+        res = CliRunner().invoke(
+            app,
+            [
+                "-q",
+                "eval",
+                "--checkpoint",
+                str(run / "model"),
+                "--root",
+                str(root),
+                *src,
+                "-o",
+                str(out),
+                "--no-progress",
+            ],
+        )
+        assert res.exit_code == 0, res.output
+        reps.append(evaluate.read_report(out))
+    assert reps[0]["recall_at_n"] == pytest.approx(reps[1]["recall_at_n"])
+    assert reps[0]["recall_at_1pct"] == pytest.approx(reps[1]["recall_at_1pct"])
+
+
+def test_cli_eval_errors_exit_2(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    res = CliRunner().invoke(app, ["eval", "--root", str(tmp_path)])
+    assert res.exit_code == 2 and "--checkpoint" in res.output
+    res = CliRunner().invoke(
+        app, ["eval", "--checkpoint", str(tmp_path / "none"), "--root", str(tmp_path)]
+    )
+    assert res.exit_code == 2
+
+
+def _has_matplotlib() -> bool:
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
