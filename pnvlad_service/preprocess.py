@@ -47,7 +47,7 @@ class GConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    target_points: int = Field(4096, ge=1, description="Points in the output submap.")
+    target_points: int = Field(4096, ge=2, description="Points in the output submap.")
     min_points: int = Field(
         16, ge=1, description="Fewest points left after ground removal; fewer is an error."
     )
@@ -183,6 +183,18 @@ def crop(
 # --- 2. ground -------------------------------------------------------------------------------
 
 
+def _fit_plane(
+    points: np.ndarray, fallback: np.ndarray, max_tilt_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane (centroid, unit normal) of float64 [M, 3]; ``fallback`` normal if
+    the fit tips over beyond ``max_tilt_deg``."""
+    mean = points.mean(axis=0)
+    normal = np.linalg.svd(points - mean, full_matrices=False)[2][2]
+    if abs(normal[2]) < math.cos(math.radians(max_tilt_deg)):
+        normal = fallback
+    return mean, normal
+
+
 def fit_ground_plane(
     points: np.ndarray,
     *,
@@ -191,7 +203,7 @@ def fit_ground_plane(
     up: Literal["auto", "z", "-z"] = "auto",
     iterations: int = 200,
     rng: np.random.Generator | None = None,
-    sample: int = 8000,
+    sample: int = 4000,
 ) -> tuple[np.ndarray, float]:
     """RANSAC plane with the most inliers (within ``threshold`` m) among planes whose normal is
     within ``max_tilt_deg`` of the z axis, refined by least squares on its inliers.
@@ -222,18 +234,26 @@ def fit_ground_plane(
     if ok.any():
         normals = normals[ok]
         offsets = -np.einsum("ij,ij->i", normals, a[ok])
-        dist = np.abs(sub @ normals.T + offsets)  # [m, K]
+        # [m, K] distances; broadcasting, not a matmul (BLAS threads buy nothing at 3 columns)
+        dist = np.abs(
+            sub[:, 0:1] * normals[:, 0]
+            + sub[:, 1:2] * normals[:, 1]
+            + sub[:, 2:3] * normals[:, 2]
+            + offsets
+        )
         best = int(np.argmax((dist < threshold).sum(axis=0)))
         inliers = sub[dist[:, best] < threshold]
     else:  # no tilted-enough hypothesis: the lowest tenth of the points along z
         log.warning("no RANSAC ground plane within %.0f deg of z; using z", max_tilt_deg)
         inliers = sub[sub[:, 2] <= np.quantile(sub[:, 2], 0.1)]
     if inliers.shape[0] >= 3:
-        mean = inliers.mean(axis=0)
-        normal = np.linalg.svd(inliers - mean, full_matrices=False)[2][2]
-        if abs(normal[2]) < math.cos(math.radians(max_tilt_deg)):  # refit tipped over
-            normal = normals[best] if ok.any() else np.array([0.0, 0.0, 1.0])
-            mean = inliers.mean(axis=0)
+        # Least squares on the inliers, then again on those within half the threshold of that
+        # plane (less pull from the feet of walls and cars).
+        fallback = normals[best] if ok.any() else np.array([0.0, 0.0, 1.0])
+        mean, normal = _fit_plane(inliers, fallback, max_tilt_deg)
+        close = inliers[np.abs((inliers - mean) @ normal) < threshold / 2]
+        if close.shape[0] >= 3:
+            mean, normal = _fit_plane(close, fallback, max_tilt_deg)
     else:
         normal, mean = np.array([0.0, 0.0, 1.0]), sub.min(axis=0)
     offset = -float(normal @ mean)
@@ -255,14 +275,6 @@ def _rotation_to_z(normal: np.ndarray) -> np.ndarray:
         return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
     k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
     return np.eye(3) + k + k @ k * ((1.0 - c) / (s * s))
-
-
-def _masked_filter(grid: np.ndarray, valid: np.ndarray, size: int, op: str) -> np.ndarray:
-    from scipy import ndimage
-
-    if op == "erode":
-        return ndimage.grey_erosion(np.where(valid, grid, np.inf), size=(size, size))
-    return ndimage.grey_dilation(np.where(valid, grid, -np.inf), size=(size, size))
 
 
 def ground_surface(
@@ -310,8 +322,19 @@ def ground_surface(
     size = max(1, round(window / cell))
     size += 1 - size % 2  # odd, centred on the cell
     if size > 1:
-        grid = _masked_filter(_masked_filter(grid, valid, size, "dilate"), valid, size, "erode")
-        grid = _masked_filter(_masked_filter(grid, valid, size, "erode"), valid, size, "dilate")
+        from scipy import ndimage
+
+        # Empty cells take the value of the nearest occupied cell: the surface continues flat
+        # past the edge of the data, so the opening does not cut down the rim of a slope.
+        nearest = ndimage.distance_transform_edt(
+            ~valid, return_distances=False, return_indices=True
+        )
+        # The same past the grid's edge: pad with edge values wider than the window.
+        pad = 2 * size
+        grid = np.pad(grid[tuple(nearest)], pad, mode="edge")
+        grid = ndimage.grey_closing(grid, size=(size, size), mode="nearest")
+        grid = ndimage.grey_opening(grid, size=(size, size), mode="nearest")
+        grid = np.ascontiguousarray(grid[pad:-pad, pad:-pad])
     return grid.flat[flat]
 
 
@@ -339,10 +362,11 @@ def ground_mask(
     )
     if cfg.ground_mode == "plane":
         return np.abs(points @ normal + offset) < cfg.ground_threshold, normal
-    local = points @ _rotation_to_z(normal).T
-    height = local[:, 2] + offset
+    rot = _rotation_to_z(normal)  # rows: two horizontal axes, then the normal
+    xy = np.stack([points @ rot[0], points @ rot[1]], axis=1)
+    height = points @ normal + offset
     surface = ground_surface(
-        local[:, :2],
+        xy,
         height,
         cell=cfg.ground_cell,
         window=cfg.ground_window,
@@ -361,15 +385,18 @@ def remove_ground(
 # --- 3. voxel grid ---------------------------------------------------------------------------
 
 
-def _voxel_keys(points: np.ndarray, leaf: float) -> np.ndarray:
-    ijk = np.floor((points - points.min(axis=0)) / leaf).astype(np.int64)
+def _voxel_keys(points: np.ndarray, leaf: float, shifted: np.ndarray | None = None) -> np.ndarray:
+    """int64 [N] voxel index of each point; ``shifted`` = points - points.min(0) if known."""
+    if shifted is None:
+        shifted = points - points.min(axis=0)
+    ijk = np.floor(shifted * (1.0 / leaf)).astype(np.int64)
     dims = ijk.max(axis=0) + 1
     return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
 
 
-def voxel_count(points: np.ndarray, leaf: float) -> int:
+def voxel_count(points: np.ndarray, leaf: float, *, shifted: np.ndarray | None = None) -> int:
     """Number of occupied ``leaf``-metre voxels (grid anchored at the cloud's minimum corner)."""
-    keys = np.sort(_voxel_keys(points, leaf))
+    keys = np.sort(_voxel_keys(points, leaf, shifted))
     return int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
 
 
@@ -403,7 +430,12 @@ def find_leaf_size(points: np.ndarray, target: int, *, iterations: int = 30) -> 
     Ties prefer the larger count (dropping points beats duplicating them).
     """
     lo, hi = _leaf_bounds(points)
-    c_lo, c_hi = voxel_count(points, lo), voxel_count(points, hi)
+    shifted = points - points.min(axis=0)
+
+    def count(leaf: float) -> int:
+        return voxel_count(points, leaf, shifted=shifted)
+
+    c_lo, c_hi = count(lo), count(hi)
     best = min(((lo, c_lo), (hi, c_hi)), key=lambda t: (abs(t[1] - target), -t[1]))
     if c_lo <= target:  # even the finest grid gives too few voxels (duplicates)
         return lo, c_lo
@@ -417,7 +449,7 @@ def find_leaf_size(points: np.ndarray, target: int, *, iterations: int = 30) -> 
             t = 0.5
         t = min(max(t, 0.1), 0.9)
         mid = math.exp(llo + t * (lhi - llo))
-        c = voxel_count(points, mid)
+        c = count(mid)
         if c >= target:
             lo, c_lo = mid, c
         else:
