@@ -176,8 +176,9 @@ def test_interrupted_build_leaves_no_bundle(world: dict[str, Path], encoder, tmp
 
     out = tmp_path / "map.index"
     with pytest.raises(KeyboardInterrupt):
-        ix.build_bundle(out, world["ckpt"], world["tree"], encoder=Failing(), batch_size=4,
-                        progress=False)  # fmt: skip
+        ix.build_bundle(
+            out, world["ckpt"], world["tree"], encoder=Failing(), batch_size=4, progress=False
+        )
     assert not out.exists()
     # Failing in the writing stage (bad key) also leaves nothing.
     with pytest.raises(InputError):
@@ -255,8 +256,9 @@ def test_recall_at_1_against_a_loop() -> None:
     ("key", "params"), [("HNSW8", {"efSearch": 128}), ("IVF2,Flat", {"nprobe": 2})]
 )
 def test_approximate_bundles_record_recall(world: dict[str, Path], tmp_path, key, params) -> None:
-    rep = ix.build_bundle(tmp_path / "b", world["ckpt"], world["tree"], index_key=key,
-                          progress=False)  # fmt: skip
+    rep = ix.build_bundle(
+        tmp_path / "b", world["ckpt"], world["tree"], index_key=key, progress=False
+    )
     m = json.loads((tmp_path / "b" / "manifest.json").read_text())
     assert m["search_params"] == params
     # With every list probed (IVF) or a wide beam on 32 vectors (HNSW) the search is exact.
@@ -269,8 +271,9 @@ def test_approximate_bundles_record_recall(world: dict[str, Path], tmp_path, key
 
 def test_pq_with_too_few_vectors_says_how_many(world: dict[str, Path], tmp_path: Path) -> None:
     with pytest.raises(InputError, match="at least 256 vectors"):
-        ix.build_bundle(tmp_path / "b", world["ckpt"], world["tree"], index_key="IVF2,PQ4",
-                        progress=False)  # fmt: skip
+        ix.build_bundle(
+            tmp_path / "b", world["ckpt"], world["tree"], index_key="IVF2,PQ4", progress=False
+        )
 
 
 # -- add -----------------------------------------------------------------------------------
@@ -309,10 +312,26 @@ def test_sharded_build_equals_single_process(world: dict[str, Path], tmp_path: P
     out = tmp_path / "sharded.index"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2",
-        "--master-port", str(free_port()), "-m", "pnvlad_cli.main", "index", "build",
-        "-c", str(world["ckpt"]), "-r", str(world["tree"]), "-o", str(out), "-b", "5",
-    ]  # fmt: skip
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc-per-node",
+        "2",
+        "--master-port",
+        str(free_port()),
+        "-m",
+        "pnvlad_cli.main",
+        "index",
+        "build",
+        "-c",
+        str(world["ckpt"]),
+        "-r",
+        str(world["tree"]),
+        "-o",
+        str(out),
+        "-b",
+        "5",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]
     sharded, single = ix.IndexBundle.load(out), ix.IndexBundle.load(world["bundle"])
@@ -335,8 +354,21 @@ def test_cli_build_and_info(world: dict[str, Path], tmp_path: Path) -> None:
 
     runner = CliRunner()
     out = tmp_path / "cli.index"
-    res = runner.invoke(app, ["index", "build", "-c", str(world["ckpt"]), "-r",
-                              str(world["tree"]), "-o", str(out), "-k", "auto"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "index",
+            "build",
+            "-c",
+            str(world["ckpt"]),
+            "-r",
+            str(world["tree"]),
+            "-o",
+            str(out),
+            "-k",
+            "auto",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "embedded 32 submaps" in res.output and "clouds/s" in res.output
     assert json.loads((out / "manifest.json").read_text())["index_key"] == "Flat"
@@ -345,8 +377,9 @@ def test_cli_build_and_info(world: dict[str, Path], tmp_path: Path) -> None:
     (out / "index.faiss").write_bytes((out / "index.faiss").read_bytes() + b"x")
     res = runner.invoke(app, ["index", "info", str(out)])
     assert res.exit_code == 1 and "sha256 MISMATCH" in res.output
-    res = runner.invoke(app, ["index", "build", "-c", str(world["ckpt"]), "-r",
-                              str(world["tree"]), "-o", str(out)])  # fmt: skip
+    res = runner.invoke(
+        app, ["index", "build", "-c", str(world["ckpt"]), "-r", str(world["tree"]), "-o", str(out)]
+    )
     assert res.exit_code == 2 and "already exists" in res.output
     args = ["-c", str(world["ckpt"]), "-r", str(world["tree"]), "-o", str(tmp_path / "x")]
     res = runner.invoke(app, ["index", "build", *args, "--run", "nope"])
