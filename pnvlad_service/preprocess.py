@@ -266,7 +266,7 @@ def fit_ground_plane(
     return normal, offset - float(normal @ centre)
 
 
-def _rotation_to_z(normal: np.ndarray) -> np.ndarray:
+def rotation_to_z(normal: np.ndarray) -> np.ndarray:
     """Rotation matrix float64 [3, 3] R with R @ normal = (0, 0, 1)."""
     z = np.array([0.0, 0.0, 1.0])
     v = np.cross(normal, z)
@@ -362,7 +362,7 @@ def ground_mask(
     )
     if cfg.ground_mode == "plane":
         return np.abs(points @ normal + offset) < cfg.ground_threshold, normal
-    rot = _rotation_to_z(normal)  # rows: two horizontal axes, then the normal
+    rot = rotation_to_z(normal)  # rows: two horizontal axes, then the normal
     xy = np.stack([points @ rot[0], points @ rot[1]], axis=1)
     height = points @ normal + offset
     surface = ground_surface(
