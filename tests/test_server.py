@@ -516,7 +516,7 @@ def test_pnvlad_localize_against_the_server(world, server, local) -> None:
         ["localize", str(world["tree"] / rel), "--reader", "benchmark", "--url", server, "-n", "3"],
     )
     assert res.exit_code == 0, res.output
-    lines = res.output.splitlines()
+    lines = res.stdout.splitlines()
     assert lines[0].split() == ["rank", "submap", "run", "northing", "easting", "distance"]
     first = lines[1].split()
     assert first[0] == "1" and first[1] == str(local[1].metadata.timestamp[5])

@@ -1,0 +1,94 @@
+"""`pnvlad localize` searching a bundle locally: the table, JSON output and usage errors.
+(Against a server: tests/test_server.py::test_pnvlad_localize_against_the_server.)"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_index import PER_RUN, make_checkpoint, make_tree
+from typer.testing import CliRunner
+
+from pnvlad_cli.main import app
+from pnvlad_service import index as ix
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    base = tmp_path_factory.mktemp("localize")
+    tree = make_tree(base / "tree")
+    ckpt = make_checkpoint(base / "ckpt")
+    ix.build_bundle(base / "map.index", ckpt, tree, progress=False)
+    return {"tree": tree, "ckpt": ckpt, "bundle": base / "map.index"}
+
+
+def test_table_and_json_name_the_submap_itself_first(world: dict[str, Path]) -> None:
+    rec = ix.list_database_submaps(world["tree"])[PER_RUN + 4]
+    scan = str(world["tree"] / rec.path)
+    runner = CliRunner()
+    res = runner.invoke(
+        app, ["localize", scan, "--reader", "benchmark", "--index", str(world["bundle"]), "-n", "4"]
+    )
+    assert res.exit_code == 0, res.output
+    lines = res.stdout.splitlines()
+    assert lines[0].split() == ["rank", "submap", "run", "northing", "easting", "distance"]
+    assert len(lines) == 1 + 4 + 1 and lines[-1].startswith("preprocess")
+    rank1 = lines[1].split()
+    assert rank1[:3] == ["1", str(rec.timestamp), rec.run]
+    assert float(rank1[3]) == pytest.approx(rec.northing, abs=0.005)
+    assert float(rank1[4]) == pytest.approx(rec.easting, abs=0.005)
+    res = runner.invoke(
+        app,
+        [
+            "localize",
+            scan,
+            "--reader",
+            "benchmark",
+            "--index",
+            str(world["bundle"]),
+            "-c",
+            str(world["ckpt"]),
+            "--json",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    body = json.loads(res.stdout)
+    assert [m["rank"] for m in body["matches"]] == [1, 2, 3, 4, 5]
+    assert body["matches"][0]["submap_id"] == rec.submap_id
+    d = [m["distance"] for m in body["matches"]]
+    assert d == sorted(d) and d[0] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_usage_errors_exit_2(world: dict[str, Path], tmp_path: Path) -> None:
+    runner = CliRunner()
+    scan = str(world["tree"] / ix.list_database_submaps(world["tree"])[0].path)
+    res = runner.invoke(app, ["localize", scan, "--reader", "benchmark"])
+    assert res.exit_code == 2 and "--url" in res.output
+    res = runner.invoke(
+        app,
+        [
+            "localize",
+            scan,
+            "--reader",
+            "benchmark",
+            "--index",
+            str(world["bundle"]),
+            "--url",
+            "http://127.0.0.1:1",
+        ],
+    )
+    assert res.exit_code == 2
+    raw = tmp_path / "raw.npy"
+    np.save(raw, np.random.default_rng(0).uniform(-30, 30, (1000, 3)))
+    res = runner.invoke(app, ["localize", str(raw), "--index", str(world["bundle"])])
+    assert res.exit_code == 2 and "preprocess" in res.output
+    res = runner.invoke(
+        app, ["localize", scan, "--reader", "benchmark", "--url", "http://127.0.0.1:9"]
+    )
+    assert res.exit_code == 2 and "cannot reach" in res.output
+    res = runner.invoke(
+        app, ["localize", scan, "--reader", "benchmark", "--index", str(tmp_path / "none")]
+    )
+    assert res.exit_code == 2 and "not found" in res.output
