@@ -1,0 +1,189 @@
+"""``ModelConfig``: every size and switch of the PointNetVLAD / PointNet-max encoders.
+
+Two configurations ship:
+
+- :meth:`ModelConfig.paper` - the network of the paper, as the published TensorFlow code builds it
+  (input transform 3x3, per-point layers 64, 64, feature transform 64x64, 64, 128, 1024; NetVLAD
+  with K = 64 clusters; fully connected to 256; context gating; L2 normalisation).
+- :meth:`ModelConfig.compact` - the same design, narrower, without the feature transform and with
+  K = 16: about 10x cheaper, so it trains on a CPU.
+
+:meth:`ModelConfig.port` is the variant that the popular PyTorch port
+(cattaneod/PointNetVlad-Pytorch)
+builds; weights imported from it (``pnvlad model import``) run under that configuration. The
+switches where the TensorFlow code and the port differ are documented in docs/MODEL.md.
+
+This module imports only pydantic, so the CLI can read configurations without loading torch.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+Arch = Literal["pointnetvlad", "pointnet-max"]
+
+
+class ModelConfig(BaseModel):
+    """Sizes and switches of an encoder; ``build_model(cfg)`` turns it into a ``torch.nn.Module``.
+
+    Input: float32 points [B, N, 3] (a submap scaled into [-1, 1]); output float32
+    [B, output_dim], every row of unit L2 norm.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    arch: Arch = Field("pointnetvlad", description="'pointnetvlad' (PN_VLAD) or 'pointnet-max'.")
+    num_points: int = Field(4096, ge=1, description="Points per cloud the model is trained on.")
+
+    # Per-point trunk: shared layers (1x1 convolutions, i.e. matrix products over points).
+    stem_widths: tuple[int, ...] = Field(
+        (64, 64), description="Per-point layer widths before the feature transform."
+    )
+    trunk_widths: tuple[int, ...] = Field(
+        (64, 128, 1024), description="Per-point layer widths after the feature transform."
+    )
+    input_transform: bool = Field(True, description="Learn a 3x3 transform of the input points.")
+    feature_transform: bool = Field(
+        True, description="Learn a CxC transform of the stem's features (C = stem_widths[-1])."
+    )
+    tnet_point_widths: tuple[int, ...] = Field(
+        (64, 128, 1024), description="Per-point layer widths inside each transform net."
+    )
+    tnet_fc_widths: tuple[int, ...] = Field(
+        (512, 256), description="Fully connected widths inside each transform net (after max-pool)."
+    )
+
+    # NetVLAD head.
+    cluster_size: int = Field(64, ge=1, description="K, the number of learned NetVLAD clusters.")
+    output_dim: int = Field(256, ge=1, description="Descriptor size.")
+    gating: bool = Field(True, description="Context gating after the fully connected layer.")
+    vlad_batch_norm: bool = Field(
+        True,
+        description="Batch norm on the cluster logits, after the fully connected layer and in the "
+        "gating (as both published codes); False uses biases instead.",
+    )
+
+    # Where the TensorFlow code (True/False as noted) and the PyTorch port differ.
+    trunk_batch_norm: bool = Field(
+        False, description="Batch norm after each per-point trunk layer (TF: no; port: yes)."
+    )
+    tnet_batch_norm: bool = Field(
+        True, description="Batch norm inside the transform nets (TF: yes; port: no)."
+    )
+    last_relu: bool = Field(
+        True, description="ReLU after the last trunk layer (TF: yes; port: no)."
+    )
+    point_l2_norm: bool = Field(
+        True,
+        description="L2-normalise each point's feature before NetVLAD (TF: yes; port: no); "
+        "PN_MAX ignores it.",
+    )
+
+    @field_validator("stem_widths", "trunk_widths", "tnet_point_widths", "tnet_fc_widths")
+    @classmethod
+    def _positive_widths(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if any(w < 1 for w in v):
+            raise ValueError(f"widths must be positive, got {v}")
+        return tuple(v)
+
+    @model_validator(mode="after")
+    def _check(self) -> ModelConfig:
+        if not self.trunk_widths:
+            raise ValueError("trunk_widths must name at least one layer")
+        if self.feature_transform and not self.stem_widths:
+            raise ValueError("feature_transform needs at least one stem layer to transform")
+        if (self.input_transform or self.feature_transform) and not self.tnet_point_widths:
+            raise ValueError("transform nets need at least one per-point layer")
+        return self
+
+    @property
+    def feature_dim(self) -> int:
+        """D: the per-point feature size the pooling sees (the last trunk width)."""
+        return self.trunk_widths[-1]
+
+    @classmethod
+    def paper(cls, **overrides: object) -> ModelConfig:
+        """PN_VLAD as published (TensorFlow code): about 4.4 GFLOP per 4096-point cloud."""
+        return cls(**overrides)  # type: ignore[arg-type]
+
+    @classmethod
+    def port(cls, **overrides: object) -> ModelConfig:
+        """PN_VLAD as the PyTorch port builds it (``PointNetVlad(..., feature_transform=True,
+        max_pool=False, output_dim=256)``): batch norm in the trunk, none in the transform nets,
+        no ReLU after the last trunk layer, no per-point normalisation."""
+        base = {
+            "trunk_batch_norm": True,
+            "tnet_batch_norm": False,
+            "last_relu": False,
+            "point_l2_norm": False,
+        }
+        base.update(overrides)
+        return cls(**base)  # type: ignore[arg-type]
+
+    @classmethod
+    def compact(cls, **overrides: object) -> ModelConfig:
+        """A CPU-trainable PN_VLAD: trunk 32, 32, 64, 128, 256; no feature transform; a narrow
+        input transform net; K = 16; output 256. About 10x cheaper than :meth:`paper`."""
+        base: dict[str, object] = {
+            "stem_widths": (32, 32),
+            "trunk_widths": (64, 128, 256),
+            "feature_transform": False,
+            "tnet_point_widths": (32, 64, 128),
+            "tnet_fc_widths": (64, 32),
+            "cluster_size": 16,
+            "trunk_batch_norm": True,
+        }
+        base.update(overrides)
+        return cls(**base)  # type: ignore[arg-type]
+
+    def flops_per_cloud(self, num_points: int | None = None) -> int:
+        """Multiply-adds x 2 of one forward pass on one cloud of ``num_points`` points.
+
+        Counts the matrix products only (per-point layers, transform nets, NetVLAD's two products,
+        the fully connected layer and the gating); element-wise work is ignored.
+        """
+        n = self.num_points if num_points is None else num_points
+        flops = 0
+
+        def tnet(c_in: int, k: int) -> int:
+            f, c = 0, c_in
+            for w in self.tnet_point_widths:
+                f += 2 * n * c * w
+                c = w
+            for w in self.tnet_fc_widths:
+                f += 2 * c * w
+                c = w
+            return f + 2 * c * k * k
+
+        if self.input_transform:
+            flops += tnet(3, 3) + 2 * n * 3 * 3
+        c = 3
+        for w in self.stem_widths:
+            flops += 2 * n * c * w
+            c = w
+        if self.feature_transform:
+            flops += tnet(c, c) + 2 * n * c * c
+        for w in self.trunk_widths:
+            flops += 2 * n * c * w
+            c = w
+        d = c
+        if self.arch == "pointnetvlad":
+            k = self.cluster_size
+            flops += 2 * n * d * k  # soft-assignment logits
+            flops += 2 * n * d * k  # weighted sums of the features
+            flops += 2 * k * d * self.output_dim
+        else:
+            flops += 2 * d * self.output_dim
+        if self.gating:
+            flops += 2 * self.output_dim * self.output_dim
+        return flops
+
+
+def config_sha256(cfg: ModelConfig) -> str:
+    """SHA-256 (hex) of the configuration's canonical JSON (sorted keys, no spaces)."""
+    text = json.dumps(cfg.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()

@@ -1,0 +1,195 @@
+"""Model checkpoints on disk: a directory with ``model.safetensors`` and ``model.json``.
+
+``model.json``::
+
+    {"format": "pnvlad-model", "version": 1, "model": <ModelConfig>,
+     "weights_sha256": "<hex of model.safetensors>", "config_sha256": "<hex>", ...meta}
+
+A training checkpoint is the same directory plus ``train_state.pt`` and ``train.json`` (written
+by the trainer). Weights are never pickled: safetensors only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pydantic import ValidationError
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.fileio import atomic_directory
+from pnvlad_service.models.config import ModelConfig, config_sha256
+
+if TYPE_CHECKING:
+    import torch
+
+log = logging.getLogger(__name__)
+
+FORMAT = "pnvlad-model"
+VERSION = 1
+WEIGHTS_FILE = "model.safetensors"
+CONFIG_FILE = "model.json"
+
+__all__ = [
+    "CONFIG_FILE",
+    "WEIGHTS_FILE",
+    "config_sha256",
+    "load_model",
+    "read_model_json",
+    "save_model",
+    "weights_sha256",
+]
+
+
+def _sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def weights_sha256(directory: str | Path) -> str:
+    """SHA-256 (hex) of the checkpoint's ``model.safetensors`` file bytes."""
+    path = Path(directory) / WEIGHTS_FILE
+    if not path.is_file():
+        raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
+    return _sha256_file(path)
+
+
+def write_model_files(
+    directory: str | Path, model: torch.nn.Module, cfg: ModelConfig, meta: dict[str, Any] | None
+) -> None:
+    """Write ``model.safetensors`` and ``model.json`` into an existing (temporary) directory.
+
+    For callers that build a larger directory atomically themselves (the trainer adds
+    ``train_state.pt``); everyone else calls :func:`save_model`.
+    """
+    from safetensors.torch import save_file
+
+    directory = Path(directory)
+    state = {k: v.detach().to("cpu").contiguous() for k, v in model.state_dict().items()}
+    save_file(state, str(directory / WEIGHTS_FILE), metadata={"format": FORMAT})
+    doc: dict[str, Any] = dict(meta or {})
+    doc.update(
+        {
+            "format": FORMAT,
+            "version": VERSION,
+            "model": cfg.model_dump(mode="json"),
+            "weights_sha256": _sha256_file(directory / WEIGHTS_FILE),
+            "config_sha256": config_sha256(cfg),
+        }
+    )
+    (directory / CONFIG_FILE).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+
+
+def save_model(
+    directory: str | Path,
+    model: torch.nn.Module,
+    cfg: ModelConfig,
+    meta: dict[str, Any] | None = None,
+    *,
+    overwrite: bool = False,
+) -> Path:
+    """Save ``model``'s weights and ``cfg`` as a checkpoint directory, atomically.
+
+    ``meta`` (JSON-serialisable) is merged into ``model.json`` (e.g. ``{"source": ...}``); the
+    keys ``format``, ``version``, ``model``, ``weights_sha256`` and ``config_sha256`` are
+    always ours. Raises ``FileExistsError`` if ``directory`` exists and not ``overwrite``.
+    """
+    directory = Path(directory)
+    with atomic_directory(directory, overwrite=overwrite) as tmp:
+        write_model_files(tmp, model, cfg, meta)
+    log.info("saved model (%s) to %s", cfg.arch, directory)
+    return directory
+
+
+def read_model_json(directory: str | Path) -> tuple[ModelConfig, dict[str, Any]]:
+    """Read and check ``model.json``: returns (config, the whole document)."""
+    directory = Path(directory)
+    path = directory / CONFIG_FILE
+    if not directory.is_dir():
+        raise InputError(
+            "not a model directory (expected model.json and model.safetensors)", directory
+        )
+    if not path.is_file():
+        raise InputError(f"no {CONFIG_FILE} in this model directory", directory)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON: {exc}", path) from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise InputError(f"not a {FORMAT} file (missing or wrong 'format')", path)
+    if doc.get("version") != VERSION:
+        raise InputError(
+            f"unsupported version {doc.get('version')!r} (this pnvlad reads version {VERSION})",
+            path,
+        )
+    try:
+        cfg = ModelConfig.model_validate(doc.get("model"))
+    except ValidationError as exc:
+        raise InputError(f"invalid model configuration: {exc}", path) from None
+    return cfg, doc
+
+
+def load_model(
+    directory: str | Path, device: str | None = None
+) -> tuple[torch.nn.Module, ModelConfig]:
+    """Load a checkpoint directory: returns (model in eval mode, its config).
+
+    Raises :class:`InputError` when a file is missing, the weights' SHA-256 differs from the one
+    recorded in ``model.json``, or the tensors do not match the configuration (names the
+    missing, unexpected and mis-shaped tensors).
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    from pnvlad_service.models.pointnetvlad import build_model
+
+    directory = Path(directory)
+    cfg, doc = read_model_json(directory)
+    wpath = directory / WEIGHTS_FILE
+    if not wpath.is_file():
+        raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
+    recorded = doc.get("weights_sha256")
+    if recorded is not None and recorded != _sha256_file(wpath):
+        raise InputError(
+            "weights do not match the SHA-256 recorded in model.json (file changed or corrupt)",
+            wpath,
+        )
+    try:
+        state = load_file(str(wpath), device="cpu")
+    except (SafetensorError, OSError) as exc:
+        raise InputError(f"cannot read safetensors file: {exc}", wpath) from None
+    model = build_model(cfg)
+    check_state_dict(model, state, wpath)
+    model.load_state_dict(state, strict=True)
+    model.eval()
+    if device is not None:
+        model.to(device)
+    return model, cfg
+
+
+def check_state_dict(model: torch.nn.Module, state: dict[str, Any], source: str | Path) -> None:
+    """Raise :class:`InputError` listing missing, unexpected and mis-shaped tensors of ``state``
+    against ``model.state_dict()``."""
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    shapes = sorted(
+        f"{k}: file {tuple(state[k].shape)}, model {tuple(expected[k].shape)}"
+        for k in set(expected) & set(state)
+        if tuple(state[k].shape) != tuple(expected[k].shape)
+    )
+    if missing or unexpected or shapes:
+        parts = []
+        if missing:
+            parts.append(f"missing {len(missing)}: {', '.join(missing)}")
+        if unexpected:
+            parts.append(f"unexpected {len(unexpected)}: {', '.join(unexpected)}")
+        if shapes:
+            parts.append(f"shape mismatch {len(shapes)}: {'; '.join(shapes)}")
+        raise InputError("weights do not fit the model: " + " | ".join(parts), source)
