@@ -692,14 +692,17 @@ class _ScanCache:
         self.reads += 1
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise InputError(f"scan {i}: expected points [N, 3], got shape {pts.shape}", name)
-        pts = pts[:, :3].astype(np.float64)
-        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        pts = pts[:, :3]
+        finite = np.isfinite(pts)
+        if not finite.all():
+            pts = pts[finite.all(axis=1)]
         if self.max_range is not None:
-            pts = pts[np.einsum("ij,ij->i", pts, pts) <= self.max_range**2]
+            sq = np.einsum("ij,ij->i", pts, pts, dtype=np.float64)
+            pts = pts[sq <= self.max_range**2]
         if self.max_points is not None and len(pts) > self.max_points:
             rng = np.random.default_rng([self.seed, i])
-            keep = np.sort(rng.choice(len(pts), self.max_points, replace=False))
-            pts = pts[keep]
+            pts = pts[np.sort(rng.choice(len(pts), self.max_points, replace=False))]
+        pts = np.ascontiguousarray(pts, dtype=np.float64)
         return pts
 
     def evict_before(self, first: int) -> None:

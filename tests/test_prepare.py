@@ -441,6 +441,81 @@ def test_accumulate_subtracts_the_centre_before_float32_precision_matters() -> N
     np.testing.assert_allclose(boxed, [[0.001, 0.002, 0.0]], atol=1e-7)
 
 
+class ListDrive:
+    """An in-memory drive (as the synthetic city builds one): scans and poses in lists."""
+
+    def __init__(self, scans: list[np.ndarray], poses: np.ndarray, stamps: list[int]) -> None:
+        self.name = "memory"
+        self.scans = scans
+        self.poses = poses
+        self.timestamps = np.asarray(stamps, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.scans)
+
+    def scan(self, i: int) -> np.ndarray:
+        return self.scans[i]
+
+
+def test_scan_cache_drops_bad_points_and_caps_range_and_count() -> None:
+    from pnvlad_service.prepare import _ScanCache
+
+    pts = np.array(
+        [[1.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [0.0, 3.0, 4.0], [0.0, 6.0, 8.0], [np.inf, 0, 0]],
+        dtype=np.float32,
+    )
+    drive = ListDrive([pts], np.eye(4)[None], [0])
+    assert isinstance(drive, Drive)
+    got = _ScanCache(drive, seed=0, max_points_per_scan=None, max_range_m=5.0).get(0)
+    assert got.dtype == np.float64
+    np.testing.assert_array_equal(got, [[1.0, 0.0, 0.0], [0.0, 3.0, 4.0]])
+    big = np.random.default_rng(0).normal(size=(1000, 3))
+    drive = ListDrive([big], np.eye(4)[None], [0])
+    first = _ScanCache(drive, seed=3, max_points_per_scan=100, max_range_m=None).get(0)
+    again = _ScanCache(drive, seed=3, max_points_per_scan=100, max_range_m=None).get(0)
+    other = _ScanCache(drive, seed=4, max_points_per_scan=100, max_range_m=None).get(0)
+    assert first.shape == (100, 3) and np.array_equal(first, again)
+    assert not np.array_equal(first, other)
+    # A subset of the scan's rows, in their original order.
+    rows = [int(np.nonzero((big == r).all(axis=1))[0][0]) for r in first]
+    assert rows == sorted(rows)
+
+
+def test_in_memory_drive_in_utm(tmp_path: Path) -> None:
+    # A drive heading north-east from a UTM point, street scans identical in the sensor frame.
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-15, 15, 3000)
+    street = np.vstack(
+        [
+            np.c_[x[:1000], rng.uniform(-8, 8, 1000), np.full(1000, -1.7)],
+            np.c_[x[1000:], np.repeat([-8.0, 8.0], 1000), rng.uniform(-1.7, 6, 2000)],
+        ]
+    )
+    t_count = 45
+    yaw = math.radians(45)
+    poses = np.tile(np.eye(4), (t_count, 1, 1))
+    poses[:, :3, :3] = [
+        [math.cos(yaw), -math.sin(yaw), 0],
+        [math.sin(yaw), math.cos(yaw), 0],
+        [0, 0, 1],
+    ]
+    along = np.arange(t_count) * 0.5
+    poses[:, 0, 3] = 620_000.0 + along * math.cos(yaw)
+    poses[:, 1, 3] = 5_735_000.0 + along * math.sin(yaw)
+    drive = ListDrive([street] * t_count, poses, [10**15 + 50_000 * i for i in range(t_count)])
+    result = prepare_drive(drive, tmp_path / "run", progress=False)
+    # 22 m travelled (44 steps of 0.5 m): one whole 20 m window, centred at 10 m (scan 20).
+    assert [r.submaps for r in result.layouts] == [1, 1]
+    rows = read_csv_rows(tmp_path / "run" / "pointcloud_locations_20m.csv")
+    assert rows == [
+        (
+            10**15 + 50_000 * 20,
+            pytest.approx(5_735_000.0 + 10 * math.sin(yaw), abs=1e-6),
+            pytest.approx(620_000.0 + 10 * math.cos(yaw), abs=1e-6),
+        )
+    ]
+
+
 def test_bad_drives_are_refused(tmp_path: Path) -> None:
     class Bad:
         name = "bad"
