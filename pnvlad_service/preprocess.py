@@ -76,6 +76,12 @@ class GConfig(BaseModel):
         description="Objects narrower than this (m) are not taken for ground (the morphological "
         "window of the height map).",
     )
+    ground_step: float = Field(
+        0.3,
+        gt=0,
+        description="Largest rise (m) from a height-map cell to its lowest neighbour that still "
+        "counts as the same ground (kerbs, slopes up to about 20% with 1 m cells).",
+    )
     ground_percentile: float = Field(
         5.0, ge=0, le=100, description="Per-cell percentile of heights taken as the cell's ground."
     )
@@ -85,7 +91,7 @@ class GConfig(BaseModel):
     up: Literal["auto", "z", "-z"] = Field(
         "auto",
         description="Which side of the ground is up: 'auto' (the side most off-plane points are "
-        "on; handles z-down frames such as NCLT's), '+z' as 'z', or '-z'.",
+        "on; handles z-down frames such as NCLT's), 'z' or '-z'.",
     )
     ransac_iterations: int = Field(200, ge=1, description="RANSAC plane hypotheses.")
     voxel_iterations: int = Field(30, ge=1, description="Most leaf sizes tried.")
@@ -128,6 +134,19 @@ class GResult:
     up: np.ndarray | None
 
 
+# numpy reduces [N, 3] arrays along axis 0 or 1 several times slower than column by column.
+def _col_min(a: np.ndarray) -> np.ndarray:
+    return np.array([a[:, k].min() for k in range(a.shape[1])])
+
+
+def _col_max(a: np.ndarray) -> np.ndarray:
+    return np.array([a[:, k].max() for k in range(a.shape[1])])
+
+
+def _col_mean(a: np.ndarray) -> np.ndarray:
+    return np.array([a[:, k].mean() for k in range(a.shape[1])])
+
+
 def _as_points(points: np.ndarray, source: str = "points") -> np.ndarray:
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -165,7 +184,8 @@ def crop_mask(
     if box is not None:
         lo = np.asarray(box[:3], dtype=np.float64)
         hi = np.asarray(box[3:], dtype=np.float64)
-        keep &= np.all((points >= lo) & (points <= hi), axis=1)
+        for k in range(3):
+            keep &= (points[:, k] >= lo[k]) & (points[:, k] <= hi[k])
     return keep
 
 
@@ -188,7 +208,7 @@ def _fit_plane(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares plane (centroid, unit normal) of float64 [M, 3]; ``fallback`` normal if
     the fit tips over beyond ``max_tilt_deg``."""
-    mean = points.mean(axis=0)
+    mean = _col_mean(points)
     normal = np.linalg.svd(points - mean, full_matrices=False)[2][2]
     if abs(normal[2]) < math.cos(math.radians(max_tilt_deg)):
         normal = fallback
@@ -221,7 +241,7 @@ def fit_ground_plane(
     rng = np.random.default_rng(0) if rng is None else rng
     n = points.shape[0]
     sub = points if n <= sample else points[np.sort(rng.choice(n, sample, replace=False))]
-    centre = sub.mean(axis=0)
+    centre = _col_mean(sub)
     sub = sub - centre
     m = sub.shape[0]
     idx = rng.integers(0, m, size=(iterations, 3))
@@ -234,15 +254,10 @@ def fit_ground_plane(
     if ok.any():
         normals = normals[ok]
         offsets = -np.einsum("ij,ij->i", normals, a[ok])
-        # [m, K] distances; broadcasting, not a matmul (BLAS threads buy nothing at 3 columns)
-        dist = np.abs(
-            sub[:, 0:1] * normals[:, 0]
-            + sub[:, 1:2] * normals[:, 1]
-            + sub[:, 2:3] * normals[:, 2]
-            + offsets
-        )
-        best = int(np.argmax((dist < threshold).sum(axis=0)))
-        inliers = sub[dist[:, best] < threshold]
+        # [m, K] distances to each hypothesis; float32 is plenty to count inliers.
+        dist = np.abs(sub.astype(np.float32) @ normals.T.astype(np.float32) + offsets)
+        best = int(np.argmax(np.count_nonzero(dist < threshold, axis=0)))
+        inliers = sub[np.abs(sub @ normals[best] + offsets[best]) < threshold]
     else:  # no tilted-enough hypothesis: the lowest tenth of the points along z
         log.warning("no RANSAC ground plane within %.0f deg of z; using z", max_tilt_deg)
         inliers = sub[sub[:, 2] <= np.quantile(sub[:, 2], 0.1)]
@@ -255,7 +270,7 @@ def fit_ground_plane(
         if close.shape[0] >= 3:
             mean, normal = _fit_plane(close, fallback, max_tilt_deg)
     else:
-        normal, mean = np.array([0.0, 0.0, 1.0]), sub.min(axis=0)
+        normal, mean = np.array([0.0, 0.0, 1.0]), _col_min(sub)
     offset = -float(normal @ mean)
     if up == "auto":
         height = sub @ normal + offset
@@ -284,23 +299,34 @@ def ground_surface(
     cell: float = 1.0,
     window: float = 9.0,
     percentile: float = 5.0,
+    step: float = 0.3,
+    seed_band: float = 0.5,
 ) -> np.ndarray:
     """Height of the ground under each point, from a grid height map.
 
-    Each ``cell`` x ``cell`` m cell gets the ``percentile`` of its points' heights; a grey-scale
-    closing (fills pits: stray low returns) then an opening (cuts bumps: cars, walls, trunks),
-    both over a square of ``window`` m, leave the ground, which may slope and step. Empty cells
-    take no part. Both filters keep any plane exactly, so a uniform slope survives.
+    1. Each ``cell`` x ``cell`` m cell gets the ``percentile`` of its points' heights.
+    2. Connected ground: a cell at most ``step`` m above the lowest of its 8 neighbours is
+       smooth; the 8-connected regions of smooth cells that hold a cell within ``seed_band`` m
+       of height 0 (the RANSAC plane) are ground. Slopes and kerbs joined to the road stay in;
+       tree crowns, roofs and cars, whose cells rise in one jump or float with no ground around
+       them, drop out.
+    3. Every other cell, empty or not, takes the value of the nearest ground cell (the surface
+       carries on flat past the data), padded past the grid's edge.
+    4. A grey-scale closing (fills pits: stray low returns) then an opening (cuts bumps still
+       left: cars, walls, trunks), both over a square of ``window`` m. Both keep a plane
+       exactly, so a uniform slope survives.
 
     Args:
         xy: float64 [N, 2] metres in a frame whose z is up.
-        height: float64 [N] metres, the points' z in that frame.
+        height: float64 [N] metres, the points' z in that frame (0 = the RANSAC plane).
 
     Returns:
         float64 [N]: the ground height below each point, metres.
     """
-    lo = xy.min(axis=0)
-    span = xy.max(axis=0) - lo
+    from scipy import ndimage
+
+    lo = _col_min(xy)
+    span = _col_max(xy) - lo
     cells_needed = float(np.prod(span / cell + 1))
     if cells_needed > _MAX_GRID_CELLS:
         cell = cell * math.sqrt(cells_needed / _MAX_GRID_CELLS) * 1.01
@@ -316,22 +342,25 @@ def ground_surface(
     counts = np.diff(np.r_[starts, flat.shape[0]])
     pick = starts + np.floor((counts - 1) * (percentile / 100.0)).astype(np.int64)
     grid = np.full(shape, np.inf)
-    valid = np.zeros(shape, dtype=bool)
     grid.flat[sorted_cells[starts]] = height[order[pick]]
-    valid.flat[sorted_cells[starts]] = True
+    valid = np.isfinite(grid)
+
+    lowest_near = ndimage.grey_erosion(grid, size=(3, 3), mode="constant", cval=np.inf)
+    smooth = valid.copy()
+    smooth[valid] = grid[valid] - lowest_near[valid] <= step
+    labels, _ = ndimage.label(smooth, structure=np.ones((3, 3), dtype=bool))
+    seeds = np.unique(labels[smooth & (np.abs(grid) <= seed_band)])
+    ground = smooth & np.isin(labels, seeds[seeds > 0])
+    if not ground.any():
+        log.warning("no ground cells joined to the RANSAC plane; using the plane")
+        return np.zeros_like(height)
+    nearest = ndimage.distance_transform_edt(~ground, return_distances=False, return_indices=True)
+    grid = grid[tuple(nearest)]
     size = max(1, round(window / cell))
     size += 1 - size % 2  # odd, centred on the cell
     if size > 1:
-        from scipy import ndimage
-
-        # Empty cells take the value of the nearest occupied cell: the surface continues flat
-        # past the edge of the data, so the opening does not cut down the rim of a slope.
-        nearest = ndimage.distance_transform_edt(
-            ~valid, return_distances=False, return_indices=True
-        )
-        # The same past the grid's edge: pad with edge values wider than the window.
         pad = 2 * size
-        grid = np.pad(grid[tuple(nearest)], pad, mode="edge")
+        grid = np.pad(grid, pad, mode="edge")
         grid = ndimage.grey_closing(grid, size=(size, size), mode="nearest")
         grid = ndimage.grey_opening(grid, size=(size, size), mode="nearest")
         grid = np.ascontiguousarray(grid[pad:-pad, pad:-pad])
@@ -371,6 +400,8 @@ def ground_mask(
         cell=cfg.ground_cell,
         window=cfg.ground_window,
         percentile=cfg.ground_percentile,
+        step=cfg.ground_step,
+        seed_band=cfg.ground_threshold,
     )
     return height - surface < cfg.ground_threshold, normal
 
@@ -386,12 +417,14 @@ def remove_ground(
 
 
 def _voxel_keys(points: np.ndarray, leaf: float, shifted: np.ndarray | None = None) -> np.ndarray:
-    """int64 [N] voxel index of each point; ``shifted`` = points - points.min(0) if known."""
+    """int64 [N] voxel index of each point; ``shifted`` = points - min(points) if known."""
     if shifted is None:
-        shifted = points - points.min(axis=0)
-    ijk = np.floor(shifted * (1.0 / leaf)).astype(np.int64)
-    dims = ijk.max(axis=0) + 1
-    return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+        shifted = points - _col_min(points)
+    dims = (_col_max(shifted) / leaf).astype(np.int64) + 1
+    keys = (shifted[:, 0] / leaf).astype(np.int64)  # shifted >= 0: truncation is floor
+    for k in (1, 2):
+        keys = keys * dims[k] + (shifted[:, k] / leaf).astype(np.int64)
+    return keys
 
 
 def voxel_count(points: np.ndarray, leaf: float, *, shifted: np.ndarray | None = None) -> int:
@@ -409,53 +442,61 @@ def voxel_average(points: np.ndarray, leaf: float) -> np.ndarray:
     order = np.argsort(keys, kind="stable")
     sk = keys[order]
     starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
-    sums = np.add.reduceat(points[order], starts, axis=0)
-    counts = np.diff(np.r_[starts, sk.shape[0]])
-    return sums / counts[:, None]
-
-
-def _leaf_bounds(points: np.ndarray) -> tuple[float, float]:
-    extent = float((points.max(axis=0) - points.min(axis=0)).max())
-    extent = max(extent, 1e-9)
-    # 2e5 cells a side keeps the int64 voxel key far from overflow (8e15 < 9.2e18).
-    return extent / 2e5, extent * 1.01
+    counts = np.diff(np.r_[starts, sk.shape[0]]).astype(np.float64)
+    out = np.empty((starts.shape[0], 3))
+    for k in range(3):
+        out[:, k] = np.add.reduceat(points[order, k], starts) / counts
+    return out
 
 
 def find_leaf_size(points: np.ndarray, target: int, *, iterations: int = 30) -> tuple[float, int]:
     """Leaf size (m) whose voxel count is closest to ``target`` and that count.
 
-    Bracketed search on the leaf size: the bracket [small leaf: count >= target, large leaf:
-    count < target] shrinks at each step; the next leaf is interpolated in log-log space (count
-    ~ leaf^-d) and kept within the middle 80% of the bracket, so it is at worst a bisection.
-    Ties prefer the larger count (dropping points beats duplicating them).
+    A bracketed search on the leaf size: the bracket [leaf with count >= target, leaf with
+    count < target] shrinks at every step. The next leaf is the secant through the last two
+    tries in log-log space (count ~ leaf^-d; the first guess assumes a surface, d = 2), or the
+    bracket's geometric middle (bisection) where the secant falls outside it. Ties prefer the
+    larger count (dropping points beats duplicating them).
     """
-    lo, hi = _leaf_bounds(points)
-    shifted = points - points.min(axis=0)
+    shifted = points - _col_min(points)
+    extent = max(float(_col_max(shifted).max()), 1e-9)
 
     def count(leaf: float) -> int:
         return voxel_count(points, leaf, shifted=shifted)
 
-    c_lo, c_hi = count(lo), count(hi)
-    best = min(((lo, c_lo), (hi, c_hi)), key=lambda t: (abs(t[1] - target), -t[1]))
-    if c_lo <= target:  # even the finest grid gives too few voxels (duplicates)
+    def better(a: tuple[float, int], b: tuple[float, int]) -> bool:
+        return (abs(a[1] - target), -a[1]) < (abs(b[1] - target), -b[1])
+
+    # 2e5 cells a side keeps the int64 voxel key far from overflow (8e15 < 9.2e18).
+    lo, hi = extent / 2e5, extent * 1.01
+    c_lo = count(lo)
+    if c_lo <= target:  # even the finest grid gives too few voxels (duplicate points)
         return lo, c_lo
+    guess = extent / math.sqrt(target)
+    tries = [(guess, count(guess))]
+    best = tries[0]
     for _ in range(iterations):
+        leaf, c = tries[-1]
+        if c >= target:
+            lo = max(lo, leaf)
+        else:
+            hi = min(hi, leaf)
         if best[1] == target or hi / lo < 1.0 + 1e-6:
             break
-        llo, lhi = math.log(lo), math.log(hi)
-        if c_hi > 0 and c_lo != c_hi:
-            t = (math.log(c_lo) - math.log(target)) / (math.log(c_lo) - math.log(max(c_hi, 1)))
+        if len(tries) == 1:
+            nxt = leaf * math.sqrt(max(c, 1) / target)
         else:
-            t = 0.5
-        t = min(max(t, 0.1), 0.9)
-        mid = math.exp(llo + t * (lhi - llo))
-        c = count(mid)
-        if c >= target:
-            lo, c_lo = mid, c
-        else:
-            hi, c_hi = mid, c
-        if (abs(c - target), -c) < (abs(best[1] - target), -best[1]):
-            best = (mid, c)
+            (l0, c0), (l1, c1) = tries[-2], tries[-1]
+            slope = (math.log(max(c1, 1)) - math.log(max(c0, 1))) / (math.log(l1) - math.log(l0))
+            if slope < 0:
+                nxt = math.exp(math.log(l1) + (math.log(target) - math.log(max(c1, 1))) / slope)
+            else:
+                nxt = 0.0
+        if not lo < nxt < hi:
+            nxt = math.sqrt(lo * hi)
+        tries.append((nxt, count(nxt)))
+        if better(tries[-1], best):
+            best = tries[-1]
     return best
 
 
@@ -501,12 +542,13 @@ def normalize(
     (default: the input count). ``points`` float64 [M, 3]; returns float64 [target, 3].
     """
     target = points.shape[0] if target is None else target
-    centred = points - points.mean(axis=0)
-    spread = float(np.linalg.norm(centred, axis=1).mean())
+    centred = points - _col_mean(points)
+    spread = float(np.sqrt(np.einsum("ij,ij->i", centred, centred)).mean())
     if spread <= 0.0:
         raise InputError("all points coincide; the cloud cannot be normalised", "points")
     scaled = centred * (mean_distance / spread)
-    inside = scaled[np.all(np.abs(scaled) <= 1.0, axis=1)]
+    a = np.abs(scaled)
+    inside = scaled[(a[:, 0] <= 1.0) & (a[:, 1] <= 1.0) & (a[:, 2] <= 1.0)]
     return resample_to(inside, target, rng=rng)
 
 

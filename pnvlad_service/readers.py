@@ -278,8 +278,8 @@ def validate_points(points: np.ndarray, source: str | Path | None) -> np.ndarray
         raise InputError(f"expected points of shape [N, 3], got {tuple(points.shape)}", source)
     if points.shape[0] == 0:
         raise InputError("the point cloud is empty", source)
-    bad = ~np.isfinite(points).all(axis=1)
-    if bad.any():
+    if not np.isfinite(points).all():
+        bad = ~np.isfinite(points).all(axis=1)
         raise InputError(
             f"{int(bad.sum()):,} of {points.shape[0]:,} points have NaN or infinite coordinates",
             source,
