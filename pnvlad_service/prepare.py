@@ -979,7 +979,7 @@ def _claim_output(
     if not resume:
         for f in existing:
             f.unlink()
-    if res.csv.exists() and not resume:
+    if res.csv.exists():  # rewritten at the end; until then no CSV describes the folder
         res.csv.unlink()
     res.folder.mkdir(parents=True, exist_ok=True)
     atomic_write_text(manifest_path, json.dumps(manifest, indent=2, sort_keys=True) + "\n")

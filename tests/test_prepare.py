@@ -400,6 +400,12 @@ def test_interrupted_run_leaves_no_partial_output_and_resume_completes(
     # Windows already written were not read again.
     assert 0 not in again.reads
 
+    # A resume that crashes leaves no CSV behind either (the old one would list a lost file).
+    (out / "pointcloud_20m" / "700000.bin").unlink()  # centre scan 7: window of scans 0..13
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        prepare_drive(CountingDrive(KittiSequence(seq), fail_at=0), out, resume=True, **FAST)
+    assert not list(out.glob("*.csv"))
+
 
 def test_overwrite_starts_again(reference_run, tmp_path: Path) -> None:
     seq, run, _, _ = reference_run
