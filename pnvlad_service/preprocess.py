@@ -4,16 +4,17 @@ The steps, in order, each a public function (see docs/PREPROCESS.md for figures 
 
 1. :func:`crop_mask` / :func:`crop`: optional range (3-D distance from the origin, i.e. the
    sensor) and axis-aligned box.
-2. :func:`ground_mask` / :func:`remove_ground`: a RANSAC plane (normal within
-   ``max_ground_tilt_deg`` of the z axis) gives the up direction and a frame; in ``"local"``
-   mode a height map on a grid of ``ground_cell`` metres (a low percentile of the height in each
-   cell, then a grey-scale closing and opening over ``ground_window`` metres) follows slopes,
-   kerbs and gentle bends of the road, and every point less than ``ground_threshold`` above
-   that surface (or below it) is ground. ``"plane"`` mode is the paper's: points within
-   ``ground_threshold`` of the single plane.
-3. :func:`voxel_average` with the leaf size found by :func:`adaptive_voxel_downsample`
-   (bracketed bisection on the leaf size until the voxel count is closest to the target), then
-   :func:`resample_to` duplicates or drops seeded random points to hit the target exactly.
+2. :func:`ground_mask` / :func:`remove_ground`: a RANSAC plane (:func:`fit_ground_plane`,
+   normal within ``max_ground_tilt_deg`` of the z axis) gives the up side and a frame; in
+   ``"local"`` mode a height map (:func:`ground_surface`: a low percentile per ``ground_cell``
+   cell, the cells joined smoothly to the plane, then a grey-scale closing and opening over
+   ``ground_window`` metres) follows slopes and kerbs, and every point less than
+   ``ground_threshold`` above that surface (or below it) is ground. ``"plane"`` mode is the
+   paper's: points within ``ground_threshold`` of the single plane.
+3. :func:`voxel_average` with the leaf size found by :func:`find_leaf_size` (a bracketed
+   secant/bisection search until the voxel count is closest to the target), then
+   :func:`resample_to` duplicates or drops seeded random points to hit the target exactly
+   (:func:`adaptive_voxel_downsample` does both).
 4. :func:`normalize`: centre on the centroid, scale to a mean distance of 0.5 from it, drop
    points outside [-1, 1]^3, refill to the target; optional negation afterwards.
 
