@@ -662,3 +662,37 @@ def test_cli_prepare(reference_run, tmp_path: Path) -> None:
     assert res.exit_code == 2 and "--kitti" in res.output
     res = runner.invoke(app, [*args, "--origin", "5735712"])
     assert res.exit_code == 2 and "NORTHING,EASTING" in res.output
+
+
+def test_cli_prepare_scans_and_g_config(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    stamps = [2_000_000 + 100_000 * i for i in range(32)]
+    write_street(tmp_path / "scans", stamps, np.random.default_rng(3))
+    poses = tmp_path / "poses.csv"
+    poses.write_text(
+        "timestamp,northing,easting,yaw_deg\n"
+        + "".join(f"{t},5735000,{620_000 + 1.0 * i},0\n" for i, t in enumerate(stamps))
+    )
+    (tmp_path / "g.yaml").write_text("target_points: 1024\n")
+    out = tmp_path / "run"
+    base = ["data", "prepare", "--scans", str(tmp_path / "scans"), "--poses", str(poses)]
+    res = CliRunner().invoke(
+        app, [*base, "--out", str(out), "--kind", "test", "--g-config", str(tmp_path / "g.yaml")]
+    )
+    assert res.exit_code == 0, res.output
+    files = list((out / "pointcloud_20m").iterdir())
+    assert [f.name for f in files] == ["3000000.bin"]  # 31 m: one 20 m window, at 10 m
+    assert files[0].stat().st_size == 1024 * 24
+    assert read_csv_rows(out / "pointcloud_locations_20m.csv") == [(3_000_000, 5735000.0, 620010.0)]
+
+    (tmp_path / "g.yaml").write_text("target_points: -5\n")
+    res = CliRunner().invoke(
+        app, [*base, "--out", str(tmp_path / "r2"), "--g-config", str(tmp_path / "g.yaml")]
+    )
+    assert res.exit_code == 2 and "target_points" in res.output
+    res = CliRunner().invoke(app, [*base, "--out", str(tmp_path / "r3"), "--origin", "1,2"])
+    assert res.exit_code == 2 and "--kitti only" in res.output
+    assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
