@@ -92,10 +92,12 @@ def preprocess(
         None, "--box", help="Keep only points in xmin,ymin,zmin,xmax,ymax,zmax (m)."
     ),
 ) -> None:
-    """Run one scan through the filter G (crop, ground removal, voxel grid, normalisation) and
-    write a submap: by default 4096 points, centred, mean distance 0.5, inside [-1, 1].
+    """Run one scan through the filter G and write one benchmark submap.
 
-    Prints one line: points read, after the crop, after ground removal, and written.
+    G crops (off unless asked), removes the ground, voxel-averages to --points points and
+    normalises them: centred, mean distance 0.5, inside [-1, 1]. The submap is .bin (float64
+    x, y, z, no header: 98,304 bytes for 4096 points) or .npy, by the suffix of --out. Prints
+    one line: points read, after the crop, after ground removal, and written.
 
     Example:
 
