@@ -108,6 +108,12 @@ def _read_nclt(path: Path) -> np.ndarray:
     return out
 
 
+def _first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (parsers' messages can run to pages)."""
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
+
+
 def _as_xyz(array: np.ndarray, path: Path, what: str) -> np.ndarray:
     """First three columns of a numeric 2-D array as float32/float64 [N, 3]."""
     if array.ndim != 2 or array.shape[1] < 3:
@@ -125,8 +131,12 @@ def _as_xyz(array: np.ndarray, path: Path, what: str) -> np.ndarray:
 def _read_npy(path: Path) -> np.ndarray:
     try:
         array = np.load(path, allow_pickle=False)
-    except ValueError as exc:  # object arrays need pickle, which we refuse
-        raise InputError(f"not a plain numeric .npy array ({exc})", source=path) from None
+    except (ValueError, OSError, EOFError) as exc:
+        if "pickle" in str(exc):  # not the .npy format, or an object array: never unpickled
+            reason = "not the NumPy .npy format, or pickled objects, which are never loaded"
+        else:
+            reason = _first_line(exc)
+        raise InputError(f"not a plain numeric .npy array ({reason})", source=path) from None
     if not isinstance(array, np.ndarray):
         raise InputError("expected a single array (.npy), not an archive", source=path)
     return _as_xyz(array, path, ".npy array")
@@ -147,7 +157,7 @@ def _read_pcd(path: Path) -> np.ndarray:
     try:
         cloud = PointCloud.from_path(path)
     except (ValueError, KeyError, IndexError, TypeError) as exc:
-        raise InputError(f"cannot parse PCD file ({exc})", source=path) from None
+        raise InputError(f"cannot parse PCD file ({_first_line(exc)})", source=path) from None
     missing = [f for f in "xyz" if f not in cloud.fields]
     if missing:
         raise InputError(
@@ -165,7 +175,7 @@ def _read_ply(path: Path) -> np.ndarray:
     try:
         ply = PlyData.read(str(path))
     except (PlyParseError, ValueError, EOFError) as exc:
-        raise InputError(f"cannot parse PLY file ({exc})", source=path) from None
+        raise InputError(f"cannot parse PLY file ({_first_line(exc)})", source=path) from None
     if "vertex" not in ply:
         raise InputError("PLY file has no 'vertex' element", source=path)
     vertex = ply["vertex"].data
@@ -185,7 +195,7 @@ def _read_las(path: Path) -> np.ndarray:
     except laspy.errors.LaspyException as exc:
         if path.suffix.lower() == ".laz" and "backend" in str(exc).lower():
             raise MissingDependencyError("lazrs", "io", "reading .laz files") from None
-        raise InputError(f"cannot read LAS/LAZ file ({exc})", source=path) from None
+        raise InputError(f"cannot read LAS/LAZ file ({_first_line(exc)})", source=path) from None
     # x, y, z are the scaled coordinates: X * scale + offset, in float64.
     return np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1).astype(
         np.float64, copy=False

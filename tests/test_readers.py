@@ -171,7 +171,7 @@ def test_npy_bad_shapes_and_pickles_are_refused(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="at least 3 columns"):
         read_points(tmp_path / "two.npy")
     np.save(tmp_path / "obj.npy", np.array([[{"a": 1}, 2, 3]], dtype=object), allow_pickle=True)
-    with pytest.raises(InputError, match="plain numeric"):
+    with pytest.raises(InputError, match="never loaded"):
         read_points(tmp_path / "obj.npy")
 
 
@@ -318,3 +318,13 @@ def test_real_scans_counts_and_ranges(real_scans: Path, name: str, reader: str, 
     assert np.mean(np.abs(pts[:, 2]) < 3.0) > 0.7
     with pytest.raises(InputError, match="--reader"):
         read_points(real_scans / name)  # a raw scan is never guessed
+
+
+@pytest.mark.parametrize("suffix", [".pcd", ".ply", ".las", ".laz", ".npy"])
+def test_garbage_files_give_a_short_input_error(tmp_path: Path, suffix: str) -> None:
+    path = tmp_path / f"junk{suffix}"
+    path.write_text("garbage\nmore garbage\n")
+    with pytest.raises(InputError) as exc:
+        read_points(path)
+    assert exc.value.source == str(path)
+    assert "\n" not in str(exc.value)
