@@ -197,6 +197,19 @@ def test_pcd_ascii_written_by_hand(tmp_path: Path) -> None:
     assert pts.tolist() == [list(p) for p in XYZ]
 
 
+def test_pcd_binary_written_by_hand(tmp_path: Path) -> None:
+    header = (
+        "VERSION 0.7\nFIELDS x y z label\nSIZE 8 8 8 1\nTYPE F F F U\nCOUNT 1 1 1 1\n"
+        f"WIDTH {len(XYZ)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(XYZ)}\nDATA binary\n"
+    )
+    body = b"".join(struct.pack("<3dB", x, y, z, 7) for x, y, z in XYZ)
+    path = tmp_path / "cloud_bin.pcd"
+    path.write_bytes(header.encode() + body)
+    pts = read_points(path)
+    assert pts.dtype == np.float64
+    assert pts.tolist() == [list(p) for p in XYZ]
+
+
 def test_pcd_without_z_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "flat.pcd"
     path.write_text(
