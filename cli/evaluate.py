@@ -141,6 +141,9 @@ def evaluate(
         if figures is not None:
             ev.plot_recall_curves([(label, rep), *others], figures / "recall_at_n.png")
             ev.plot_query_map(rep, figures / "query_map.png")
+            areas = [(a, r) for a, r in rep["per_area"].items() if r.get("n_pairs")]
+            if len(areas) > 1:
+                ev.plot_recall_curves(areas, figures / "recall_at_n_by_area.png", title=label)
             typer.echo(f"figures in {figures}")
 
 
