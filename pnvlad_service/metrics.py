@@ -116,33 +116,58 @@ def nearest(
     """Exact k nearest neighbours by Euclidean distance, ties broken by the lower index.
 
     ``db``: float [N, D]; ``queries``: float [M, D]. Returns int64 [M, min(k, N)], nearest
-    first. Distances are computed in float64 (``|q|² - 2 q·d + |d|²``) block by block.
+    first. Distances are computed in float64 (``|q|² - 2 q·d + |d|²``) block by block; the
+    k smallest are selected, then ordered by (distance, index), and a tie across the k-th place
+    is resolved by index too (the result equals a full stable sort).
     """
-    db = np.asarray(db, dtype=np.float64)
-    queries = np.asarray(queries, dtype=np.float64)
-    if db.ndim != 2 or queries.ndim != 2 or (len(queries) and db.shape[1] != queries.shape[1]):
+    return _nearest(_prepare(db), _prepare(queries), k, block)
+
+
+def _prepare(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float64 copy [N, D] and squared norms [N] of a descriptor array."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2:
+        raise InputError(f"descriptors must be [N, D], got shape {x.shape}", "descriptors")
+    return x, np.einsum("ij,ij->i", x, x)
+
+
+def _rank(d2: np.ndarray, k: int) -> np.ndarray:
+    """int64 [M, min(k, N)]: column indices of the k smallest of each row of ``d2`` [M, N],
+    ordered by (value, index): exact, ties to the lower index, also across the k-th place."""
+    m, n = d2.shape
+    kk = min(k, n)
+    if kk == 0:
+        return np.empty((m, 0), dtype=np.int64)
+    if kk == n:
+        return np.argsort(d2, axis=1, kind="stable")
+    part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
+    dist = np.take_along_axis(d2, part, axis=1)
+    out = np.take_along_axis(part, np.lexsort((part, dist), axis=-1), axis=1)
+    # rows where more than k values are <= the k-th one: a tie straddles the cut, sort fully
+    kth = dist.max(axis=1)
+    tied = np.flatnonzero((d2 <= kth[:, None]).sum(axis=1) > kk)
+    if len(tied):
+        out[tied] = np.argsort(d2[tied], axis=1, kind="stable")[:, :kk]
+    return out
+
+
+def _nearest(
+    dbp: tuple[np.ndarray, np.ndarray],
+    qp: tuple[np.ndarray, np.ndarray],
+    k: int,
+    block: int = 1024,
+) -> np.ndarray:
+    db, dn = dbp
+    queries, qn = qp
+    if len(queries) and db.shape[1] != queries.shape[1]:
         raise InputError(
             f"descriptor shapes do not match: database {db.shape}, queries {queries.shape}",
             source="descriptors",
         )
-    kk = min(k, len(db))
-    out = np.empty((len(queries), kk), dtype=np.int64)
-    if kk == 0:
-        return out
-    dn = np.einsum("ij,ij->i", db, db)
+    out = np.empty((len(queries), min(k, len(db))), dtype=np.int64)
     for s in range(0, len(queries), block):
         q = queries[s : s + block]
-        d2 = np.einsum("ij,ij->i", q, q)[:, None] - 2.0 * (q @ db.T) + dn[None, :]
-        if kk < len(db):
-            part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
-            # include every index tied with the k-th distance so the stable sort sees them all
-            kth = np.take_along_axis(d2, part, axis=1).max(axis=1, keepdims=True)
-            for r in range(len(q)):
-                cand = np.flatnonzero(d2[r] <= kth[r])
-                order = np.lexsort((cand, d2[r, cand]))
-                out[s + r] = cand[order[:kk]]
-        else:
-            out[s : s + len(q)] = np.argsort(d2, axis=1, kind="stable")[:, :kk]
+        out[s : s + len(q)] = _rank(qn[s : s + block, None] - 2.0 * (q @ db.T) + dn[None, :], k)
     return out
 
 
@@ -162,40 +187,40 @@ def pair_recall_from_neighbours(
     ``truth``: for each of the M queries, its true database indices; ``db_size``: the number of
     database submaps (for the 1% cut-off). Returns ``None`` when no query has ground truth.
     """
-    neighbours = np.asarray(neighbours)
-    if len(neighbours) != len(truth):
+    neighbours = np.asarray(neighbours, dtype=np.int64)
+    if neighbours.ndim != 2 or len(neighbours) != len(truth):
         raise InputError(
             f"{len(neighbours)} ranked lists for {len(truth)} queries", source="neighbours"
         )
     n1 = one_percent_n(db_size, one_percent)
-    first_hit = np.full(len(truth), -1, dtype=np.int64)
-    evaluated = np.zeros(len(truth), dtype=bool)
-    pct_hits = 0
-    for q, true in enumerate(truth):
-        if len(true) == 0:
-            continue
-        evaluated[q] = True
-        ranked = neighbours[q, :num_neighbours]
-        hits = np.flatnonzero(np.isin(ranked, np.asarray(true)) & (ranked >= 0))
-        if len(hits):
-            first_hit[q] = hits[0]
-            if hits[0] < n1:
-                pct_hits += 1
+    ranked = neighbours[:, :num_neighbours]
+    m = len(ranked)
+    lens = np.fromiter((len(t) for t in truth), dtype=np.int64, count=m)
+    evaluated = lens > 0
     n_eval = int(evaluated.sum())
     if n_eval == 0:
         return None
-    counts = np.zeros(num_neighbours, dtype=np.float64)
-    fh = first_hit[evaluated]
-    np.add.at(counts, fh[fh >= 0], 1.0)
-    recall = np.cumsum(counts) / n_eval * 100.0
+    # hit[q, r]: ranked[q, r] is a true match of q; keys q * (db_size + 1) + index, vectorised
+    stride = int(max(db_size, int(ranked.max(initial=0)) + 1)) + 1
+    flat = np.fromiter((x for t in truth for x in t), dtype=np.int64, count=int(lens.sum()))
+    if len(flat) and (flat.min() < 0 or flat.max() >= db_size):
+        raise InputError(f"ground truth index outside the database (0..{db_size - 1})", "truth")
+    true_keys = np.repeat(np.arange(m), lens) * stride + flat
+    keys = np.arange(m)[:, None] * stride + ranked
+    hit = np.isin(keys, true_keys) & (ranked >= 0)
+    any_hit = hit.any(axis=1)
+    first = np.where(any_hit, hit.argmax(axis=1), -1)[evaluated]
+    counts = np.bincount(first[first >= 0], minlength=num_neighbours)[:num_neighbours]
+    recall = np.cumsum(counts.astype(np.float64)) / n_eval * 100.0
+    pct = int(((first >= 0) & (first < n1)).sum())
     return PairRecall(
         db=db,
         query=query,
         recall_at_n=recall,
-        recall_at_1pct=pct_hits / n_eval * 100.0,
+        recall_at_1pct=pct / n_eval * 100.0,
         n_queries=n_eval,
         one_percent_n=n1,
-        top1_correct=fh == 0,
+        top1_correct=first == 0,
         evaluated=np.flatnonzero(evaluated),
     )
 
@@ -208,6 +233,7 @@ def recall_at_n(
     num_neighbours: int = NUM_NEIGHBOURS,
     one_percent: Literal["round", "floor"] = "round",
     progress: bool = False,
+    block: int = 256,
 ) -> RecallResult:
     """The benchmark's recall over every ordered pair of runs (database i, queries j), i != j.
 
@@ -222,38 +248,60 @@ def recall_at_n(
             "sets: expected one of each per run",
             source="descriptors",
         )
-    # database-major order, as the published evaluate.py loops
-    pairs = [(i, j) for i in range(len(db_desc)) for j in range(len(query_desc)) if i != j]
-    iterator = pairs
+    dbp = [_prepare(d) for d in db_desc]
+    qp = [_prepare(q) for q in query_desc]
+    dims = {x.shape[1] for x, _ in dbp + qp if len(x)}
+    if len(dims) > 1:
+        raise InputError(f"descriptors of different dimensions {sorted(dims)}", "descriptors")
+    for j, t in enumerate(truth):
+        for i in range(len(db_desc)):
+            if i == j:
+                continue
+            if i not in t:
+                raise InputError(f"no ground truth of query run {j} in database run {i}", "truth")
+            if len(t[i]) != len(query_desc[j]):
+                raise InputError(
+                    f"query run {j}: {len(query_desc[j])} descriptors but {len(t[i])} truth lists",
+                    source="truth",
+                )
+    # every database stacked once: one matrix product per query run, sliced per pair
+    all_db = np.concatenate([x for x, _ in dbp]) if dbp else np.empty((0, 0))
+    all_dn = np.concatenate([n for _, n in dbp]) if dbp else np.empty(0)
+    offsets = np.cumsum([0] + [len(x) for x, _ in dbp])
+    scored: dict[tuple[int, int], PairRecall] = {}
+    skipped: list[tuple[int, int]] = []
+    runs = range(len(query_desc))
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(pairs, desc="recall", unit="pair")
-    per_pair: list[PairRecall] = []
-    skipped: list[tuple[int, int]] = []
-    for i, j in iterator:
-        t = truth[j].get(i)
-        if t is None:
-            raise InputError(f"no ground truth of query run {j} in database run {i}", "truth")
-        if len(t) != len(query_desc[j]):
-            raise InputError(
-                f"query run {j}: {len(query_desc[j])} descriptors but {len(t)} truth lists",
-                source="truth",
-            )
-        if not any(len(x) for x in t):
-            skipped.append((i, j))
+        runs = tqdm(runs, desc="recall", unit="query run")
+    for j in runs:
+        q, qn = qp[j]
+        todo = [i for i in range(len(db_desc)) if i != j and any(len(x) for x in truth[j][i])]
+        skipped.extend((i, j) for i in range(len(db_desc)) if i != j and i not in todo)
+        if not todo:
             continue
-        pr = pair_recall_from_neighbours(
-            nearest(db_desc[i], query_desc[j], num_neighbours),
-            t,
-            len(db_desc[i]),
-            num_neighbours=num_neighbours,
-            one_percent=one_percent,
-            db=i,
-            query=j,
-        )
-        assert pr is not None
-        per_pair.append(pr)
+        ranked: dict[int, list[np.ndarray]] = {i: [] for i in todo}
+        for s in range(0, len(q), block):
+            qb = q[s : s + block]
+            d2 = qn[s : s + block, None] - 2.0 * (qb @ all_db.T) + all_dn[None, :]
+            for i in todo:
+                ranked[i].append(_rank(d2[:, offsets[i] : offsets[i + 1]], num_neighbours))
+        for i in todo:
+            pr = pair_recall_from_neighbours(
+                np.concatenate(ranked[i]),
+                truth[j][i],
+                len(db_desc[i]),
+                num_neighbours=num_neighbours,
+                one_percent=one_percent,
+                db=i,
+                query=j,
+            )
+            assert pr is not None
+            scored[(i, j)] = pr
+    # database-major order, as the published evaluate.py loops
+    per_pair = [scored[key] for key in sorted(scored)]
+    skipped.sort()
     return average_pairs(per_pair, skipped, num_neighbours)
 
 

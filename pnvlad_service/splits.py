@@ -20,12 +20,14 @@ coordinate differences, so points exactly r metres away along one axis are insid
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import logging
 import math
 import pickle
 import re
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -257,6 +259,7 @@ def within_radius(
     q_n: np.ndarray,
     q_e: np.ndarray,
     radius: float,
+    chunk: int = 4096,
 ) -> list[np.ndarray]:
     """For each query point, the sorted int64 indices of reference points with
     ``(dn)² + (de)² <= radius²`` (float64, inclusive). Coordinates in UTM metres."""
@@ -266,20 +269,29 @@ def within_radius(
     ref_e = np.asarray(ref_e, np.float64)
     q_n = np.asarray(q_n, np.float64)
     q_e = np.asarray(q_e, np.float64)
-    if len(ref_n) == 0:
+    if len(ref_n) == 0 or len(q_n) == 0:
         return [np.empty(0, np.int64) for _ in range(len(q_n))]
-    # A local origin keeps the tree's arithmetic small; the exact test below decides.
+    # A local origin keeps the tree's arithmetic small; the exact test below decides, so the
+    # tree only has to propose a superset (a slightly larger radius). Queries go in chunks to
+    # bound the memory of the candidate pairs.
     on, oe = float(ref_n.min()), float(ref_e.min())
     tree = cKDTree(np.column_stack([ref_n - on, ref_e - oe]))
-    cand = tree.query_ball_point(
-        np.column_stack([q_n - on, q_e - oe]), r=radius * (1 + 1e-9) + 1e-6, return_sorted=True
-    )
+    r_tree = radius * (1 + 1e-9) + 1e-6
     r2 = float(radius) ** 2
-    out = []
-    for k, c in enumerate(cand):
-        c = np.asarray(c, dtype=np.int64)
-        d2 = (ref_n[c] - q_n[k]) ** 2 + (ref_e[c] - q_e[k]) ** 2
-        out.append(c[d2 <= r2])
+    out: list[np.ndarray] = []
+    for s in range(0, len(q_n), chunk):
+        qn, qe = q_n[s : s + chunk], q_e[s : s + chunk]
+        qtree = cKDTree(np.column_stack([qn - on, qe - oe]))
+        pairs = tree.sparse_distance_matrix(qtree, r_tree, output_type="ndarray")
+        ri = pairs["i"].astype(np.int64)
+        qi = pairs["j"].astype(np.int64)
+        keep = (ref_n[ri] - qn[qi]) ** 2 + (ref_e[ri] - qe[qi]) ** 2 <= r2
+        # sort by (query, reference) through one int64 key: faster than a two-key lexsort
+        key = qi[keep] * len(ref_n) + ri[keep]
+        key.sort()
+        qi, ri = np.divmod(key, len(ref_n))
+        counts = np.bincount(qi, minlength=len(qn))
+        out.extend(np.split(ri, np.cumsum(counts)[:-1]))
     return out
 
 
@@ -458,15 +470,16 @@ def build_evaluation_set(
                 loc.easting[inside],
             )
         )
-    truth: list[dict[int, list[np.ndarray]]] = []
-    for j, q in enumerate(queries):
-        truth.append(
-            {
-                i: within_radius(db.northing, db.easting, q.northing, q.easting, truth_radius)
-                for i, db in enumerate(database)
-                if i != j
-            }
-        )
+    # one radius search per database run, over the queries of every run at once
+    truth: list[dict[int, list[np.ndarray]]] = [{} for _ in queries]
+    q_n = np.concatenate([q.northing for q in queries]) if queries else np.empty(0)
+    q_e = np.concatenate([q.easting for q in queries]) if queries else np.empty(0)
+    starts = np.cumsum([0] + [len(q) for q in queries])
+    for i, db in enumerate(database):
+        found = within_radius(db.northing, db.easting, q_n, q_e, truth_radius)
+        for j in range(len(queries)):
+            if j != i:
+                truth[j][i] = found[starts[j] : starts[j + 1]]
     es = EvaluationSet(name or dataset, list(runs), database, queries, truth, float(truth_radius))
     log.info(
         "%s: %d runs, %d database submaps, %d queries",
@@ -571,7 +584,34 @@ def _floats(a: np.ndarray | None) -> list[float | None] | None:
     return [None if math.isnan(x) else x for x in np.asarray(a, np.float64).tolist()]
 
 
-def _tuples_to_json(t: TrainingTuples) -> dict[str, Any]:
+#: ``save_splits`` packs index lists (docs/SPLITS.md, "Packed index lists") above this many.
+PACK_THRESHOLD = 100_000
+_PACKING = "delta-zlib-base64"
+
+
+def _encode(a: np.ndarray) -> str:
+    return base64.b64encode(zlib.compress(a.astype("<i4").tobytes(), 6)).decode("ascii")
+
+
+def pack_lists(lists: Sequence[np.ndarray]) -> dict[str, Any]:
+    """Pack index lists: ``lengths`` int32 [n] and ``deltas`` int32 [sum of lengths] (each
+    list's first index, then the differences to the previous one), little-endian,
+    zlib-compressed, base64-encoded (docs/SPLITS.md). Sorted lists give small deltas that
+    compress about 30x."""
+    lengths = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    flat = np.concatenate(lists).astype(np.int64) if len(lists) else np.empty(0, np.int64)
+    deltas = np.diff(flat, prepend=0)
+    starts = np.cumsum(lengths) - lengths
+    nonempty = starts[lengths > 0]
+    deltas[nonempty] = flat[nonempty]
+    return {"packing": _PACKING, "lengths": _encode(lengths), "deltas": _encode(deltas)}
+
+
+def _lists_to_json(lists: Sequence[np.ndarray], pack: bool) -> Any:
+    return pack_lists(lists) if pack else [x.tolist() for x in lists]
+
+
+def _tuples_to_json(t: TrainingTuples, pack: bool = False) -> dict[str, Any]:
     return {
         "dataset": t.dataset,
         "pos_radius": t.pos_radius,
@@ -579,8 +619,8 @@ def _tuples_to_json(t: TrainingTuples) -> dict[str, Any]:
         "files": t.files,
         "northing": _floats(t.northing),
         "easting": _floats(t.easting),
-        "positives": [p.tolist() for p in t.positives],
-        "near": [p.tolist() for p in t.near],
+        "positives": _lists_to_json(t.positives, pack),
+        "near": _lists_to_json(t.near, pack),
     }
 
 
@@ -593,11 +633,11 @@ def _run_to_json(r: RunSubmaps) -> dict[str, Any]:
     }
 
 
-def _eval_to_json(es: EvaluationSet) -> dict[str, Any]:
+def _eval_to_json(es: EvaluationSet, pack: bool = False) -> dict[str, Any]:
     queries = []
     for j, q in enumerate(es.queries):
         d = _run_to_json(q)
-        d["truth"] = {str(i): [x.tolist() for x in lists] for i, lists in es.truth[j].items()}
+        d["truth"] = {str(i): _lists_to_json(lists, pack) for i, lists in es.truth[j].items()}
         queries.append(d)
     return {
         "truth_radius": es.truth_radius,
@@ -607,21 +647,34 @@ def _eval_to_json(es: EvaluationSet) -> dict[str, Any]:
     }
 
 
-def splits_to_json(splits: Splits) -> dict[str, Any]:
-    """The JSON document of ``splits`` (docs/SPLITS.md)."""
+def _count_indices(splits: Splits) -> int:
+    n = 0
+    for t in [*splits.training.values(), *splits.test_tuples.values()]:
+        n += sum(len(x) for x in t.positives) + sum(len(x) for x in t.near)
+    for es in splits.evaluation.values():
+        n += sum(len(x) for tj in es.truth for lists in tj.values() for x in lists)
+    return n
+
+
+def splits_to_json(splits: Splits, pack: bool | None = None) -> dict[str, Any]:
+    """The JSON document of ``splits`` (docs/SPLITS.md). ``pack``: index lists packed (True),
+    plain lists (False), or packed when there are over ``PACK_THRESHOLD`` indices (None)."""
+    if pack is None:
+        pack = _count_indices(splits) > PACK_THRESHOLD
     return {
         "format": SPLITS_FORMAT,
         "version": SPLITS_VERSION,
         "params": splits.params,
-        "training": {k: _tuples_to_json(v) for k, v in splits.training.items()},
-        "test_tuples": {k: _tuples_to_json(v) for k, v in splits.test_tuples.items()},
-        "evaluation": {k: _eval_to_json(v) for k, v in splits.evaluation.items()},
+        "training": {k: _tuples_to_json(v, pack) for k, v in splits.training.items()},
+        "test_tuples": {k: _tuples_to_json(v, pack) for k, v in splits.test_tuples.items()},
+        "evaluation": {k: _eval_to_json(v, pack) for k, v in splits.evaluation.items()},
     }
 
 
-def save_splits(path: str | Path, splits: Splits) -> None:
-    """Write ``splits`` as our JSON format (docs/SPLITS.md), atomically."""
-    text = json.dumps(splits_to_json(splits), separators=(",", ":"), allow_nan=False)
+def save_splits(path: str | Path, splits: Splits, *, pack: bool | None = None) -> None:
+    """Write ``splits`` as our JSON format (docs/SPLITS.md), atomically. ``pack`` as in
+    ``splits_to_json``: big index lists are stored packed, small ones as readable lists."""
+    text = json.dumps(splits_to_json(splits, pack), separators=(",", ":"), allow_nan=False)
     atomic_write_text(path, text + "\n")
     log.info("wrote %s (%.1f MB)", path, len(text) / 1e6)
 
@@ -653,7 +706,36 @@ class _Reader:
         except (TypeError, ValueError):
             raise self.fail(where, "expected numbers") from None
 
+    def unpack(self, v: Any, dtype: str, where: str) -> np.ndarray:
+        if not isinstance(v, str):
+            raise self.fail(where, "expected a base64 string")
+        try:
+            raw = zlib.decompress(base64.b64decode(v, validate=True))
+        except (ValueError, zlib.error) as exc:
+            raise self.fail(where, f"cannot decode ({exc})") from None
+        size = np.dtype(dtype).itemsize
+        if len(raw) % size:
+            raise self.fail(where, f"{len(raw)} bytes is not a whole number of {dtype} values")
+        return np.frombuffer(raw, dtype=dtype).astype(np.int64)
+
+    def packed_lists(self, v: dict, n_lists: int, bound: int, where: str) -> list[np.ndarray]:
+        if v.get("packing") != _PACKING:
+            raise self.fail(where, f"unknown packing {v.get('packing')!r}, expected {_PACKING!r}")
+        lengths = self.unpack(v.get("lengths"), "<i4", f"{where}.lengths")
+        deltas = self.unpack(v.get("deltas"), "<i4", f"{where}.deltas")
+        if len(lengths) != n_lists or np.any(lengths < 0) or lengths.sum() != len(deltas):
+            raise self.fail(where, f"lengths do not describe {n_lists} lists of {len(deltas)}")
+        csum = np.cumsum(deltas)
+        starts = np.cumsum(lengths) - lengths
+        before = np.where(starts > 0, csum[np.maximum(starts - 1, 0)] if len(csum) else 0, 0)
+        flat = csum - np.repeat(before, lengths)
+        if len(flat) and (flat.min() < 0 or flat.max() >= bound):
+            raise self.fail(where, f"index out of range 0..{bound - 1}")
+        return np.split(flat, np.cumsum(lengths)[:-1]) if n_lists else []
+
     def index_lists(self, v: Any, n_lists: int, bound: int, where: str) -> list[np.ndarray]:
+        if isinstance(v, dict):
+            return self.packed_lists(v, n_lists, bound, where)
         if not isinstance(v, list) or len(v) != n_lists:
             raise self.fail(where, f"expected {n_lists} lists of indices")
         out = []

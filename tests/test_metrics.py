@@ -123,6 +123,14 @@ def test_faiss_neighbours_give_the_same_recall() -> None:
     b = recall_at_n([db, db], [q, q], [{1: truth}, {0: truth}]).per_pair[0]
     assert a.recall_at_n.tolist() == b.recall_at_n.tolist()
     assert a.recall_at_1pct == b.recall_at_1pct and a.one_percent_n == 3
+    # a bigger database: the k smallest are selected before sorting, same ranks
+    big = rng.normal(size=(9000, 8)).astype(np.float32)
+    index = faiss.IndexFlatL2(8)
+    index.add(big)
+    _, ranked = index.search(q[:, :8].copy(), 25)
+    assert (nearest(big, q[:, :8], 25) == ranked).all()
+    with pytest.raises(InputError, match="outside the database"):
+        pair_recall_from_neighbours(ranked, [[9000]] * 50, 9000)
 
 
 def test_nearest_breaks_ties_by_index_and_handles_small_databases() -> None:
@@ -130,6 +138,17 @@ def test_nearest_breaks_ties_by_index_and_handles_small_databases() -> None:
     assert nearest(db, np.array([[0.0]]), 3).tolist() == [[3, 0, 1]]
     assert nearest(db, np.array([[0.0]]), 25).tolist() == [[3, 0, 1, 2, 4]]
     assert nearest(db[:0], np.array([[0.0]]), 25).shape == (1, 0)
+    # ties across the k-th place: the lower indices win, as with a full stable sort
+    many = np.array([[2.0], [1.0], [1.0], [1.0], [0.0], [1.0]])
+    assert nearest(many, np.array([[0.0]]), 3).tolist() == [[4, 1, 2]]
+    rng = np.random.default_rng(7)
+    coarse = rng.integers(0, 3, size=(200, 2)).astype(np.float32)  # many exact ties
+    qs = rng.integers(0, 3, size=(20, 2)).astype(np.float32)
+    full = [
+        sorted(range(200), key=lambda d, q=q: (float(((coarse[d] - q) ** 2).sum()), d))[:25]
+        for q in qs
+    ]
+    assert nearest(coarse, qs, 25).tolist() == full
     with pytest.raises(InputError, match="shapes"):
         nearest(db, np.zeros((2, 3)))
 

@@ -133,8 +133,9 @@ def test_within_radius_matches_a_plain_loop(pts, r) -> None:
     ref = [(CN + a * 0.5, CE + b * 0.5) for a, b in pts]
     n = np.array([p[0] for p in ref])
     e = np.array([p[1] for p in ref])
-    got = sp.within_radius(n, e, n, e, r)
-    assert [g.tolist() for g in got] == [brute_within(ref, q, r) for q in ref]
+    expect = [brute_within(ref, q, r) for q in ref]
+    assert [g.tolist() for g in sp.within_radius(n, e, n, e, r)] == expect
+    assert [g.tolist() for g in sp.within_radius(n, e, n, e, r, chunk=7)] == expect
 
 
 # ------------------------------------------------------------------ training tuples
@@ -333,12 +334,18 @@ def _assert_eval_equal(a: sp.EvaluationSet, b: sp.EvaluationSet) -> None:
         }
 
 
-def test_save_load_round_trip(tmp_path: Path) -> None:
+@pytest.mark.parametrize("pack", [False, True])
+def test_save_load_round_trip(tmp_path: Path, pack: bool) -> None:
     s = _full_splits(tmp_path / "tree")
     assert set(s.training) == {"oxford"} and set(s.evaluation) == {"oxford"}
-    sp.save_splits(tmp_path / "s.json", s)
+    sp.save_splits(tmp_path / "s.json", s, pack=pack)
     doc = json.loads((tmp_path / "s.json").read_text())
     assert doc["format"] == "pnvlad-splits" and doc["version"] == 1
+    positives = doc["training"]["oxford"]["positives"]
+    if pack:
+        assert positives["packing"] == "delta-zlib-base64"
+    else:
+        assert positives[0] == [1, 5]
     back = sp.load_splits(tmp_path / "s.json")
     _assert_tuples_equal(s.training["oxford"], back.training["oxford"])
     _assert_tuples_equal(s.test_tuples["oxford"], back.test_tuples["oxford"])
@@ -368,6 +375,28 @@ def test_load_rejects_malformed_files(tmp_path: Path, mutate, match: str) -> Non
     with pytest.raises(InputError, match=match) as exc:
         sp.load_splits(tmp_path / "bad.json")
     assert exc.value.source == str(tmp_path / "bad.json")
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.lists(st.integers(0, 2**31 - 2), max_size=8), max_size=8))
+def test_packed_lists_round_trip(lists) -> None:
+    arrays = [np.asarray(sorted(x), dtype=np.int64) for x in lists]
+    packed = sp.pack_lists(arrays)
+    back = sp._Reader(Path("x.json")).index_lists(packed, len(arrays), 2**31 - 1, "f")
+    assert [b.tolist() for b in back] == [sorted(x) for x in lists]
+
+
+def test_packed_lists_malformed(tmp_path: Path) -> None:
+    r = sp._Reader(tmp_path / "s.json")
+    good = sp.pack_lists([np.array([1, 4]), np.array([2])])
+    with pytest.raises(InputError, match="lengths do not describe 3 lists"):
+        r.index_lists(good, 3, 10, "f")
+    with pytest.raises(InputError, match=r"out of range 0\.\.3"):
+        r.index_lists(good, 2, 4, "f")
+    with pytest.raises(InputError, match="cannot decode"):
+        r.index_lists({**good, "deltas": "@@@"}, 2, 10, "f")
+    with pytest.raises(InputError, match="unknown packing"):
+        r.index_lists({**good, "packing": "lz4"}, 2, 10, "f")
 
 
 # ------------------------------------------------------------------ published pickles
