@@ -179,3 +179,14 @@ def test_training_sets_of_two_datasets_pool_with_offsets(tmp_path) -> None:
     mask = ts.negative_mask(25, np.arange(50))
     assert mask[:20].all()
     assert mask[20:].tolist() == [abs(k - 5) * 6.0 > 50 for k in range(30)]
+
+
+def test_other_negative_falls_back_on_small_trees() -> None:
+    """On a 20-submap line every negative is a positive of some negative: the rule is relaxed
+    to "a negative of the anchor outside the tuple" instead of failing."""
+    ts = line_set(20, spacing=5.0)  # 0..95 m
+    rng = np.random.default_rng(0)
+    anchor = 0
+    neg = np.array([j for j in range(20) if ts.positions[j, 0] > 50])  # 55..95 m, all of them
+    o = mining.pick_other_negative(rng, ts, anchor, ts.positives[anchor][:2], neg[:-1])
+    assert o == neg[-1]
