@@ -30,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import pickle
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -116,11 +117,16 @@ def read_port_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dic
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", str(exc))
+        if found:
+            raise InputError(
+                f"refusing to load: the file needs the class {found.group(1)}, and pnvlad loads "
+                "only plain tensors and containers (torch.load(weights_only=True)), never "
+                "arbitrary pickled objects",
+                path,
+            ) from None
         raise InputError(
-            "refusing to load: the file needs classes beyond plain tensors and containers, "
-            f"and pnvlad never unpickles arbitrary code ({first})",
-            path,
+            "not a readable torch checkpoint (bad or unsafe pickle data)", path
         ) from None
     except (RuntimeError, EOFError, OSError, ValueError) as exc:
         raise InputError(f"not a readable torch checkpoint: {exc}", path) from None
