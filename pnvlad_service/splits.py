@@ -956,13 +956,22 @@ def _entries(obj: Any, source: Path, where: str) -> list[dict]:
     return out
 
 
-def _index_list(v: Any, bound: int, source: Path, where: str) -> np.ndarray:
-    if not isinstance(v, list) or not all(type(x) is int for x in v):
+def _index_list(v: Any, bound: int, source: Path, where: str, unique: bool = True) -> np.ndarray:
+    """A published list of indices as int64 (sorted and de-duplicated with ``unique``)."""
+    if not isinstance(v, list):
         raise InputError(f"{where}: expected a list of integers", source)
-    a = np.unique(np.asarray(v, dtype=np.int64))
-    if len(a) and (a[0] < 0 or a[-1] >= bound):
+    if not v:
+        return np.empty(0, dtype=np.int64)
+    try:
+        a = np.asarray(v)
+    except (OverflowError, ValueError):
+        a = np.asarray([0.5])  # mixed or huge values: refused below
+    if a.ndim != 1 or a.dtype.kind not in "iu":  # floats, bools, strings, nested lists
+        raise InputError(f"{where}: expected a list of integers", source)
+    a = a.astype(np.int64)
+    if a.min() < 0 or a.max() >= bound:
         raise InputError(f"{where}: index out of range 0..{bound - 1}", source)
-    return a
+    return np.unique(a) if unique else a
 
 
 def tuples_from_pickle(path: str | Path, name: str | None = None) -> TrainingTuples:
@@ -977,7 +986,7 @@ def tuples_from_pickle(path: str | Path, name: str | None = None) -> TrainingTup
     pos, near = [], []
     for k, e in enumerate(entries):
         pos.append(_index_list(e.get("positives"), n, path, f"entry {k} positives"))
-        neg = _index_list(e.get("negatives"), n, path, f"entry {k} negatives")
+        neg = _index_list(e.get("negatives"), n, path, f"entry {k} negatives", unique=False)
         mask = np.ones(n, dtype=bool)
         mask[neg] = False
         near.append(np.flatnonzero(mask))

@@ -482,6 +482,13 @@ def test_import_rejects_bad_structures(tmp_path: Path) -> None:
     (tmp_path / "b.pickle").rename(tmp_path / "training_queries_x.pickle")
     with pytest.raises(InputError, match="entry 0 positives: index out of range"):
         sp.import_pickles([tmp_path / "training_queries_x.pickle"])
+    for bad in ([0.0], ["0"], [[0]], 7, [2**70]):
+        dump_plain(
+            {0: {"query": "a", "positives": [], "negatives": bad}},
+            tmp_path / "training_queries_x.pickle",
+        )
+        with pytest.raises(InputError, match="entry 0 negatives: expected a list of integers"):
+            sp.import_pickles([tmp_path / "training_queries_x.pickle"])
     with pytest.raises(InputError, match="no published pickle"):
         sp.import_pickles([tmp_path / "x_evaluation_query.pickle"])
 
