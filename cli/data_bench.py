@@ -62,6 +62,12 @@ def splits(
     export_pickles: Path = typer.Option(
         None, "--export-pickles", help="Also write the published pickles into this folder."
     ),
+    published_runs: bool = typer.Option(
+        False,
+        "--published-runs",
+        help="Use the runs the published scripts picked (Oxford: train on all sorted runs but "
+        "the last, evaluate on 23 of them; in-house: evaluate entries 1-14). Default: all runs.",
+    ),
 ) -> None:
     """Build training tuples and evaluation sets, as the published scripts do.
 
@@ -85,6 +91,7 @@ def splits(
             pos_radius=pos_radius,
             neg_radius=neg_radius,
             truth_radius=truth_radius,
+            published=published_runs,
         )
         target = out or (root / "splits.json")
         sp.save_splits(target, result)

@@ -25,6 +25,7 @@ import io
 import json
 import logging
 import math
+import os
 import pickle
 import re
 import zlib
@@ -530,6 +531,41 @@ class Splits:
     params: dict[str, Any] = field(default_factory=dict)
 
 
+def published_runs(tree: BenchmarkTree, dataset: str) -> tuple[list[str], list[str]]:
+    """The runs the published scripts chose: ``(training runs, evaluation runs)``.
+
+    They index ``sorted(os.listdir(<dataset>))`` (files included): Oxford trains on every entry
+    but the last (``range(len - 1)``) and evaluates on entries ``OXFORD_EVAL_RUN_INDICES``; the
+    in-house evaluation takes entries 1-4 (business), 5-9 (residential), 10-14 (university)
+    and trains on every run. ``InputError`` where the folder does not list like the benchmark.
+    """
+    listing = sorted(os.listdir(tree.root / dataset))
+    if dataset == "oxford":
+        train, picks = listing[:-1], OXFORD_EVAL_RUN_INDICES
+    elif dataset == "inhouse_datasets":
+        train, picks = tree.runs(dataset), tuple(range(1, 15))
+    else:
+        raise InputError(
+            f"the published scripts chose runs only for oxford and inhouse_datasets, not "
+            f"{dataset!r}",
+            source=tree.root / dataset,
+        )
+    if len(listing) <= max(picks):
+        raise InputError(
+            f"{len(listing)} entries, the published run indices go up to {max(picks)}",
+            source=tree.root / dataset,
+        )
+    evaluation = [listing[k] for k in picks]
+    runs = set(tree.runs(dataset))
+    odd = [r for r in [*train, *evaluation] if r not in runs]
+    if odd:
+        raise InputError(
+            f"entries {odd[:3]} picked by the published indices are not run folders",
+            source=tree.root / dataset,
+        )
+    return list(train), evaluation
+
+
 def build_splits(
     root: str | Path,
     datasets: Sequence[str] | None = None,
@@ -538,8 +574,14 @@ def build_splits(
     pos_radius: float = POS_RADIUS,
     neg_radius: float = NEG_RADIUS,
     truth_radius: float = TRUTH_RADIUS,
+    published: bool = False,
 ) -> Splits:
-    """Training tuples, test tuples and evaluation sets of every (or the named) dataset."""
+    """Training tuples, test tuples and evaluation sets of every (or the named) dataset.
+
+    Runs named ``<area>_run<k>`` are grouped by area, each group keyed by its area name;
+    otherwise everything is keyed by the dataset name. ``published`` picks the runs the
+    published scripts used (``published_runs``); by default every run is used.
+    """
     tree = BenchmarkTree(root)
     names = list(datasets) if datasets else tree.datasets
     splits = Splits(
@@ -547,28 +589,24 @@ def build_splits(
             "pos_radius": float(pos_radius),
             "neg_radius": float(neg_radius),
             "truth_radius": float(truth_radius),
+            "published_runs": bool(published),
             "regions": {},
         }
     )
     for d in names:
-        runs = tree.runs(d)
-        train_runs = [r for r in runs if tree.has(d, r, "train")]
-        if train_runs:
-            groups = evaluation_groups(d, train_runs)
-            if len(groups) == 1:
-                reg = resolve_regions(tree, d, next(iter(groups)), regions)
-                splits.params["regions"][d] = reg.to_dict()
-                kw = dict(pos_radius=pos_radius, neg_radius=neg_radius, runs=train_runs)
-                splits.training[d] = build_training_tuples(tree, d, reg, **kw)
-                splits.test_tuples[d] = build_training_tuples(tree, d, reg, inside=True, **kw)
-            else:
-                for g, g_runs in groups.items():
-                    reg = resolve_regions(tree, d, g, regions)
-                    splits.params["regions"][g] = reg.to_dict()
-                    kw = dict(pos_radius=pos_radius, neg_radius=neg_radius, runs=g_runs)
-                    splits.training[g] = build_training_tuples(tree, d, reg, **kw)
-                    splits.test_tuples[g] = build_training_tuples(tree, d, reg, inside=True, **kw)
-        for es in build_evaluation_sets(tree, d, regions, truth_radius=truth_radius):
+        train_runs: Sequence[str] = tree.runs(d)
+        eval_runs: Sequence[str] | None = None
+        if published:
+            train_runs, eval_runs = published_runs(tree, d)
+        train_runs = [r for r in train_runs if tree.has(d, r, "train")]
+        for g, g_runs in (evaluation_groups(d, train_runs) if train_runs else {}).items():
+            reg = resolve_regions(tree, d, g, regions)
+            splits.params["regions"][g] = reg.to_dict()
+            kw: dict[str, Any] = dict(pos_radius=pos_radius, neg_radius=neg_radius, runs=g_runs)
+            splits.training[g] = build_training_tuples(tree, d, reg, **kw)
+            splits.test_tuples[g] = build_training_tuples(tree, d, reg, inside=True, **kw)
+        sets = build_evaluation_sets(tree, d, regions, truth_radius=truth_radius, runs=eval_runs)
+        for es in sets:
             if es.name in splits.evaluation:
                 raise InputError(f"two evaluation sets named {es.name!r}", source=tree.root)
             splits.evaluation[es.name] = es

@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import json
 import pickle
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -299,6 +300,29 @@ def test_unknown_dataset_needs_regions_and_tree_file_is_used(tmp_path: Path) -> 
     sp.save_regions(tmp_path / "city" / sp.REGIONS_FILE, sp.TestRegions(((0.0, 0.0),), 11.0))
     (es,) = sp.build_evaluation_sets(tree, "city")
     assert [len(q) for q in es.queries] == [1, 0]  # 10 < 11 inside, 12 outside
+
+
+def test_published_run_selection(tmp_path: Path) -> None:
+    runs = [f"2014-{k:02d}" for k in range(45)]
+    for k, run in enumerate(runs):
+        make_run(
+            tmp_path,
+            "oxford",
+            run,
+            {"train": [(k * 10, CN - 500.0, CE)], "test": [(k * 10 + 1, CN, CE)]},
+        )
+    s = sp.build_splits(tmp_path, published=True)
+    picked = [5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 22, 24, 31, 32, 33, 38, 39, 43]
+    assert s.evaluation["oxford"].runs == [runs[k] for k in [*picked, 44]]
+    assert [f.split("/")[1] for f in s.training["oxford"].files] == runs[:44]  # not the last
+    everything = sp.build_splits(tmp_path)
+    assert len(everything.evaluation["oxford"].runs) == 45
+    assert len(everything.training["oxford"]) == 45
+    # the published indices count files too: a file in the folder shifts them
+    shutil.rmtree(tmp_path / "oxford" / "2014-44")
+    (tmp_path / "oxford" / "2014-44").write_text("not a run")
+    with pytest.raises(InputError, match=r"\['2014-44'\] .* not run folders"):
+        sp.build_splits(tmp_path, published=True)
 
 
 # ------------------------------------------------------------------ our format
