@@ -389,7 +389,10 @@ def check_tree(root: str | Path, *, deep: bool = False, progress: bool = False) 
     tree = BenchmarkTree(root)
     problems: list[Problem] = []
     summaries: list[DatasetSummary] = []
-    rel = lambda p: p.relative_to(tree.root).as_posix()  # noqa: E731
+
+    def rel(p: Path) -> str:
+        return p.relative_to(tree.root).as_posix()
+
     datasets = tree.datasets
     if not datasets:
         problems.append(Problem(str(tree.root), "no dataset folders"))
