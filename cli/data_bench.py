@@ -25,13 +25,16 @@ def check(
 ) -> None:
     """Check a benchmark tree and print a summary.
 
-    Prints, per dataset, the layout, runs, submaps of each role (train: pointcloud_20m_10overlap,
-    test: pointcloud_20m, or the in-house names) and the UTM extent. Checks CSV headers and
-    values (integers, finite numbers), duplicate timestamps, CSV rows without a .bin and .bin
-    files without a row, .bin sizes (exactly 98,304 bytes), empty runs. Exits 1 listing the
-    problems when there are any.
+    Prints, per dataset, the layout, runs, submaps of each role (train:
+    pointcloud_20m_10overlap, test: pointcloud_20m, or the in-house
+    names) and the UTM extent. Checks CSV headers and values (integers,
+    finite numbers), duplicate timestamps, CSV rows without a .bin and
+    .bin files without a row, .bin sizes (exactly 98,304 bytes), empty
+    runs. Exits 1 listing the problems when there are any.
 
-    Example: pnvlad data check benchmark_datasets/
+    Example:
+
+        pnvlad data check benchmark_datasets/
     """
     from pnvlad_service.benchmark import check_tree, format_report
 
@@ -69,16 +72,19 @@ def splits(
         "the last, evaluate on 23 of them; in-house: evaluate entries 1-14). Default: all runs.",
     ),
 ) -> None:
-    """Build training tuples and evaluation sets, as the published scripts do.
+    """Build training tuples and evaluation sets by the published rules.
 
-    Training tuples: training-layout submaps outside the test regions, all runs of a dataset
-    pooled; positives within --pos-radius (10 m), negatives beyond --neg-radius (50 m).
-    Evaluation sets: per run, the database is every test-layout submap, the queries those
-    inside the test regions; ground truth: other runs' database submaps within --truth-radius
-    (25 m). Test regions: squares of +-150 m (strict) around given centres. Writes our JSON
-    format (docs/SPLITS.md).
+    Training tuples: training-layout submaps outside the test regions,
+    all runs of a dataset pooled; positives within --pos-radius (10 m),
+    negatives beyond --neg-radius (50 m). Evaluation sets: per run, the
+    database is every test-layout submap, the queries those inside the
+    test regions; ground truth: other runs' database submaps within
+    --truth-radius (25 m). Test regions: squares of +-150 m (strict)
+    around given centres. Writes our JSON format (docs/SPLITS.md).
 
-    Example: pnvlad data splits benchmark_datasets/ -d oxford --export-pickles pickles/
+    Example:
+
+        pnvlad data splits benchmark_datasets/ -d oxford --export-pickles pickles/
     """
     from pnvlad_service import splits as sp
 
@@ -129,13 +135,16 @@ def import_pickles(
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Splits file to write (our JSON format)."),
 ) -> None:
-    """Convert the published split pickles to our JSON format, without running their code.
+    """Convert the published split pickles to our JSON, running no code.
 
-    Reads training_queries_*.pickle, test_queries_*.pickle and <name>_evaluation_database /
-    <name>_evaluation_query.pickle pairs with an unpickler that refuses every class (a file that
-    names any class or function is rejected), checks their structure and indices.
+    Reads training_queries_*.pickle, test_queries_*.pickle and
+    <name>_evaluation_database / <name>_evaluation_query.pickle pairs
+    with an unpickler that refuses every class (a file that names any
+    class or function is rejected), checks their structure and indices.
 
-    Example: pnvlad data import-pickles generating_queries/ -o splits.json
+    Example:
+
+        pnvlad data import-pickles generating_queries/ -o splits.json
     """
     from pnvlad_service import splits as sp
 
@@ -150,12 +159,15 @@ def export_pickles(
     splits_file: Path = typer.Argument(..., help="Our splits JSON file."),
     out: Path = typer.Option(..., "--out", "-o", help="Folder for the pickles."),
 ) -> None:
-    """Write the published pickle files from our splits file (for the published code).
+    """Write the published pickles from our splits file.
 
-    Writes training_queries_baseline.pickle, test_queries_baseline.pickle (prefixed by the
-    dataset when there are several) and <name>_evaluation_database/query.pickle, plain types.
+    Writes training_queries_baseline.pickle,
+    test_queries_baseline.pickle (prefixed by the dataset when there are
+    several) and <name>_evaluation_database/query.pickle, plain types.
 
-    Example: pnvlad data export-pickles splits.json -o pickles/
+    Example:
+
+        pnvlad data export-pickles splits.json -o pickles/
     """
     from pnvlad_service import splits as sp
 
