@@ -25,6 +25,15 @@ from pnvlad_service.models.store import (
 SMALL = 256  # points per cloud in most tests
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """These tensors are small: one thread avoids OpenMP barrier stalls on a busy machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def clouds(b: int, n: int = SMALL, seed: int = 0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     return torch.rand(b, n, 3, generator=g) * 2 - 1

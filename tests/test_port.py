@@ -25,6 +25,15 @@ from pnvlad_service.models.store import load_model
 D, K = 1024, 64
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """These tensors are small: one thread avoids OpenMP barrier stalls on a busy machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def port_shapes(output_dim: int = 256) -> dict[str, tuple[int, ...]]:
     """Every tensor of the port's PointNetVlad state dict, with its shape."""
     s: dict[str, tuple[int, ...]] = {}

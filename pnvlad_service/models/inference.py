@@ -124,7 +124,7 @@ class Encoder:
         dtype: str = "float32",
         check_points: Any = None,
         batch_size: int = 32,
-        point_tile: int = 1024,
+        point_tile: int = 512,
         weights_sha256: str | None = None,
     ) -> None:
         import torch

@@ -121,7 +121,9 @@ class NetVLAD(nn.Module):
         logits = x.reshape(b * n, d) @ self.cluster_weights
         logits = self.cluster_bn(logits) if self.bn else logits + self.cluster_biases
         a = torch.softmax(logits, dim=-1).reshape(b, n, self.clusters)
-        vlad = torch.einsum("bnk,bnd->bdk", a, x) - a.sum(dim=1, keepdim=True) * self.centers
+        # [b, K, N] x [b, N, D]: x is used as stored (no copy), the small result is transposed.
+        vlad = torch.bmm(a.transpose(1, 2), x).transpose(1, 2)
+        vlad = vlad - a.sum(dim=1, keepdim=True) * self.centers  # [b, D, K]
         vlad = F.normalize(vlad, dim=1)  # intra-normalisation
         vlad = F.normalize(vlad.reshape(b, d * self.clusters), dim=1)
         y = self.fc_bn(self.fc(vlad))
