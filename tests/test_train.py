@@ -397,3 +397,26 @@ def test_torchrun_two_processes_gloo(tiny_tree: tuple[Path, Path], tmp_path: Pat
     steps = [e["step"] for e in events if e["event"] == "step"]
     assert steps == [1, 2, 3, 4]  # written by rank 0 only: no duplicates
     assert sum(e["event"] == "cache" for e in events) == 2  # at steps 0 and 3
+
+
+def test_published_pickles_train_like_our_splits(
+    tiny_tree: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Tuples read from exported published-format pickles give the very same run."""
+    torch = pytest.importorskip("torch")
+    from pnvlad_service import splits as sp
+    from pnvlad_service.train import train
+
+    root, splits = tiny_tree
+    sp.export_pickles(sp.load_splits(splits), tmp_path / "pk")
+    cfg = tiny_config(root, splits, max_steps=3)
+    cfg_pk = TrainConfig.from_mapping(
+        {**cfg_pk.model_dump(), "data": {"root": str(root), "pickles": str(tmp_path / "pk")}}
+    )
+    threads = torch.get_num_threads()
+    try:
+        a = train(cfg, tmp_path / "a", progress=False)
+        b = train(cfg_pk, tmp_path / "b", progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    assert a.losses == b.losses
