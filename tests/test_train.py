@@ -411,7 +411,7 @@ def test_published_pickles_train_like_our_splits(
     sp.export_pickles(sp.load_splits(splits), tmp_path / "pk")
     cfg = tiny_config(root, splits, max_steps=3)
     cfg_pk = TrainConfig.from_mapping(
-        {**cfg_pk.model_dump(), "data": {"root": str(root), "pickles": str(tmp_path / "pk")}}
+        {**cfg.model_dump(), "data": {"root": str(root), "pickles": str(tmp_path / "pk")}}
     )
     threads = torch.get_num_threads()
     try:
