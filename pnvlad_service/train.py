@@ -137,6 +137,18 @@ def _pick_device(name: str, d: Dist) -> torch.device:
     return torch.device(name)
 
 
+def _any_rank(flag: bool, d: Dist, device: torch.device) -> bool:
+    """True on every rank when ``flag`` is true on any (one all-reduce; plain value alone)."""
+    if d.world == 1:
+        return flag
+    import torch
+    import torch.distributed as dist
+
+    t = torch.tensor([1.0 if flag else 0.0], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item() > 0)
+
+
 def _cpu_count() -> int:
     try:
         return len(os.sched_getaffinity(0))
@@ -432,8 +444,10 @@ def train(
     last_ckpt = step
     try:
         while step < total:
-            if t.max_minutes is not None and time.monotonic() - t0 > 60 * t.max_minutes:
-                stopped = "max_minutes"
+            if t.max_minutes is not None and _any_rank(
+                time.monotonic() - t0 > 60 * t.max_minutes, d, device
+            ):
+                stopped = "max_minutes"  # every rank stops at the same step
                 break
             # Hard-negative cache, refreshed on schedule (tuple mode only).
             use_hard = t.mining == "tuple" and t.hard_negatives > 0

@@ -385,6 +385,8 @@ def test_torchrun_two_processes_gloo(tiny_tree: tuple[Path, Path], tmp_path: Pat
         str(out),
         "--max-steps",
         "4",
+        "--max-minutes",  # exercises the ranks' agreement on the budget every step
+        "30",
         "--device",
         "cpu",
     ]
