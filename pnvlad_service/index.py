@@ -361,6 +361,7 @@ def make_index(
         index = faiss.index_factory(d, key, faiss.METRIC_L2)
     except RuntimeError as exc:
         raise InputError(f"FAISS cannot make an index from {key!r}: {exc}", "index_key") from exc
+    _no_polysemous(index)
     if not index.is_trained:
         need = min_training_vectors(key)
         if n < need:
@@ -374,6 +375,18 @@ def make_index(
         index.train(train)
     index.add(x)
     return index
+
+
+def _no_polysemous(index: Any) -> None:
+    """Switch off polysemous training, which index_factory turns on for IVF-PQ: it costs
+    minutes of training and is only used by polysemous (Hamming) search, which we never do."""
+    faiss = _faiss()
+    try:
+        ivf = faiss.downcast_index(faiss.extract_index_ivf(index))
+    except (RuntimeError, AttributeError):
+        return
+    if hasattr(ivf, "do_polysemous_training"):
+        ivf.do_polysemous_training = False
 
 
 def default_search_params(key: str) -> dict[str, int]:

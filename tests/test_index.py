@@ -384,3 +384,13 @@ def test_cli_build_and_info(world: dict[str, Path], tmp_path: Path) -> None:
     args = ["-c", str(world["ckpt"]), "-r", str(world["tree"]), "-o", str(tmp_path / "x")]
     res = runner.invoke(app, ["index", "build", *args, "--run", "nope"])
     assert res.exit_code == 2 and "nope" in res.output
+
+
+def test_ivf_pq_skips_polysemous_training() -> None:
+    import faiss
+
+    x = np.random.default_rng(0).standard_normal((300, 16)).astype(np.float32)
+    index = ix.make_index(x, "IVF2,PQ4")
+    ivf = faiss.downcast_index(faiss.extract_index_ivf(index))
+    assert ivf.do_polysemous_training is False
+    assert index.ntotal == 300
