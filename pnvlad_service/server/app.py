@@ -19,7 +19,6 @@ from typing import Any
 
 from fastapi import Depends, FastAPI, Query, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
@@ -92,13 +91,12 @@ def create_app(
     )
     problems.install(app, on_error=metrics.error)
 
-    bearer = HTTPBearer(auto_error=False, description="Set when the server has PNVLAD_API_KEY.")
+    bearer = HTTPBearer(auto_error=False, description="The server's PNVLAD_API_KEY.")
 
-    def require_key(
+    def check_key(
         creds: HTTPAuthorizationCredentials | None = Depends(bearer),
     ) -> None:
-        if settings.api_key is None:
-            return
+        assert settings.api_key is not None
         want = settings.api_key.get_secret_value().encode()
         got = creds.credentials.encode() if creds is not None else b""
         if not secrets.compare_digest(got, want):
@@ -108,6 +106,9 @@ def create_app(
                 field="Authorization",
                 headers={"WWW-Authenticate": "Bearer"},
             )
+
+    # Declared (and in the OpenAPI document) only when a key is configured.
+    protected = [Depends(check_key)] if settings.api_key is not None else []
 
     def get_localizer() -> Localizer:
         loc = state["localizer"]
@@ -156,12 +157,16 @@ def create_app(
         summary="Localise one point cloud",
         response_model=schemas.LocalizeResponse,
         responses=problems.openapi_responses(400, 401, 413, 415, 422, 503),
-        dependencies=[Depends(require_key)],
+        dependencies=protected,
         openapi_extra={
             "requestBody": {
                 "required": True,
                 "content": {
-                    JSON: {"schema": schemas.LocalizeRequest.model_json_schema()},
+                    JSON: {
+                        "schema": schemas.localize_request_schema(
+                            settings.max_top_n, settings.max_raw_points
+                        )
+                    },
                     OCTET: {"schema": _BINARY_SCHEMA},
                     NPY: {"schema": _BINARY_SCHEMA},
                 },
@@ -225,14 +230,14 @@ def create_app(
         summary="Localise several clouds, embedded as one batch",
         response_model=schemas.BatchResponse,
         responses=problems.openapi_responses(400, 401, 413, 415, 422, 503),
-        dependencies=[Depends(require_key)],
+        dependencies=protected,
         openapi_extra={
             "requestBody": {
                 "required": True,
                 "content": {
                     JSON: {
-                        "schema": schemas.BatchRequest.model_json_schema(
-                            ref_template="#/components/schemas/{model}"
+                        "schema": schemas.batch_request_schema(
+                            settings.max_top_n, settings.max_raw_points, settings.max_batch_queries
                         )
                     },
                     NPY: {"schema": _BINARY_SCHEMA},
@@ -317,7 +322,7 @@ def create_app(
         tags=["ops"],
         response_model=schemas.Info,
         responses=problems.openapi_responses(401, 503),
-        dependencies=[Depends(require_key)],
+        dependencies=protected,
     )
     def info() -> dict[str, Any]:
         """The bundle's manifest, the model and the request limits."""
@@ -344,25 +349,6 @@ def create_app(
         """Prometheus metrics: requests, latency by stage, errors by kind, batch sizes."""
         data, ctype = metrics.render()
         return Response(data, media_type=ctype)
-
-    def openapi() -> dict[str, Any]:
-        if app.openapi_schema:
-            return app.openapi_schema
-        doc = get_openapi(
-            title=app.title, version=app.version, routes=app.routes, description=app.description
-        )
-        defs = schemas.BatchRequest.model_json_schema(
-            ref_template="#/components/schemas/{model}"
-        ).get("$defs", {})
-        doc.setdefault("components", {}).setdefault("schemas", {}).update(defs)
-        for path in doc.get("paths", {}).values():
-            for op in path.values():
-                body = op.get("requestBody", {}).get("content", {}).get(JSON, {})
-                body.get("schema", {}).pop("$defs", None)
-        app.openapi_schema = doc
-        return doc
-
-    app.openapi = openapi  # type: ignore[method-assign]
 
     def count(route: str, method: str, status: int) -> None:
         metrics.requests.labels(route, method, str(status)).inc()

@@ -1,0 +1,107 @@
+"""Schema-based fuzzing of the HTTP API with schemathesis (bounded), expecting zero 5xx.
+
+Starts `pnvlad serve` on loopback on the given bundle (or uses --url), then runs
+`schemathesis run` against /openapi.json with every check (server errors, status codes,
+content types and response schemas as documented), at most --max-examples cases per
+operation. Needs `pip install schemathesis` (a dev tool, not a runtime dependency).
+
+    python benchmarks/fuzz_api.py --index demo/map.index --max-examples 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_ready(port: int, proc: subprocess.Popen, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise SystemExit("server exited during start-up")
+        try:
+            c = http.client.HTTPConnection("127.0.0.1", port, timeout=2)
+            c.request("GET", "/readyz")
+            if c.getresponse().status == 200:
+                return
+        except OSError:
+            pass
+        time.sleep(0.3)
+    raise SystemExit("server did not become ready")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--index", type=Path, help="Bundle to serve.")
+    ap.add_argument("--url", help="A running server instead (loopback).")
+    ap.add_argument("--max-examples", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--checks", default="all")
+    args = ap.parse_args()
+    st = shutil.which("st") or shutil.which("schemathesis")
+    if st is None:
+        print("schemathesis is not installed: pip install schemathesis", file=sys.stderr)
+        return 2
+    proc = None
+    url = args.url
+    if url is None:
+        if args.index is None:
+            ap.error("give --index or --url")
+        port = free_port()
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "pnvlad_cli.main",
+                "-q",
+                "serve",
+                "--index",
+                str(args.index),
+                "--port",
+                str(port),
+                "--log-level",
+                "warning",
+            ],
+            env={**os.environ, "PNVLAD_MAX_BODY_BYTES": str(8 * 1024 * 1024)},
+        )
+        wait_ready(port, proc)
+        url = f"http://127.0.0.1:{port}"
+    try:
+        cmd = [
+            st,
+            "run",
+            f"{url}/openapi.json",
+            "--checks",
+            args.checks,
+            "--max-examples",
+            str(args.max_examples),
+            "--seed",
+            str(args.seed),
+            "--request-timeout",
+            "60",
+            "--generation-deterministic",
+        ]
+        print(" ".join(cmd), flush=True)
+        rc = subprocess.call(cmd)
+    finally:
+        if proc is not None:
+            proc.terminate()
+            proc.wait(20)
+    return rc
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

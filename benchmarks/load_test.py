@@ -1,0 +1,291 @@
+"""Load test of `pnvlad serve` on loopback: N concurrent clients for T seconds.
+
+Starts the server itself (so it can read the server's peak RSS, VmHWM in /proc/<pid>/status)
+unless --url is given, then for each --clients value runs that many client threads, each
+sending preprocessed 4096-point queries (submaps of the bundle's own map, as float32 binary or
+JSON) back to back for --seconds or until --max-requests in all. Prints throughput, latency
+p50/p95/p99, errors, the server's batch sizes and peak RSS, and compares with the encoder's
+own batch-1 time and batch-32 throughput measured in this process first (--baseline).
+
+Loopback only; bounded in time and count.
+
+    python benchmarks/load_test.py --index demo/map.index --clients 1 8 --seconds 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from urllib.parse import urlparse
+
+import numpy as np
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def vmhwm_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as fh:
+        m = re.search(r"VmHWM:\s+(\d+) kB", fh.read())
+    return int(m.group(1)) / 1024 if m else float("nan")
+
+
+def load_queries(index: Path | None, count: int, seed: int = 0) -> list[np.ndarray]:
+    """Submaps of the bundle's map (read from the indexed tree), else random clouds."""
+    rng = np.random.default_rng(seed)
+    if index is not None:
+        from pnvlad_service.index import Metadata, read_manifest
+
+        manifest = read_manifest(index)
+        meta = Metadata.load(index / "metadata.npz")
+        root = Path(manifest["indexed"][0]["root"])
+        picks = rng.choice(len(meta), min(count, len(meta)), replace=False)
+        out = []
+        for i in picks:
+            p = root / str(meta.path[i])
+            if p.is_file():
+                out.append(np.fromfile(p, "<f8").reshape(-1, 3).astype(np.float32))
+        if out:
+            return out
+    return [rng.uniform(-0.9, 0.9, (4096, 3)).astype(np.float32) for _ in range(count)]
+
+
+def encoder_baseline(checkpoint: Path, clouds: list[np.ndarray], repeats: int) -> dict:
+    """Batch-1 median latency (ms) and batch-32 throughput (clouds/s) of the encoder alone."""
+    from pnvlad_service.index import load_encoder
+
+    enc = load_encoder(checkpoint)
+    x1 = clouds[0][None]
+    enc.embed(x1)
+    t1 = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        enc.embed(x1)
+        t1.append(time.perf_counter() - t)
+    x32 = np.stack([clouds[i % len(clouds)] for i in range(32)])
+    enc.embed(x32)
+    t32 = []
+    for _ in range(max(2, repeats // 4)):
+        t = time.perf_counter()
+        enc.embed(x32)
+        t32.append(time.perf_counter() - t)
+    return {"batch1_ms": 1000 * float(np.median(t1)), "batch32_cps": 32 / float(np.median(t32))}
+
+
+def run_phase(
+    url: str,
+    clients: int,
+    seconds: float,
+    max_requests: int,
+    bodies: list[bytes],
+    ctype: str,
+    path: str,
+) -> dict:
+    u = urlparse(url)
+    lat: list[float] = []
+    errors: list[str] = []
+    lock = threading.Lock()
+    stop = time.monotonic() + seconds
+    sent = [0]
+
+    def client(k: int) -> None:
+        conn = http.client.HTTPConnection(u.hostname, u.port, timeout=120)
+        i = k
+        while time.monotonic() < stop:
+            with lock:
+                if sent[0] >= max_requests:
+                    break
+                sent[0] += 1
+            body = bodies[i % len(bodies)]
+            i += clients
+            t = time.perf_counter()
+            try:
+                conn.request("POST", path, body=body, headers={"Content-Type": ctype})
+                resp = conn.getresponse()
+                data = resp.read()
+                dt = time.perf_counter() - t
+                with lock:
+                    if resp.status == 200:
+                        lat.append(dt)
+                    else:
+                        errors.append(f"{resp.status}: {data[:200]!r}")
+            except (OSError, http.client.HTTPException) as exc:
+                with lock:
+                    errors.append(repr(exc))
+                conn.close()
+                conn = http.client.HTTPConnection(u.hostname, u.port, timeout=120)
+        conn.close()
+
+    threads = [threading.Thread(target=client, args=(k,)) for k in range(clients)]
+    t0 = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    wall = time.perf_counter() - t0
+    ms = np.array(lat) * 1000 if lat else np.array([np.nan])
+    p50, p95, p99 = np.percentile(ms, [50, 95, 99])
+    return {
+        "clients": clients,
+        "requests": len(lat),
+        "errors": len(errors),
+        "first_errors": errors[:3],
+        "seconds": round(wall, 2),
+        "throughput": len(lat) / wall,
+        "p50_ms": float(p50),
+        "p95_ms": float(p95),
+        "p99_ms": float(p99),
+    }
+
+
+def batch_sizes(url: str) -> dict[str, float]:
+    u = urlparse(url)
+    conn = http.client.HTTPConnection(u.hostname, u.port, timeout=30)
+    conn.request("GET", "/metrics")
+    text = conn.getresponse().read().decode()
+    out = {}
+    for line in text.splitlines():
+        if line.startswith("pnvlad_batch_size_count"):
+            out["batches"] = float(line.split()[-1])
+        if line.startswith("pnvlad_batch_size_sum"):
+            out["clouds"] = float(line.split()[-1])
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--index", type=Path, help="Bundle: start a server on it (and read its map).")
+    ap.add_argument("--checkpoint", type=Path, help="Model (default: the bundle's).")
+    ap.add_argument("--url", help="Use a running server instead (no RSS unless --pid).")
+    ap.add_argument("--pid", type=int, help="The running server's pid, for its peak RSS.")
+    ap.add_argument("--clients", type=int, nargs="+", default=[1, 8])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--max-requests", type=int, default=5000, help="Per phase.")
+    ap.add_argument("--body", choices=["binary", "json"], default="binary")
+    ap.add_argument("--queries", type=int, default=64, help="Distinct query clouds.")
+    ap.add_argument("--baseline", action=argparse.BooleanOptionalAction, default=True)
+    ap.add_argument("--repeats", type=int, default=20, help="Encoder baseline repetitions.")
+    ap.add_argument("--json", type=Path, help="Also write the results here.")
+    args = ap.parse_args()
+    if not args.url and not args.index:
+        ap.error("give --index (start a server) or --url")
+
+    clouds = load_queries(args.index, args.queries)
+    checkpoint = args.checkpoint
+    if checkpoint is None and args.index is not None:
+        from pnvlad_service.index import read_manifest
+
+        checkpoint = Path(read_manifest(args.index)["model"]["checkpoint"])
+    result: dict = {}
+    if args.baseline and checkpoint is not None:
+        result["encoder"] = encoder_baseline(checkpoint, clouds, args.repeats)
+        print(
+            f"encoder alone: batch-1 {result['encoder']['batch1_ms']:.1f} ms, "
+            f"batch-32 {result['encoder']['batch32_cps']:.1f} clouds/s",
+            flush=True,
+        )
+
+    proc = None
+    url, pid = args.url, args.pid
+    if url is None:
+        port = free_port()
+        cmd = [
+            sys.executable,
+            "-m",
+            "pnvlad_cli.main",
+            "-q",
+            "serve",
+            "--index",
+            str(args.index),
+            "--port",
+            str(port),
+            "--log-level",
+            "warning",
+        ]
+        if args.checkpoint:
+            cmd += ["--checkpoint", str(args.checkpoint)]
+        proc = subprocess.Popen(cmd, env=os.environ.copy())
+        url, pid = f"http://127.0.0.1:{port}", proc.pid
+        u = urlparse(url)
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                c = http.client.HTTPConnection(u.hostname, u.port, timeout=2)
+                c.request("GET", "/readyz")
+                if c.getresponse().status == 200:
+                    break
+            except OSError:
+                pass
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise SystemExit("server did not start")
+            time.sleep(0.3)
+    if urlparse(url).hostname not in ("127.0.0.1", "localhost", "::1"):
+        raise SystemExit("loopback only: the load test refuses other hosts")
+    try:
+        if args.body == "binary":
+            bodies = [c.astype("<f4").tobytes() for c in clouds]
+            ctype, path = "application/octet-stream", "/localize?top_n=5"
+        else:
+            bodies = [json.dumps({"points": c.tolist(), "top_n": 5}).encode() for c in clouds]
+            ctype, path = "application/json", "/localize"
+        run_phase(url, 1, 2.0, 10, bodies, ctype, path)  # warm-up
+        result["phases"] = []
+        print(
+            f"{'clients':>7} {'requests':>8} {'errors':>6} {'req/s':>7} {'p50 ms':>8} "
+            f"{'p95 ms':>8} {'p99 ms':>8} {'mean batch':>10}"
+        )
+        for n in args.clients:
+            b0 = batch_sizes(url)
+            ph = run_phase(url, n, args.seconds, args.max_requests, bodies, ctype, path)
+            b1 = batch_sizes(url)
+            nb = b1.get("batches", 0) - b0.get("batches", 0)
+            ph["mean_batch"] = (b1.get("clouds", 0) - b0.get("clouds", 0)) / nb if nb else 0.0
+            result["phases"].append(ph)
+            print(
+                f"{n:>7} {ph['requests']:>8} {ph['errors']:>6} {ph['throughput']:>7.2f} "
+                f"{ph['p50_ms']:>8.1f} {ph['p95_ms']:>8.1f} {ph['p99_ms']:>8.1f} "
+                f"{ph['mean_batch']:>10.2f}",
+                flush=True,
+            )
+            for e in ph["first_errors"]:
+                print(f"  error: {e}")
+        if pid:
+            result["server_peak_rss_mb"] = vmhwm_mb(pid)
+            print(f"server peak RSS (VmHWM): {result['server_peak_rss_mb']:.0f} MB")
+        enc = result.get("encoder")
+        if enc:
+            for ph in result["phases"]:
+                if ph["clients"] == 1:
+                    print(
+                        f"target 1: p50 {ph['p50_ms']:.1f} ms vs 1.25 x batch-1 "
+                        f"{1.25 * enc['batch1_ms']:.1f} ms -> "
+                        f"{'OK' if ph['p50_ms'] <= 1.25 * enc['batch1_ms'] else 'MISSED'}"
+                    )
+                if ph["clients"] == 8:
+                    print(
+                        f"target 2: {ph['throughput']:.2f} req/s vs 0.8 x batch-32 "
+                        f"{0.8 * enc['batch32_cps']:.2f} clouds/s -> "
+                        f"{'OK' if ph['throughput'] >= 0.8 * enc['batch32_cps'] else 'MISSED'}"
+                    )
+    finally:
+        if proc is not None:
+            proc.terminate()
+            proc.wait(20)
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
