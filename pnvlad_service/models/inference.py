@@ -4,13 +4,15 @@ The encoder runs the network as the matrix products it is, on plain tensors:
 
 - every batch norm is folded into the layer before it (``W' = W * s``, ``b' = (b - mean) * s +
   beta`` with ``s = gamma / sqrt(var + eps)``);
-- per-point layers are ``addmm`` on the points x channels matrix [b*N, C], ReLU in place;
+- per-point layers are ``addmm`` on the points x channels matrix [N, C], ReLU in place;
 - the feature transform is folded into the next layer's weights per cloud (``(h T) W = h (T W)``);
 - max-pooled layers (transform nets, PN_MAX) take the max over points *before* the bias and ReLU
   (both commute with a per-channel max);
 - the per-point L2 normalisation of the published code never materialises the normalised
   features: the norms divide the K cluster logits and the soft-assignment weights instead;
-- the NetVLAD residual sums are one batched product [b, K, N] x [b, N, D].
+- the per-point network runs one cloud at a time and its widest layer (with the NetVLAD sums
+  [K, N] x [N, D], or the max of PN_MAX) ``point_tile`` points at a time, so activations stay in
+  cache; the fully connected head runs on the whole batch as one product.
 
 ``dtype="bfloat16"`` runs the matrix products in bfloat16 (fast on CPUs with AMX / AVX512-BF16);
 ``dtype="auto"`` uses bfloat16 only when the CPU supports it *and* a self-check on given clouds

@@ -1,0 +1,179 @@
+"""Encoder throughput on this CPU, against the machine's own float32 matrix-multiply rate.
+
+Prints, for the paper and the compact configurations, ms per cloud and clouds/s at batch 1 and
+32 (4096-point clouds, float32 and, where the CPU supports it, bfloat16), the analytic FLOPs of
+one forward pass and the share of the measured sgemm rate that the encoder reaches. Also times a
+training step (forward + backward of one tuple batch) of each configuration, and the bfloat16
+top-1 agreement with float32 on clouds cut from the real scans (when ../shared/data/real_scans
+is present) or on synthetic clouds.
+
+    python benchmarks/bench_encoder.py                # everything (about 2 minutes)
+    python benchmarks/bench_encoder.py --quick        # fewer repetitions
+    python benchmarks/bench_encoder.py --threads 2 --configs paper
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.inference import Encoder, bf16_supported, top1_agreement
+from pnvlad_service.models.pointnetvlad import build_model
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def timed(fn: Callable[[], object], reps: int, warmup: int = 1) -> float:
+    """Fastest wall time (s) of ``fn`` over ``reps`` runs after ``warmup`` runs.
+
+    The minimum, not the median: on a shared machine the other tenants only ever add time.
+    """
+    for _ in range(warmup):
+        fn()
+    best = float("inf")
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def sgemm_rate(n: int = 2048, reps: int = 5) -> float:
+    """Float32 GFLOP/s of an n x n x n matrix product (torch.mm, the same BLAS)."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    dt = timed(lambda: a @ b, reps, warmup=2)
+    return 2 * n**3 / dt / 1e9
+
+
+def real_clouds(count: int, n: int = 4096, seed: int = 0) -> np.ndarray | None:
+    """``count`` clouds [count, n, 3] cut from the real KITTI scans (30 m discs around points
+    along the road, scaled into [-1, 1]), or None when the scans are absent."""
+    root = Path(os.environ.get("PNVLAD_REAL_SCANS", REPO.parent / "shared/data/real_scans"))
+    files = sorted(root.glob("kitti00_*.bin"))
+    if not files:
+        return None
+    rng = np.random.default_rng(seed)
+    clouds = []
+    scans = [
+        np.fromfile(f, dtype=np.float32).reshape(-1, 4)[:, :3].astype(np.float64) for f in files
+    ]
+    for i in range(count):
+        pts = scans[i % len(scans)]
+        centre = np.array([rng.uniform(-20, 20), rng.uniform(-10, 10), 0.0])
+        sel = pts[np.linalg.norm(pts[:, :2] - centre[:2], axis=1) < 25.0]
+        sel = sel[sel[:, 2] > -1.4]  # crude ground removal (sensor 1.73 m above the road)
+        sel = sel[rng.choice(len(sel), n, replace=len(sel) < n)]
+        sel = sel - sel.mean(0)
+        sel = sel / (2 * np.linalg.norm(sel, axis=1).mean())
+        clouds.append(np.clip(sel, -1, 1))
+    return np.stack(clouds).astype(np.float32)
+
+
+#: (config, dtype, batch, GFLOP/s) of every figure, and every sgemm rate seen, for the summary.
+RESULTS: list[tuple[str, str, int, float]] = []
+SGEMM: list[float] = []
+
+
+def bench_config(name: str, cfg: ModelConfig, reps: int, dtypes: list[str]) -> None:
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    flops = cfg.flops_per_cloud()
+    print(f"\n[{name}] {cfg.arch}, {flops / 1e9:.2f} GFLOP per {cfg.num_points}-point cloud")
+    for dtype in dtypes:
+        enc = Encoder(model, cfg, dtype=dtype)
+        for batch in (1, 32):
+            x = torch.rand(batch, cfg.num_points, 3) * 2 - 1
+            rate = sgemm_rate()  # measured next to each figure: the machine may be shared
+            dt = timed(lambda enc=enc, x=x: enc.embed(x), reps if batch == 1 else max(2, reps // 3))
+            got = flops * batch / dt / 1e9
+            SGEMM.append(rate)
+            RESULTS.append((name, dtype, batch, got))
+            print(
+                f"  {dtype:8s} batch {batch:2d}: {dt / batch * 1e3:7.1f} ms/cloud "
+                f"{batch / dt:7.1f} clouds/s  {got:6.1f} GFLOP/s = "
+                f"{100 * got / rate:5.1f} % of sgemm ({rate:.0f} GFLOP/s)"
+            )
+    # Training step: forward + backward of one tuple batch (1 query, 2 pos, 18 neg, 1 other neg).
+    from pnvlad_service.losses import lazy_quadruplet_loss
+
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-5)
+    tuples = 1
+    x = torch.rand(tuples * 22, cfg.num_points, 3) * 2 - 1
+
+    def step() -> None:
+        opt.zero_grad()
+        d = model(x).reshape(tuples, 22, -1)
+        loss = lazy_quadruplet_loss(d[:, 0], d[:, 1:3], d[:, 3:21], d[:, 21])
+        loss.backward()
+        opt.step()
+
+    dt = timed(step, 2)
+    print(f"  train step (1 tuple = 22 clouds, fwd+bwd+Adam): {dt:.2f} s")
+
+
+def bf16_check(cfg: ModelConfig, count: int) -> None:
+    if not bf16_supported():
+        print("\nbfloat16: not supported on this CPU")
+        return
+    clouds = real_clouds(count)
+    source = "real KITTI cuts"
+    if clouds is None:
+        clouds = (np.random.default_rng(0).random((count, cfg.num_points, 3)) * 2 - 1).astype(
+            np.float32
+        )
+        source = "uniform random clouds"
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    enc = Encoder(model, cfg)
+    ref = enc.embed(clouds)
+    enc.dtype = "bfloat16"
+    low = enc.embed(clouds)
+    cos = float((ref * low).sum(1).min())
+    print(
+        f"\nbfloat16 vs float32 ({source}, {count} clouds, untrained paper weights): top-1 "
+        f"agreement {100 * top1_agreement(ref, low):.1f} %, min cosine {cos:.5f}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="fewer repetitions")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--configs", default="paper,compact", help="comma-separated: paper,compact")
+    ap.add_argument("--no-bf16", action="store_true", help="skip the bfloat16 path")
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    reps = 3 if args.quick else 8
+    dtypes = ["float32"] + (["bfloat16"] if bf16_supported() and not args.no_bf16 else [])
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"CPU capability {torch.backends.cpu.get_cpu_capability()}, bf16 {bf16_supported()}"
+    )
+    print("sgemm: 2048^3 float32 torch.mm, fastest of 5, timed just before each figure")
+    configs = {"paper": ModelConfig.paper(), "compact": ModelConfig.compact()}
+    for name in args.configs.split(","):
+        bench_config(name, configs[name], reps, dtypes)
+    best = max(SGEMM)
+    print(f"\nsummary: share of the best float32 sgemm rate seen in this run ({best:.0f} GFLOP/s)")
+    for name, dtype, batch, got in RESULTS:
+        print(
+            f"  {name:8s} {dtype:8s} batch {batch:2d}: {got:6.1f} GFLOP/s "
+            f"= {100 * got / best:5.1f} %"
+        )
+    if "bfloat16" in dtypes:
+        bf16_check(ModelConfig.paper(), 24 if args.quick else 64)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
