@@ -442,6 +442,7 @@ def train(
     result = TrainResult(steps=step)
     stopped = "done"
     last_ckpt = step
+    first_step, t_loop = step, time.monotonic()
     try:
         while step < total:
             if t.max_minutes is not None and _any_rank(
@@ -532,7 +533,7 @@ def train(
             if on_step is not None:
                 on_step({**rec, "indices": table})
             if step % t.log_every == 0 or step == total:
-                rec["steps_per_s"] = round(bar.format_dict.get("rate") or 0.0, 4)
+                rec["steps_per_s"] = round((step - first_step) / (time.monotonic() - t_loop), 4)
                 mlog.write(**rec)
             bar.set_postfix(loss=f"{lv:.4f}", epoch=sampler.epoch)
             bar.update()
