@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ SMALL = 256  # points per cloud in most tests
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _one_thread():
+def _one_thread() -> Iterator[None]:
     """These tensors are small: one thread avoids OpenMP barrier stalls on a busy machine."""
     before = torch.get_num_threads()
     torch.set_num_threads(1)
