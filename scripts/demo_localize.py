@@ -1,0 +1,101 @@
+"""The last step of the demo: localise held-out submaps of one run against a running server.
+
+Picks ``--count`` query submaps of ``--run`` (a run that is not in the server's index) inside the
+dataset's test regions, sends each to ``POST /localize`` as a binary float64 body, prints its
+top-N matches with UTM coordinates and descriptor distances, and says whether the best match lies
+within ``--radius`` metres of where the query really was (the benchmark's 25 m rule).
+Exits non-zero if the server cannot be reached.
+
+    python scripts/demo_localize.py --url http://127.0.0.1:8000 --root runs/demo/city \
+        --dataset business --run 2026-03-18-09-00-00 --count 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+from pnvlad_service.benchmark import BenchmarkTree
+from pnvlad_service.readers import read_points
+from pnvlad_service.splits import resolve_regions
+
+
+def _post(url: str, body: bytes, top_n: int) -> dict:
+    req = urllib.request.Request(
+        f"{url.rstrip('/')}/localize?top_n={top_n}&dtype=float64",
+        data=body,
+        headers={"Content-Type": "application/octet-stream"},
+        method="POST",
+    )
+    with urllib.request.urlopen(req, timeout=60) as resp:
+        return json.loads(resp.read())
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--url", required=True)
+    ap.add_argument("--root", type=Path, required=True, help="benchmark tree root")
+    ap.add_argument("--dataset", required=True)
+    ap.add_argument("--run", required=True, help="held-out run whose submaps are the queries")
+    ap.add_argument("--count", type=int, default=8)
+    ap.add_argument("--top-n", type=int, default=5)
+    ap.add_argument("--radius", type=float, default=25.0)
+    args = ap.parse_args(argv)
+
+    tree = BenchmarkTree(args.root)
+    submaps = tree.submaps(args.dataset, args.run, "test")
+    # Queries come from the test regions, which training never saw.
+    regions = resolve_regions(tree, args.dataset, args.dataset)
+    inside = regions.contains(
+        np.array([s.northing for s in submaps]), np.array([s.easting for s in submaps])
+    )
+    submaps = [s for s, keep in zip(submaps, inside, strict=True) if keep]
+    if not submaps:
+        print(f"no query submaps for {args.dataset}/{args.run} under {args.root}", file=sys.stderr)
+        return 2
+    step = max(len(submaps) // args.count, 1)
+    chosen = submaps[::step][: args.count]
+
+    hits = 0
+    for q in chosen:
+        pts = read_points(args.root / q.path, reader="benchmark").astype(np.float64)
+        try:
+            answer = _post(args.url, pts.tobytes(), args.top_n)
+        except urllib.error.URLError as exc:
+            print(f"cannot reach {args.url}: {exc}", file=sys.stderr)
+            return 1
+        best = answer["matches"][0]
+        err = math.hypot(best["northing"] - q.northing, best["easting"] - q.easting)
+        ok = err <= args.radius
+        hits += ok
+        print(
+            f"\nquery {q.run}/{q.timestamp}  true N {q.northing:.1f} E {q.easting:.1f}  "
+            f"(embed {answer['timings_ms']['embed']:.1f} ms, search "
+            f"{answer['timings_ms']['search']:.2f} ms)"
+        )
+        print(f"  {'rank':>4}  {'run':<20} {'northing':>12} {'easting':>11} {'dist':>7} {'off':>8}")
+        for m in answer["matches"]:
+            off = math.hypot(m["northing"] - q.northing, m["easting"] - q.easting)
+            print(
+                f"  {m['rank']:>4}  {m['run']:<20} {m['northing']:>12.1f} {m['easting']:>11.1f} "
+                f"{m['distance']:>7.3f} {off:>6.1f} m"
+            )
+        print(
+            f"  top-1 is {err:.1f} m from the truth: {'WITHIN' if ok else 'NOT within'} "
+            f"{args.radius:g} m"
+        )
+    print(
+        f"\n{hits}/{len(chosen)} queries localised within {args.radius:g} m by their top-1 match."
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
