@@ -5,6 +5,11 @@ Starts `pnvlad serve` on loopback on the given bundle (or uses --url), then runs
 content types and response schemas as documented), at most --max-examples cases per
 operation. Needs `pip install schemathesis` (a dev tool, not a runtime dependency).
 
+`positive_data_acceptance` is excluded by default: two rules cannot be written in OpenAPI
+and are rightly answered 422 for schema-valid data: a binary body must be a whole number of
+xyz triples (12 or 24 bytes each), and the filter G refuses a raw scan that ground removal
+empties. Every other check runs, and a 5xx always fails.
+
     python benchmarks/fuzz_api.py --index demo/map.index --max-examples 100
 """
 
@@ -50,6 +55,7 @@ def main() -> int:
     ap.add_argument("--max-examples", type=int, default=100)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--checks", default="all")
+    ap.add_argument("--exclude-checks", default="positive_data_acceptance")
     args = ap.parse_args()
     st = shutil.which("st") or shutil.which("schemathesis")
     if st is None:
@@ -94,6 +100,8 @@ def main() -> int:
             "60",
             "--generation-deterministic",
         ]
+        if args.exclude_checks:
+            cmd += ["--exclude-checks", args.exclude_checks]
         print(" ".join(cmd), flush=True)
         rc = subprocess.call(cmd)
     finally:

@@ -117,13 +117,24 @@ def create_app(
         return loc
 
     async def submit(
-        loc: Localizer, clouds: list[tuple[Any, bool]], top_n: int, timings: dict[str, float]
+        loc: Localizer,
+        clouds: list[tuple[Any, bool]],
+        top_n: int,
+        timings: dict[str, float],
+        batch: bool = False,
     ) -> list[Any]:
         """Preprocess raw scans (thread pool) and queue every cloud; returns the futures."""
         t0 = time.perf_counter()
         prepared = []
-        for pts, pre in clouds:
-            prepared.append(await run_in_threadpool(loc.preprocess, pts) if pre else pts)
+        for i, (pts, pre) in enumerate(clouds):
+            if not pre:
+                prepared.append(pts)
+                continue
+            try:
+                prepared.append(await run_in_threadpool(loc.preprocess, pts))
+            except InputError as exc:  # name the cloud the filter G refused
+                field = f"queries[{i}].points" if batch else "points"
+                raise InputError(f"filter G: {exc.detail}", field) from None
         timings["preprocess"] = time.perf_counter() - t0
         return [loc.batcher.submit(c, top_n) for c in prepared]
 
@@ -285,7 +296,7 @@ def create_app(
 
             clouds = await run_in_threadpool(parse)
         timings = {"parse": time.perf_counter() - t0}
-        answers = await collect(loc, await submit(loc, clouds, n, timings), timings)
+        answers = await collect(loc, await submit(loc, clouds, n, timings, batch=True), timings)
         total = time.perf_counter() - t0
         for a in answers:
             t = a.pop("timings")

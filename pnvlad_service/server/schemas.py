@@ -119,6 +119,8 @@ class Info(BaseModel):
 #: Fewest raw points the filter G accepts by default (``GConfig.min_points``); a scan can still
 #: be refused (422) when, e.g., ground removal leaves too few.
 RAW_MIN_POINTS = 16
+#: Largest |coordinate| of a raw scan, metres (``service.MAX_RAW_COORD``).
+RAW_MAX_COORD = 100_000.0
 
 
 def _points_schema(min_items: int, max_items: int, bound: float | None) -> dict[str, Any]:
@@ -152,7 +154,7 @@ def cloud_schema(max_raw_points: int, extra: dict[str, Any] | None = None) -> di
         "additionalProperties": False,
         "required": ["points", "preprocess"],
         "properties": {
-            "points": _points_schema(RAW_MIN_POINTS, max_raw_points, None),
+            "points": _points_schema(RAW_MIN_POINTS, max_raw_points, RAW_MAX_COORD),
             "preprocess": {"type": "boolean", "enum": [True]},
             **extra,
         },

@@ -28,6 +28,9 @@ log = logging.getLogger(__name__)
 
 #: Slack on the [-1, 1] bound of preprocessed points.
 _BOUND = 1.0 + 1e-4
+#: Largest |coordinate| of a raw scan, metres (sensor frame): far beyond any LiDAR's range,
+#: and it keeps overflowing values (1e308) away from the filter G's plane fits.
+MAX_RAW_COORD = 100_000.0
 
 
 class MalformedJSON(InputError):
@@ -60,7 +63,16 @@ def check_points(
             raise InputError(
                 f"a raw scan needs between 1 and {max_raw_points} points, got {n}", field
             )
-        return np.ascontiguousarray(points, dtype=np.float64)
+        out64 = np.ascontiguousarray(points, dtype=np.float64)
+        far = np.abs(out64).max(axis=1) > MAX_RAW_COORD
+        if far.any():
+            bad = int(np.argmax(far))
+            raise InputError(
+                f"point {bad} is more than {MAX_RAW_COORD:,.0f} m from the sensor: raw scans are "
+                "in the sensor frame, metres",
+                f"{field}[{bad}]",
+            )
+        return out64
     if n != SUBMAP_POINTS:
         raise InputError(
             f"expected exactly {SUBMAP_POINTS} preprocessed points, got {n} "
