@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 STAGES = ("parse", "preprocess", "queue", "embed", "search", "total")
 _LATENCY_BUCKETS = (
     0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
@@ -62,6 +60,3 @@ class Metrics:
 
     def error(self, kind: str) -> None:
         self.errors.labels(kind).inc()
-
-    def __getattr__(self, name: str) -> Any:  # pragma: no cover - clearer error
-        raise AttributeError(name)
