@@ -7,6 +7,7 @@ import typer
 from pnvlad_cli import data_bench, data_prepare, data_preprocess
 
 app = typer.Typer(
+    rich_markup_mode="markdown",
     help=(
         "Turn raw LiDAR into benchmark data: preprocess one scan with the filter G, prepare a "
         "recorded drive into submaps, check a benchmark tree, build training tuples and "

@@ -53,14 +53,14 @@ def splits(
     regions: Path = typer.Option(
         None,
         "--regions",
-        help="Test regions file (JSON or CSV, docs/SPLITS.md). Default: <root>/<dataset>/"
+        help="Test regions file (JSON or CSV, docs/SPLITS.md). Default: ROOT/DATASET/"
         "test_regions.json, else the published regions (Oxford, in-house areas).",
     ),
     pos_radius: float = typer.Option(10.0, help="Positives: within this distance, m (<=)."),
     neg_radius: float = typer.Option(50.0, help="Negatives: beyond this distance, m (>)."),
     truth_radius: float = typer.Option(25.0, help="Evaluation ground truth: within, m (<=)."),
     out: Path = typer.Option(
-        None, "--out", "-o", help="Splits file to write (default: <root>/splits.json)."
+        None, "--out", "-o", help="Splits file to write (default: ROOT/splits.json)."
     ),
     export_pickles: Path = typer.Option(
         None, "--export-pickles", help="Also write the published pickles into this folder."
@@ -138,7 +138,7 @@ def import_pickles(
     """Convert the published split pickles to our JSON, running no code.
 
     Reads training_queries_*.pickle, test_queries_*.pickle and
-    <name>_evaluation_database / <name>_evaluation_query.pickle pairs
+    NAME_evaluation_database / NAME_evaluation_query.pickle pairs
     with an unpickler that refuses every class (a file that names any
     class or function is rejected), checks their structure and indices.
 
@@ -163,7 +163,7 @@ def export_pickles(
 
     Writes training_queries_baseline.pickle,
     test_queries_baseline.pickle (prefixed by the dataset when there are
-    several) and <name>_evaluation_database/query.pickle, plain types.
+    several) and NAME_evaluation_database/query.pickle, plain types.
 
     Example:
 

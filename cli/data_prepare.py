@@ -60,7 +60,7 @@ def prepare(
     scans: Path = typer.Option(
         None,
         "--scans",
-        help="Folder of scans named <timestamp>.<ext> (µs), used with --poses CSV.",
+        help="Folder of scans named TIMESTAMP.EXT (µs), used with --poses CSV.",
         rich_help_panel=_INPUT,
     ),
     poses: Path = typer.Option(
@@ -195,7 +195,7 @@ def prepare(
 
     Scans are accumulated in the UTM frame over a window of trajectory centred on each submap,
     one submap every STRIDE metres travelled; each is filtered by G to 4096 points and written
-    as <out>/<folder>/<timestamp>.bin (98,304 bytes), the timestamp and position being those of
+    as OUT/FOLDER/TIMESTAMP.bin (98,304 bytes), the timestamp and position being those of
     the scan at the window's centre. The CSVs are written last; an interrupted run keeps only
     whole submaps, and --resume finishes it. See docs/PREPARE.md.
 

@@ -7,6 +7,7 @@ import typer
 from pnvlad_cli import common
 
 app = typer.Typer(
+    rich_markup_mode="markdown",
     name="pnvlad",
     help=(
         "LiDAR place recognition with PointNetVLAD: prepare benchmark data, train the encoder, "

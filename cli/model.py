@@ -10,6 +10,7 @@ import typer
 from pnvlad_cli.common import user_errors
 
 app = typer.Typer(
+    rich_markup_mode="markdown",
     help=(
         "Model directories (model.json + model.safetensors): import weights trained with the "
         "PyTorch port of PointNetVLAD, or show what a model directory holds."
