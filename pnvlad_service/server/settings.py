@@ -45,6 +45,11 @@ class ServerSettings(BaseSettings):
         description="How long the batcher waits for requests already being parsed (ms).",
     )
     torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
-    faiss_threads: int | None = Field(None, ge=1, description="FAISS OpenMP threads.")
+    faiss_threads: int | None = Field(
+        1,
+        ge=1,
+        description="FAISS OpenMP threads. 1 by default: searches are small batches, and FAISS's "
+        "idle OpenMP threads spin on the cores torch needs for the next forward pass.",
+    )
     device: str | None = Field(None, description="torch device for the encoder (default cpu).")
     verify_bundle: bool = Field(True, description="Check the bundle's sha256s at start-up.")
