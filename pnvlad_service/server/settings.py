@@ -48,8 +48,8 @@ class ServerSettings(BaseSettings):
     faiss_threads: int | None = Field(
         1,
         ge=1,
-        description="FAISS OpenMP threads. 1 by default: searches are small batches, and FAISS's "
-        "idle OpenMP threads spin on the cores torch needs for the next forward pass.",
+        description="FAISS OpenMP threads. 1 by default: searches are small batches, which gain "
+        "nothing from threads and stall when the cores are busy (docs/SERVICE.md).",
     )
     device: str | None = Field(None, description="torch device for the encoder (default cpu).")
     verify_bundle: bool = Field(True, description="Check the bundle's sha256s at start-up.")
