@@ -179,9 +179,10 @@ def localize(
     Asks a running `pnvlad serve` (--url) or searches a bundle locally (--index). A benchmark
     submap (4096 points in [-1, 1]) goes as it is; a raw sensor scan needs --preprocess.
 
-    \b
     Examples:
-      pnvlad localize oxford/<run>/pointcloud_20m/<ts>.bin --url http://127.0.0.1:8000
+
+      pnvlad localize oxford/RUN/pointcloud_20m/TIMESTAMP.bin --url http://127.0.0.1:8000
+
       pnvlad localize scan.bin --reader kitti --preprocess --index map.index --json
     """
     from pnvlad_service.errors import InputError
