@@ -24,6 +24,8 @@ def setup_logging(verbosity: int) -> None:
         stream=sys.stderr,
         force=True,
     )
+    # faiss announces which SIMD build it loaded at INFO on every start: noise for users.
+    logging.getLogger("faiss.loader").setLevel(max(level, logging.WARNING))
 
 
 @contextlib.contextmanager

@@ -148,6 +148,10 @@ def _col_mean(a: np.ndarray) -> np.ndarray:
     return np.array([a[:, k].mean() for k in range(a.shape[1])])
 
 
+MAX_COORDINATE = 1e8
+"""Largest absolute coordinate (metres) G accepts: ten times any UTM northing."""
+
+
 def _as_points(points: np.ndarray, source: str = "points") -> np.ndarray:
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -157,6 +161,13 @@ def _as_points(points: np.ndarray, source: str = "points") -> np.ndarray:
     points = np.ascontiguousarray(points, dtype=np.float64)
     if not np.isfinite(points).all():
         raise InputError("points contain NaN or infinite coordinates", source)
+    if points.size and np.abs(points).max() > MAX_COORDINATE:
+        # Far beyond any UTM coordinate; squaring such values overflows in the plane fit.
+        raise InputError(
+            f"coordinates beyond {MAX_COORDINATE:g} m (largest {np.abs(points).max():.3g}); "
+            "expected metres in a sensor or UTM frame",
+            source,
+        )
     return points
 
 

@@ -271,6 +271,10 @@ def test_too_few_points_and_bad_input_are_refused() -> None:
         filter_g(np.zeros((10, 4)))
     with pytest.raises(InputError, match="NaN"):
         filter_g(np.array([[0.0, np.nan, 1.0]] * 20))
+    huge = _scene().copy()
+    huge[0, 0] = 1e308  # finite, but squaring it overflows in the plane fit
+    with pytest.raises(InputError, match="coordinates beyond"):
+        filter_g(huge)
     with pytest.raises(ValidationError):
         GConfig(box=(0, 0, 0, -1, 1, 1))
     with pytest.raises(ValidationError):
