@@ -14,6 +14,7 @@ import typer
 from pnvlad_cli.common import user_errors
 
 app = typer.Typer(
+    rich_markup_mode="markdown",
     help="Build and inspect FAISS index bundles (the map `pnvlad serve` searches).\n\n"
     "A bundle is a directory: index.faiss, metadata.npz (one row per submap: run, timestamp, "
     "UTM northing/easting, path) and manifest.json (model and file sha256s).",
