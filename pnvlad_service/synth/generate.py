@@ -1,0 +1,375 @@
+"""Generate a synthetic benchmark tree: areas, runs, submaps, test regions and splits.
+
+``generate(preset, out, seed)`` writes, in the public PointNetVLAD layout::
+
+    OUT/<area>/<run>/pointcloud_20m_10overlap/<timestamp>.bin  training layout, every 10 m
+    OUT/<area>/<run>/pointcloud_locations_20m_10overlap.csv
+    OUT/<area>/<run>/pointcloud_20m/<timestamp>.bin            test layout, every 20 m
+    OUT/<area>/<run>/pointcloud_locations_20m.csv
+    OUT/<area>/test_regions.json     squares chosen on the area's route (read by `data splits`)
+    OUT/splits.json                  training tuples and evaluation sets (pnvlad_service.splits)
+    OUT/synth.json                   preset, seed, parameters, sizes and timings
+
+Every run is a :class:`~pnvlad_service.synth.runs.SimulatedDrive` cut into submaps by
+:func:`pnvlad_service.prepare.prepare_drive`, the path a user's own drive takes (accumulation
+over 20 m of trajectory, filter G, 4096 points). Runs are generated in parallel processes; every
+random stream is derived from ``(seed, area, run)``, so the bytes do not depend on the number of
+workers. The tree is built under a temporary name and renamed when complete.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, Field
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.synth.lidar import LidarConfig
+from pnvlad_service.synth.runs import Route, RunConditions, SimulatedDrive, make_route
+from pnvlad_service.synth.world import DISTRICTS, World, WorldConfig, generate_world
+
+log = logging.getLogger(__name__)
+
+
+class AreaSpec(BaseModel):
+    """One area (a dataset folder of the tree): a district of the city and its route."""
+
+    name: str
+    district: str
+    size: tuple[float, float] = Field((900.0, 700.0), description="extent x, y, metres")
+    origin: tuple[float, float] = Field(
+        (620000.0, 5735000.0), description="UTM easting, northing of the area's local origin"
+    )
+    route_m: float = Field(1500.0, gt=50, description="route length driven by every run, m")
+
+
+class SynthPreset(BaseModel):
+    """Everything that defines a generated benchmark apart from the seed."""
+
+    name: str
+    areas: list[AreaSpec]
+    runs: int = Field(5, ge=2, description="runs per area")
+    lidar: LidarConfig = Field(default_factory=LidarConfig)
+    conditions: RunConditions = Field(default_factory=RunConditions)
+    scan_spacing: float = Field(2.0, gt=0, description="metres driven between two scans")
+    max_points_per_scan: int = Field(10_000, ge=100, description="points kept per scan before G")
+    test_share: float = Field(
+        0.35, gt=0, lt=1, description="share of each route inside the test regions"
+    )
+    region_half_size: float = Field(150.0, gt=0, description="test squares are ± this, m")
+
+
+def _areas(route_m: float, size: tuple[float, float], names: tuple[str, ...]) -> list[AreaSpec]:
+    # Areas side by side 2 km apart in easting, like neighbouring districts of one city.
+    return [
+        AreaSpec(
+            name=n,
+            district=n,
+            size=size,
+            origin=(619000.0 + 2000.0 * i, 5734500.0 + 300.0 * i),
+            route_m=route_m,
+        )
+        for i, n in enumerate(names)
+    ]
+
+
+PRESETS: dict[str, SynthPreset] = {
+    # For tests: a small block, three runs, a sparse sensor. A few seconds.
+    "tiny": SynthPreset(
+        name="tiny",
+        areas=_areas(260.0, (360.0, 300.0), ("business",)),
+        runs=3,
+        lidar=LidarConfig(beams=32, columns=360),
+        scan_spacing=4.0,
+        max_points_per_scan=3000,
+        test_share=0.4,
+        region_half_size=60.0,
+    ),
+    # The README's main job: one district, four runs, a few hundred submaps.
+    "demo": SynthPreset(
+        name="demo",
+        areas=_areas(1000.0, (700.0, 600.0), ("business",)),
+        runs=4,
+        lidar=LidarConfig(columns=900),
+        scan_spacing=2.5,
+        max_points_per_scan=8000,
+        test_share=0.35,
+        region_half_size=120.0,
+    ),
+    # Our quality figures: three districts, five runs each.
+    "benchmark": SynthPreset(
+        name="benchmark",
+        areas=_areas(3000.0, (1000.0, 800.0), ("business", "residential", "campus")),
+        runs=5,
+        lidar=LidarConfig(columns=1200),
+        scan_spacing=2.5,
+        max_points_per_scan=8000,
+        test_share=0.45,
+        region_half_size=150.0,
+    ),
+}
+
+
+def get_preset(name: str) -> SynthPreset:
+    """A shipped preset by name (a copy: callers may change it)."""
+    if name not in PRESETS:
+        raise InputError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}", "preset")
+    return PRESETS[name].model_copy(deep=True)
+
+
+def run_name(area_index: int, run: int, seed: int) -> tuple[str, int]:
+    """Folder name (Oxford style ``YYYY-MM-DD-HH-MM-SS``) and start time (µs) of a run.
+
+    Runs of an area are days to weeks apart, at different hours, like the benchmark's."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, area_index, run, 5]))
+    day = dt.datetime(2026, 3, 2, tzinfo=dt.timezone.utc) + dt.timedelta(
+        days=int(9 * run + rng.integers(0, 6)),
+        hours=int(rng.integers(7, 19)),
+        minutes=int(rng.integers(0, 60)),
+        seconds=int(rng.integers(0, 60)),
+    )
+    return day.strftime("%Y-%m-%d-%H-%M-%S"), int(day.timestamp()) * 1_000_000
+
+
+def _world(area: AreaSpec, seed: int) -> World:
+    if area.district not in DISTRICTS:
+        raise InputError(
+            f"unknown district {area.district!r}; choose one of {sorted(DISTRICTS)}", area.name
+        )
+    cfg = WorldConfig(district=area.district, size=area.size, origin=area.origin)
+    return generate_world(cfg, seed=seed)
+
+
+def route_from_csv(world: World, path: str | Path) -> Route:
+    """A route from a CSV with ``northing`` and ``easting`` columns (UTM metres), as a user
+    supplies for `pnvlad synth --trajectories`. Timestamps, if present, are not needed: each
+    run keeps its own speed."""
+    import csv
+
+    from pnvlad_service.synth.runs import _resample
+
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.DictReader(fh))
+    except OSError as exc:
+        raise InputError(f"cannot read trajectory: {exc}", path) from None
+    if not rows or not {"northing", "easting"} <= set(rows[0]):
+        raise InputError("a trajectory CSV needs the columns northing,easting", path)
+    try:
+        ne = np.array([[float(r["northing"]), float(r["easting"])] for r in rows])
+    except ValueError as exc:
+        raise InputError(f"non-numeric position ({exc})", path) from None
+    if len(ne) < 2 or not np.isfinite(ne).all():
+        raise InputError("a trajectory needs at least two finite positions", path)
+    local = np.stack([ne[:, 1], ne[:, 0]], 1) - world.origin
+    pts = _resample(local, 1.0)
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
+    hw = np.full(len(pts), 5.0)
+    return Route(pts, s, hw)
+
+
+def choose_test_regions(
+    route_xy: np.ndarray, share: float, half_size: float, max_regions: int = 6
+) -> list[tuple[float, float]]:
+    """Square test regions (centres as local x, y) covering about ``share`` of a route.
+
+    Greedy and deterministic: candidates are route points every 25 m; each step takes the
+    square that adds the most uncovered route, never overlapping an earlier square, until the
+    share is reached.
+    """
+    pts = np.asarray(route_xy, dtype=np.float64)
+    covered = np.zeros(len(pts), bool)
+    centres: list[tuple[float, float]] = []
+    cands = pts[:: max(len(pts) // max(int(len(pts) / 25), 1), 1)]
+    for _ in range(max_regions):
+        if covered.mean() >= share:
+            break
+        best, gain = None, 0
+        for c in cands:
+            if any(max(abs(c[0] - a), abs(c[1] - b)) < 2 * half_size for a, b in centres):
+                continue
+            inside = (np.abs(pts[:, 0] - c[0]) < half_size) & (np.abs(pts[:, 1] - c[1]) < half_size)
+            g = int((inside & ~covered).sum())
+            # Do not overshoot the share by much: prefer the square closest to the remainder.
+            remaining = share * len(pts) - covered.sum()
+            score = g if g <= remaining * 1.3 else remaining * 1.3 - (g - remaining * 1.3)
+            if best is None or score > gain:
+                best, gain = c, score
+        if best is None:
+            break
+        centres.append((float(best[0]), float(best[1])))
+        covered |= (np.abs(pts[:, 0] - best[0]) < half_size) & (
+            np.abs(pts[:, 1] - best[1]) < half_size
+        )
+    return centres
+
+
+def _run_job(job: dict[str, Any]) -> dict[str, Any]:
+    """Generate one run (in a worker process): world, route, drive, prepare_drive."""
+    from pnvlad_service.prepare import prepare_drive
+
+    preset = SynthPreset.model_validate(job["preset"])
+    area = AreaSpec.model_validate(job["area"])
+    world = _world(area, job["seed"])
+    route = (
+        route_from_csv(world, job["trajectory"])
+        if job.get("trajectory")
+        else make_route(world, area.route_m, job["seed"])
+    )
+    drive = SimulatedDrive(
+        world,
+        route,
+        job["run"],
+        seed=job["run_seed"],
+        start_us=job["start_us"],
+        conditions=preset.conditions,
+        lidar=preset.lidar,
+        scan_spacing=preset.scan_spacing,
+    )
+    t0 = time.perf_counter()
+    res = prepare_drive(
+        drive,
+        Path(job["out"]) / area.name / job["run"],
+        layout="oxford",
+        seed=job["run_seed"] % (2**31),
+        max_points_per_scan=preset.max_points_per_scan,
+        progress=False,
+    )
+    return {
+        "area": area.name,
+        "run": job["run"],
+        "scans": len(drive),
+        "submaps": {r.kind: r.written for r in res.layouts},
+        "seconds": time.perf_counter() - t0,
+        "speed_mps": drive.speed,
+        "lane_offset_m": drive.lane,
+        "removed_objects": drive.scene.removed,
+        "roadworks": len(drive.scene.roadworks),
+    }
+
+
+def generate(
+    preset: str | SynthPreset,
+    out: str | Path,
+    *,
+    seed: int = 0,
+    workers: int | None = None,
+    trajectories: str | Path | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Write a synthetic benchmark tree to ``out`` and return its summary (also in synth.json).
+
+    ``trajectories``: a folder of ``<area>_<k>.csv`` or ``<k>.csv`` files (northing, easting),
+    one per run, to drive routes a user supplies instead of the generated ones.
+    """
+    from tqdm import tqdm
+
+    from pnvlad_service.fileio import atomic_directory, atomic_write_text
+    from pnvlad_service.splits import TestRegions, build_splits, save_regions, save_splits
+
+    spec = get_preset(preset) if isinstance(preset, str) else preset
+    out = Path(out)
+    started = time.perf_counter()
+    traj_files: dict[tuple[str, int], Path] = {}
+    if trajectories is not None:
+        tdir = Path(trajectories)
+        if not tdir.is_dir():
+            raise InputError("not a folder of trajectory CSVs", tdir)
+        for area in spec.areas:
+            for k in range(spec.runs):
+                for cand in (tdir / f"{area.name}_{k}.csv", tdir / f"{k}.csv"):
+                    if cand.is_file():
+                        traj_files[(area.name, k)] = cand
+                        break
+                else:
+                    raise InputError(f"no trajectory {area.name}_{k}.csv or {k}.csv", tdir)
+
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        jobs = []
+        for ai, area in enumerate(spec.areas):
+            world = _world(area, seed)
+            route = (
+                route_from_csv(world, traj_files[(area.name, 0)])
+                if traj_files
+                else make_route(world, area.route_m, seed)
+            )
+            local = choose_test_regions(route.points, spec.test_share, spec.region_half_size)
+            centres = tuple(
+                (float(y + area.origin[1]), float(x + area.origin[0])) for x, y in local
+            )
+            (tmp / area.name).mkdir(parents=True)
+            save_regions(
+                tmp / area.name / "test_regions.json", TestRegions(centres, spec.region_half_size)
+            )
+            for k in range(spec.runs):
+                name, start = run_name(ai, k, seed)
+                run_seed = int(np.random.SeedSequence([seed, ai, k, 1]).generate_state(1)[0])
+                jobs.append(
+                    {
+                        "preset": spec.model_dump(),
+                        "area": area.model_dump(),
+                        "seed": seed,
+                        "run": name,
+                        "run_seed": run_seed,
+                        "start_us": start,
+                        "out": str(tmp),
+                        "trajectory": str(traj_files[(area.name, k)]) if traj_files else None,
+                    }
+                )
+        n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
+        results: list[dict[str, Any]] = []
+        bar = tqdm(total=len(jobs), desc=f"synth {spec.name}", unit="run", disable=not progress)
+        if n_workers == 1:
+            for job in jobs:
+                results.append(_run_job(job))
+                bar.update()
+        else:
+            with ProcessPoolExecutor(n_workers) as pool:
+                for res in pool.map(_run_job, jobs):
+                    results.append(res)
+                    bar.update()
+        bar.close()
+        t_splits = time.perf_counter()
+        splits = build_splits(tmp)
+        save_splits(tmp / "splits.json", splits)
+        elapsed = time.perf_counter() - started
+        n_sub = sum(sum(r["submaps"].values()) for r in results)
+        queries = {name: es.n_queries() for name, es in splits.evaluation.items()}
+        runs = sorted(results, key=lambda r: (r["area"], r["run"]))
+        # synth.json holds what the seed determines (no timings), so equal seeds give equal bytes.
+        summary = {
+            "format": "pnvlad-synth",
+            "version": 1,
+            "preset": spec.model_dump(),
+            "seed": seed,
+            "runs": [{k: v for k, v in r.items() if k != "seconds"} for r in runs],
+            "submaps": n_sub,
+            "training_anchors": {g: len(t.anchors(2)) for g, t in splits.training.items()},
+            "queries": queries,
+        }
+        atomic_write_text(tmp / "synth.json", json.dumps(summary, indent=1) + "\n")
+        summary["seconds"] = round(elapsed, 1)
+        summary["splits_seconds"] = round(time.perf_counter() - t_splits, 1)
+        summary["submaps_per_second"] = round(n_sub / elapsed, 2)
+        summary["workers"] = n_workers
+        summary["run_seconds"] = {f"{r['area']}/{r['run']}": round(r["seconds"], 1) for r in runs}
+    log.info(
+        "synth %s: %d submaps in %.0f s (%.1f submaps/s, %d workers) -> %s",
+        spec.name,
+        n_sub,
+        elapsed,
+        n_sub / elapsed,
+        n_workers,
+        out,
+    )
+    return summary
