@@ -139,6 +139,30 @@ def run_name(area_index: int, run: int, seed: int) -> tuple[str, int]:
     return day.strftime("%Y-%m-%d-%H-%M-%S"), int(day.timestamp()) * 1_000_000
 
 
+def run_seed_of(seed: int, area_index: int, run: int) -> int:
+    """The seed of every random stream of one run."""
+    return int(np.random.SeedSequence([seed, area_index, run, 1]).generate_state(1)[0])
+
+
+def simulated_drive(spec: SynthPreset, area_index: int, run: int, seed: int) -> SimulatedDrive:
+    """Rebuild run ``run`` of area ``area_index`` exactly as :func:`generate` drove it
+    (generated routes only), e.g. to look at its raw scans."""
+    area = spec.areas[area_index]
+    world = _world(area, seed)
+    route = make_route(world, area.route_m, seed)
+    name, start = run_name(area_index, run, seed)
+    return SimulatedDrive(
+        world,
+        route,
+        name,
+        seed=run_seed_of(seed, area_index, run),
+        start_us=start,
+        conditions=spec.conditions,
+        lidar=spec.lidar,
+        scan_spacing=spec.scan_spacing,
+    )
+
+
 def _world(area: AreaSpec, seed: int) -> World:
     if area.district not in DISTRICTS:
         raise InputError(
@@ -251,6 +275,7 @@ def _run_job(job: dict[str, Any]) -> dict[str, Any]:
         "submaps": {r.kind: r.written for r in res.layouts},
         "seconds": time.perf_counter() - t0,
         "speed_mps": drive.speed,
+        "reverse": drive.reverse,
         "lane_offset_m": drive.lane,
         "removed_objects": drive.scene.removed,
         "roadworks": len(drive.scene.roadworks),
@@ -313,7 +338,7 @@ def generate(
             )
             for k in range(spec.runs):
                 name, start = run_name(ai, k, seed)
-                run_seed = int(np.random.SeedSequence([seed, ai, k, 1]).generate_state(1)[0])
+                run_seed = run_seed_of(seed, ai, k)
                 jobs.append(
                     {
                         "preset": spec.model_dump(),

@@ -51,26 +51,32 @@ class RunConditions(BaseModel):
     lane_offset: float = Field(1.2, ge=0, description="largest offset from the lane centre, m")
     speed: tuple[float, float] = Field((6.0, 12.0), description="driving speed range, m/s")
     position_noise: float = Field(
-        1.0, ge=0, description="std of the GNSS/INS position error (slow random walk), m"
+        1.5, ge=0, description="std of the GNSS/INS position error (slow random walk), m"
     )
     heading_noise_deg: float = Field(
-        0.4, ge=0, description="std of the INS heading error (slow random walk), degrees"
+        0.8, ge=0, description="std of the INS heading error (slow random walk), degrees"
     )
     noise_correlation_m: float = Field(
         60.0, gt=0, description="distance over which the pose error decorrelates, m"
     )
     parked_share: tuple[float, float] = Field(
-        (0.25, 0.75), description="range of the share of parking slots taken in a run"
+        (0.1, 0.9), description="range of the share of parking slots taken in a run"
     )
-    traffic_per_km: float = Field(25.0, ge=0, description="moving cars per km of street")
-    pedestrians_per_km: float = Field(40.0, ge=0, description="pedestrians per km of street")
+    traffic_per_km: float = Field(50.0, ge=0, description="moving vehicles per km of street")
+    truck_share: float = Field(
+        0.2, ge=0, le=1, description="share of moving vehicles that are buses or lorries"
+    )
+    pedestrians_per_km: float = Field(80.0, ge=0, description="pedestrians per km of street")
+    reverse_share: float = Field(
+        0.3, ge=0, le=1, description="chance that a run drives the route the other way round"
+    )
     crown_scale: tuple[float, float] = Field(
         (0.7, 1.15), description="season: range of the tree-crown size factor of a run"
     )
     crown_density: tuple[float, float] = Field(
-        (0.35, 1.0), description="season: range of the foliage density factor of a run"
+        (0.25, 1.0), description="season: range of the foliage density factor of a run"
     )
-    roadworks_per_km: float = Field(1.5, ge=0, description="roadworks sites per km of route")
+    roadworks_per_km: float = Field(3.0, ge=0, description="roadworks sites per km of route")
     removal_radius: float = Field(
         25.0,
         ge=0,
@@ -243,6 +249,7 @@ class RunScene:
         self, world: World, conditions: RunConditions, route: Route, rng: np.random.Generator
     ):
         self.world = world
+        self.conditions = conditions
         sc = world.scene
         cond = conditions
         # Parked cars: a share of the slots, drawn per run.
@@ -339,6 +346,10 @@ class RunScene:
             v = -side * rng.uniform(5.0, 14.0, n)  # drive on the side of the direction
             half = np.stack([rng.uniform(2.0, 2.6, n), rng.uniform(0.85, 1.0, n)], 1)
             height = rng.uniform(1.4, 1.9, n)
+            big = rng.random(n) < self.conditions.truck_share  # buses and lorries occlude most
+            half[big, 0] = rng.uniform(4.0, 6.0, int(big.sum()))
+            half[big, 1] = 1.25
+            height[big] = rng.uniform(3.0, 3.8, int(big.sum()))
         else:
             lateral = side * (hw + rng.uniform(0.8, 2.5, n))
             v = rng.choice([-1.0, 1.0], n) * rng.uniform(0.8, 1.6, n)
@@ -431,8 +442,11 @@ class SimulatedDrive:
         rng = np.random.default_rng(np.random.SeedSequence([seed, 1]))
         self.speed = float(rng.uniform(*cond.speed))
         self.lane = float(rng.uniform(-cond.lane_offset, cond.lane_offset))
+        self.reverse = bool(rng.random() < cond.reverse_share)
         s = np.arange(0.0, route.length, scan_spacing)
-        p, t, hw = route.at(s)
+        p, t, hw = route.at(route.length - s if self.reverse else s)
+        if self.reverse:
+            t = -t
         nrm = np.stack([t[:, 1], -t[:, 0]], 1)
         # Keep to the right half of the street, about its lane centre, plus the run's offset.
         lateral = hw * 0.45 + self.lane

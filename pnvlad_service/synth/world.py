@@ -71,7 +71,7 @@ DISTRICTS: dict[str, DistrictStyle] = {
         width=(18.0, 36.0),
         depth=(16.0, 30.0),
         height=(14.0, 40.0),
-        setback=(1.5, 3.0),
+        setback=(2.0, 3.5),
         gap=(0.0, 2.0),
         street_tree_spacing=24.0,
         street_tree_share=0.4,
@@ -496,7 +496,7 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
         for p0, p1 in zip(r.points[:-1], r.points[1:], strict=True):
             d = p1 - p0
             yaw = float(np.arctan2(d[1], d[0]))
-            half = np.array([np.linalg.norm(d) / 2 + 0.5, r.half_width + 1.5])
+            half = np.array([np.linalg.norm(d) / 2 + 0.5, r.half_width + 1.0])
             occ.mark(_box_samples((p0 + p1) / 2, half, yaw, step=0.9))
 
     def clear_of_roads(pts: np.ndarray, margin: float, own: int | None = None) -> bool:
@@ -539,8 +539,8 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
                 c = p + n * (r.half_width + setback + d / 2)
                 yaw = float(np.arctan2(t[1], t[0]))
                 half = np.array([w / 2, d / 2])
-                samples = _box_samples(c, half + 0.5, yaw, step=1.0)
-                if occ.free(samples) and clear_of_roads(samples, 2.0):
+                samples = _box_samples(c, half + 0.3, yaw, step=1.0)
+                if occ.free(samples) and clear_of_roads(samples, 0.6):
                     occ.mark(samples)
                     z = float(ground.height(c[0], c[1]))
                     b.box(c[0], c[1], w / 2, d / 2, z - 0.5, z + hgt, yaw, KIND_BUILDING)
@@ -548,7 +548,7 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
                         ww, wd = w * tpl["wing_w"], d * tpl["wing_d"]
                         wc = c + n * (d / 2 + wd / 2) + t * (w / 2 - ww / 2)
                         ws = _box_samples(wc, np.array([ww / 2, wd / 2]) + 0.3, yaw, step=1.0)
-                        if occ.free(ws) and clear_of_roads(ws, 2.0):
+                        if occ.free(ws) and clear_of_roads(ws, 0.6):
                             occ.mark(ws)
                             z2 = float(ground.height(wc[0], wc[1]))
                             b.box(
