@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# Train PN_VLAD (lazy quadruplet), PN_MAX (lazy quadruplet) and PN_VLAD (quadruplet, sum over
+# negatives) with the compact configuration for the same wall-clock budget each, evaluate them
+# and the training-free baseline on the same tree, and print one table (per area and overall).
+#
+#   bash benchmarks/compare_models.sh [ROOT] [MINUTES] [OUT]
+#   defaults: data/bench (pnvlad synth --preset benchmark --out data/bench), 25, runs/compare
+#
+# The runs go two at a time with one torch thread each (benchmarks/configs/compact-short.yaml),
+# so each gets the same budget on a 2-core machine.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT="${1:-data/bench}"
+MINUTES="${2:-25}"
+OUT="${3:-runs/compare}"
+CFG=benchmarks/configs/compact-short.yaml
+mkdir -p "$OUT"
+
+train() {  # NAME, extra options...
+    local name=$1; shift
+    if [ ! -f "$OUT/$name/model/model.json" ]; then
+        pnvlad -q train -c "$CFG" --root "$ROOT" --splits "$ROOT/splits.json" -o "$OUT/$name" \
+            --max-minutes "$MINUTES" --no-progress "$@" > "$OUT/$name.log" 2>&1
+    fi
+}
+evaluate() {  # NAME
+    pnvlad -q eval --checkpoint "$OUT/$1/model" --root "$ROOT" --splits "$ROOT/splits.json" \
+        -o "$OUT/$1.json" --no-progress
+}
+
+train pnvlad_lazyquad --arch pointnetvlad --loss lazy_quadruplet &
+train pnmax_lazyquad --arch pointnet-max --loss lazy_quadruplet &
+wait
+train pnvlad_quad --arch pointnetvlad --loss quadruplet &
+pnvlad -q eval --baseline --root "$ROOT" --splits "$ROOT/splits.json" -o "$OUT/baseline.json" \
+    --no-progress
+wait
+for m in pnvlad_lazyquad pnmax_lazyquad pnvlad_quad; do evaluate "$m"; done
+
+python - "$OUT" "$MINUTES" <<'EOF'
+import json, sys
+from pathlib import Path
+out, minutes = Path(sys.argv[1]), sys.argv[2]
+rows = [
+    ("baseline", "Scan-Context-style grid, no training"),
+    ("pnvlad_lazyquad", f"PN_VLAD compact, lazy quadruplet, {minutes} min"),
+    ("pnmax_lazyquad", f"PN_MAX compact, lazy quadruplet, {minutes} min"),
+    ("pnvlad_quad", f"PN_VLAD compact, quadruplet (sum), {minutes} min"),
+]
+reports = {k: json.loads((out / f"{k}.json").read_text()) for k, _ in rows}
+areas = sorted(reports["baseline"]["per_area"])
+head = "| model | " + " | ".join(f"{a} R@1 / R@1%" for a in areas) + " | all R@1 / R@1% |"
+print(head)
+print("|" + "---|" * (len(areas) + 2))
+for k, label in rows:
+    r = reports[k]
+    cells = [
+        f"{r['per_area'][a]['recall_at_1']:.1f} / {r['per_area'][a]['recall_at_1pct']:.1f}"
+        for a in areas
+    ]
+    cells.append(f"{r['recall_at_1']:.1f} / {r['recall_at_1pct']:.1f}")
+    print(f"| {label} | " + " | ".join(cells) + " |")
+for k, _ in rows[1:]:
+    log = [json.loads(l) for l in (out / k / "metrics.jsonl").read_text().splitlines()]
+    steps = [e for e in log if e.get("event", "step") == "step" and "loss" in e]
+    if steps:
+        print(f"{k}: {steps[-1].get('step')} steps, last loss {steps[-1]['loss']:.3f}")
+EOF
