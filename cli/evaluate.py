@@ -69,6 +69,14 @@ def evaluate(
         "--checkpoint/--baseline only plots them into --figures.",
         rich_help_panel=_OUT,
     ),
+    num_points: int = typer.Option(
+        None,
+        "--num-points",
+        help="Points of each submap fed to the encoder (default: the model's num_points). "
+        "A model trained on fewer points can be evaluated on all 4096, as the index and the "
+        "server embed them.",
+        rich_help_panel=_WHAT,
+    ),
     device: str = typer.Option(None, "--device", help="cpu | cuda (default: cpu)."),
     workers: int = typer.Option(4, "--workers", help="Threads reading submaps."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
@@ -107,7 +115,7 @@ def evaluate(
 
         runs = load_eval_runs(root, splits, pickles, sets)
         if baseline:
-            embed, num_points, info = ev.baseline_embedder()
+            embed, model_points, info = ev.baseline_embedder()
             label = "baseline"
         else:
             ckpt = (
@@ -115,8 +123,12 @@ def evaluate(
                 if (checkpoint / "model" / "model.json").is_file()
                 else checkpoint
             )
-            embed, num_points, info = ev.checkpoint_embedder(ckpt, device)
+            embed, model_points, info = ev.checkpoint_embedder(ckpt, device)
             label = checkpoint.name
+        if num_points is None:
+            num_points = model_points
+        elif num_points < 1:
+            raise InputError(f"must be >= 1, got {num_points}", "--num-points")
         rep = ev.evaluate_runs(
             embed,
             runs,
