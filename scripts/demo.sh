@@ -24,8 +24,13 @@ step "1/5 set up $VENV"
 if [ ! -x "$VENV/bin/python" ]; then
     python3 -m venv "$VENV"
 fi
-"$VENV/bin/python" -m pip install -q --upgrade pip
-"$VENV/bin/python" -m pip install -q -e '.[plot]'
+# Installer chatter goes to a log, shown only if the install fails.
+if ! { "$VENV/bin/python" -m pip install -q --upgrade pip &&
+       "$VENV/bin/python" -m pip install -q -e '.[plot]'; } > "$VENV/install.log" 2>&1; then
+    cat "$VENV/install.log" >&2
+    echo "pip install failed (log: $VENV/install.log)" >&2
+    exit 1
+fi
 export PATH="$PWD/$VENV/bin:$PATH"
 pnvlad --version
 
@@ -51,7 +56,7 @@ echo "area $DATASET: index runs ${INDEXED//,/ }; queries from held-out run $HELD
 MODEL="$OUT/train"
 step "3/5 train the compact encoder for $MINUTES min -> $MODEL"
 if [ ! -f "$MODEL/model/model.json" ]; then
-    pnvlad train -c compact --root "$CITY" --splits "$CITY/splits.json" -o "$MODEL" \
+    pnvlad train -c compact --num-points 1024 --root "$CITY" --splits "$CITY/splits.json" -o "$MODEL" \
         --max-minutes "$MINUTES"
 fi
 
@@ -63,7 +68,8 @@ for r in "${runs[@]}"; do run_args+=(--run "$r"); done
 pnvlad index build -c "$MODEL/model" -r "$CITY" -d "$DATASET" "${run_args[@]}" -o "$BUNDLE" --overwrite
 
 step "5/5 serve on 127.0.0.1:$PORT and localise held-out queries"
-pnvlad serve --index "$BUNDLE" --checkpoint "$MODEL/model" --host 127.0.0.1 --port "$PORT" &
+pnvlad serve --index "$BUNDLE" --checkpoint "$MODEL/model" --host 127.0.0.1 --port "$PORT" \
+    --log-level warning &
 server=$!
 trap 'kill "$server" 2>/dev/null || true; wait "$server" 2>/dev/null || true' EXIT
 for _ in $(seq 1 120); do
