@@ -330,3 +330,27 @@ def _has_matplotlib() -> bool:
     except ImportError:
         return False
     return True
+
+
+def test_cli_eval_num_points_overrides_the_models(
+    trained: tuple[Path, Path, Path], tmp_path: Path
+) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    root, splits, run = trained
+    common = ["-q", "eval", "--checkpoint", str(run), "--root", str(root)]
+    common += ["--splits", str(splits), "--no-progress"]
+    reports = {}
+    for n in (None, 4096):
+        out = tmp_path / f"rep{n}.json"
+        extra = [] if n is None else ["--num-points", str(n)]
+        res = CliRunner().invoke(app, [*common, "-o", str(out), *extra])
+        assert res.exit_code == 0, res.output
+        reports[n] = evaluate.read_report(out)
+    model_points = reports[None]["num_points"]
+    assert model_points != 4096  # the tiny test model trains on fewer points
+    assert reports[4096]["num_points"] == 4096
+    res = CliRunner().invoke(app, [*common, "--num-points", "0"])
+    assert res.exit_code == 2 and "--num-points" in res.output
