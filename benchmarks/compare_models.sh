@@ -6,10 +6,10 @@
 #   bash benchmarks/compare_models.sh [ROOT] [MINUTES] [OUT]
 #   defaults: data/bench (pnvlad synth --preset benchmark --out data/bench), 25, runs/compare
 #
-# The runs go two at a time with one torch thread each (benchmarks/configs/compact-short.yaml),
-# so each gets the same budget on a 2-core machine. They train on a fixed random 1024 of each
-# submap's 4096 points (4x the steps in the budget); evaluation embeds all 4096, as the index
-# and the server do.
+# The three runs go at once with one torch thread each (benchmarks/configs/compact-short.yaml),
+# so they share the machine equally: the same wall-clock budget and the same compute each.
+# They train on a fixed random 1024 of each submap's 4096 points (4x the steps in the budget);
+# evaluation embeds all 4096, as the index and the server do.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT="${1:-data/bench}"
@@ -34,11 +34,10 @@ evaluate() {  # NAME
 
 train pnvlad_lazyquad --arch pointnetvlad --loss lazy_quadruplet &
 train pnmax_lazyquad --arch pointnet-max --loss lazy_quadruplet &
-wait
 train pnvlad_quad --arch pointnetvlad --loss quadruplet &
+wait
 pnvlad -q eval --baseline --root "$ROOT" --splits "$ROOT/splits.json" -o "$OUT/baseline.json" \
     --no-progress
-wait
 for m in pnvlad_lazyquad pnmax_lazyquad pnvlad_quad; do evaluate "$m"; done
 
 python - "$OUT" "$MINUTES" <<'EOF'
