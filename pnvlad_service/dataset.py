@@ -275,7 +275,7 @@ def load_eval_runs(
     sets: Sequence[str] | None = None,
 ) -> list[EvalRun]:
     """Every evaluation run of the splits (or only the sets named in ``sets``), each tagged with
-    its set's name as ``area``."""
+    its set's name as ``area``; ground-truth keys are indices into the returned list."""
     s = load_splits_any(root, splits, pickles)
     names = list(s.evaluation) if not sets else list(sets)
     missing = [n for n in names if n not in s.evaluation]
@@ -286,7 +286,12 @@ def load_eval_runs(
         )
     runs: list[EvalRun] = []
     for n in names:
-        runs.extend(eval_runs_from_set(s.evaluation[n], Path(root) if root else None))
+        # A set's ground truth names runs by their place in that set; in the joined list they
+        # sit after the runs of the sets before it.
+        offset = len(runs)
+        for r in eval_runs_from_set(s.evaluation[n], Path(root) if root else None):
+            r.truth = [{offset + i: t for i, t in q.items()} for q in r.truth]
+            runs.append(r)
     if not runs:
         raise InputError("the splits hold no evaluation sets", splits or pickles or root)
     return runs

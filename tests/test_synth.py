@@ -177,3 +177,27 @@ def test_cli_synth_refuses_an_existing_tree_and_renders_previews(
     assert [p.name for p in paths] == ["map.png", "submap_business.png"]
     for p in paths:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 10_000
+
+
+def test_eval_scores_every_area_of_a_multi_area_tree(tiny: Path, tmp_path: Path) -> None:
+    """Two identical areas must score identically: ground truth of the second set must point
+    at its own runs, not at the first set's (a bug once scored only the first area)."""
+    import json
+    import shutil
+
+    from pnvlad_service.splits import build_splits, save_splits
+
+    root = tmp_path / "two"
+    shutil.copytree(tiny / "business", root / "business")
+    shutil.copytree(tiny / "business", root / "twin")
+    save_splits(root / "splits.json", build_splits(root))
+    out = tmp_path / "rep.json"
+    args = ["-q", "eval", "--baseline", "--root", str(root)]
+    args += ["--splits", str(root / "splits.json"), "-o", str(out), "--no-progress"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    rep = json.loads(out.read_text())
+    a, b = rep["per_area"]["business"], rep["per_area"]["twin"]
+    assert a["n_pairs"] == b["n_pairs"] == 6 and not a["skipped_pairs"] and not b["skipped_pairs"]
+    assert a["recall_at_n"] == b["recall_at_n"]
+    assert rep["recall_at_1"] == a["recall_at_1"]
