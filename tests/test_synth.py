@@ -201,3 +201,41 @@ def test_eval_scores_every_area_of_a_multi_area_tree(tiny: Path, tmp_path: Path)
     assert a["n_pairs"] == b["n_pairs"] == 6 and not a["skipped_pairs"] and not b["skipped_pairs"]
     assert a["recall_at_n"] == b["recall_at_n"]
     assert rep["recall_at_1"] == a["recall_at_1"]
+
+
+def test_runs_follow_trajectories_a_user_supplies(tmp_path: Path) -> None:
+    from pnvlad_service.benchmark import BenchmarkTree
+    from pnvlad_service.synth.generate import _world
+
+    spec = get_preset("tiny")
+    area = spec.areas[0]
+    world = _world(area, 0)
+    # A route of our own: an L along the first street, given in UTM as a user would.
+    pts = make_route(world, 200.0, seed=42).points[::5] + world.origin
+    tdir = tmp_path / "traj"
+    tdir.mkdir()
+    for k in range(spec.runs):
+        rows = ["timestamp,northing,easting"]
+        rows += [f"{i},{n:.3f},{e:.3f}" for i, (e, n) in enumerate(pts)]
+        (tdir / f"{k}.csv").write_text("\n".join(rows) + "\n")
+    root = tmp_path / "tree"
+    generate(spec, root, seed=0, workers=1, trajectories=tdir, progress=False)
+    tree = BenchmarkTree(root)
+    for run in tree.runs(area.name):
+        subs = tree.submaps(area.name, run, "train")
+        assert subs
+        xy = np.array([[s.easting, s.northing] for s in subs])
+        # Every submap sits on the supplied path (lane offset + pose drift: a few metres).
+        d = np.min(np.linalg.norm(xy[:, None, :] - pts[None, :, :], axis=2), axis=1)
+        assert d.max() < 8.0, d.max()
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    from pnvlad_service.errors import InputError
+
+    with pytest.raises(InputError, match=r"no trajectory business_0\.csv"):
+        generate(spec, tmp_path / "t2", seed=0, workers=1, trajectories=bad, progress=False)
+    for k in range(spec.runs):
+        (bad / f"{k}.csv").write_text("timestamp,x,y\n0,1,2\n")
+    with pytest.raises(InputError, match="columns northing,easting"):
+        generate(spec, tmp_path / "t3", seed=0, workers=1, trajectories=bad, progress=False)
+    assert not (tmp_path / "t2").exists() and not (tmp_path / "t3").exists()
