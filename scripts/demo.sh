@@ -37,7 +37,7 @@ pnvlad --version
 CITY="$OUT/city"
 step "2/5 synthetic city -> $CITY"
 if [ ! -f "$CITY/splits.json" ]; then
-    pnvlad synth --preset demo --seed "$SEED" --out "$CITY"
+    pnvlad -q synth --preset demo --seed "$SEED" --out "$CITY"
 fi
 pnvlad data check "$CITY"
 

@@ -671,7 +671,7 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
         pk[:, 6].copy(),
         pk[:, 7].astype(np.int8),
     )
-    log.info(
+    log.debug(
         "world %s seed %d: %d roads, %d boxes, %d cylinders, %d crowns, %d parking slots",
         cfg.district,
         seed,
