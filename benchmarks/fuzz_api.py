@@ -16,36 +16,12 @@ empties. Every other check runs, and a 5xx always fails.
 from __future__ import annotations
 
 import argparse
-import http.client
-import os
 import shutil
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def wait_ready(port: int, proc: subprocess.Popen, timeout: float = 120.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise SystemExit("server exited during start-up")
-        try:
-            c = http.client.HTTPConnection("127.0.0.1", port, timeout=2)
-            c.request("GET", "/readyz")
-            if c.getresponse().status == 200:
-                return
-        except OSError:
-            pass
-        time.sleep(0.3)
-    raise SystemExit("server did not become ready")
+from local_server import start_server
 
 
 def main() -> int:
@@ -66,25 +42,7 @@ def main() -> int:
     if url is None:
         if args.index is None:
             ap.error("give --index or --url")
-        port = free_port()
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "pnvlad_cli.main",
-                "-q",
-                "serve",
-                "--index",
-                str(args.index),
-                "--port",
-                str(port),
-                "--log-level",
-                "warning",
-            ],
-            env={**os.environ, "PNVLAD_MAX_BODY_BYTES": str(8 * 1024 * 1024)},
-        )
-        wait_ready(port, proc)
-        url = f"http://127.0.0.1:{port}"
+        proc, url = start_server(args.index, env={"PNVLAD_MAX_BODY_BYTES": str(8 * 1024 * 1024)})
     try:
         cmd = [
             st,

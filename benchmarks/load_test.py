@@ -17,23 +17,14 @@ from __future__ import annotations
 import argparse
 import http.client
 import json
-import os
 import re
-import socket
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 from urllib.parse import urlparse
 
 import numpy as np
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from local_server import start_server
 
 
 def vmhwm_mb(pid: int) -> float:
@@ -201,37 +192,8 @@ def main() -> None:
     proc = None
     url, pid = args.url, args.pid
     if url is None:
-        port = free_port()
-        cmd = [
-            sys.executable,
-            "-m",
-            "pnvlad_cli.main",
-            "-q",
-            "serve",
-            "--index",
-            str(args.index),
-            "--port",
-            str(port),
-            "--log-level",
-            "warning",
-        ]
-        if args.checkpoint:
-            cmd += ["--checkpoint", str(args.checkpoint)]
-        proc = subprocess.Popen(cmd, env=os.environ.copy())
-        url, pid = f"http://127.0.0.1:{port}", proc.pid
-        u = urlparse(url)
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                c = http.client.HTTPConnection(u.hostname, u.port, timeout=2)
-                c.request("GET", "/readyz")
-                if c.getresponse().status == 200:
-                    break
-            except OSError:
-                pass
-            if time.monotonic() > deadline or proc.poll() is not None:
-                raise SystemExit("server did not start")
-            time.sleep(0.3)
+        proc, url = start_server(args.index, checkpoint=args.checkpoint)
+        pid = proc.pid
     if urlparse(url).hostname not in ("127.0.0.1", "localhost", "::1"):
         raise SystemExit("loopback only: the load test refuses other hosts")
     try:
