@@ -46,11 +46,24 @@ def timed(fn: Callable[[], object], reps: int, warmup: int = 1) -> float:
     return best
 
 
-def sgemm_rate(n: int = 2048, reps: int = 5) -> float:
-    """Float32 GFLOP/s of an n x n x n matrix product (torch.mm, the same BLAS)."""
+def sgemm_once(n: int = 2048) -> Callable[[], object]:
+    """An n x n x n float32 matrix product (torch.mm, the same BLAS) ready to run."""
     a, b = torch.randn(n, n), torch.randn(n, n)
-    dt = timed(lambda: a @ b, reps, warmup=2)
-    return 2 * n**3 / dt / 1e9
+    return lambda: a @ b
+
+
+def interleaved(fn: Callable[[], object], rounds: int, n: int = 2048) -> tuple[float, float]:
+    """Fastest wall time (s) of ``fn`` and float32 sgemm GFLOP/s (fastest n^3 product), timed in
+    alternation over ``rounds`` rounds, so a noisy neighbour slows both sides alike and the
+    ratio of the two is taken on the same machine state."""
+    mm = sgemm_once(n)
+    fn()
+    mm()
+    best_fn = best_mm = float("inf")
+    for _ in range(rounds):
+        best_mm = min(best_mm, timed(mm, 2, warmup=0))
+        best_fn = min(best_fn, timed(fn, 1, warmup=0))
+    return best_fn, 2 * n**3 / best_mm / 1e9
 
 
 def real_clouds(count: int, n: int = 4096, seed: int = 0) -> np.ndarray | None:
@@ -91,8 +104,8 @@ def bench_config(name: str, cfg: ModelConfig, reps: int, dtypes: list[str]) -> N
         enc = Encoder(model, cfg, dtype=dtype)
         for batch in (1, 32):
             x = torch.rand(batch, cfg.num_points, 3) * 2 - 1
-            rate = sgemm_rate()  # measured next to each figure: the machine may be shared
-            dt = timed(lambda enc=enc, x=x: enc.embed(x), reps if batch == 1 else max(2, reps // 3))
+            rounds = reps if batch == 1 else max(3, reps // 2)
+            dt, rate = interleaved(lambda enc=enc, x=x: enc.embed(x), rounds)
             got = flops * batch / dt / 1e9
             SGEMM.append(rate)
             RESULTS.append((name, dtype, batch, got))
@@ -159,7 +172,10 @@ def main(argv: list[str] | None = None) -> int:
         f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
         f"CPU capability {torch.backends.cpu.get_cpu_capability()}, bf16 {bf16_supported()}"
     )
-    print("sgemm: 2048^3 float32 torch.mm, fastest of 5, timed just before each figure")
+    print(
+        "sgemm: 2048^3 float32 torch.mm; each figure is the fastest of several rounds that "
+        "alternate the encoder and the sgemm (the share uses that same run's fastest sgemm)"
+    )
     configs = {"paper": ModelConfig.paper(), "compact": ModelConfig.compact()}
     for name in args.configs.split(","):
         bench_config(name, configs[name], reps, dtypes)
@@ -170,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
             f"  {name:8s} {dtype:8s} batch {batch:2d}: {got:6.1f} GFLOP/s "
             f"= {100 * got / best:5.1f} %"
         )
+    print("targets (paper, float32): batch 32 >= 60 %, batch 1 >= 45 % of sgemm")
     if "bfloat16" in dtypes:
         bf16_check(ModelConfig.paper(), 24 if args.quick else 64)
     return 0

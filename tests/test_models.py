@@ -253,6 +253,30 @@ def test_encoder_matches_model(name: str, tile: int) -> None:
     assert model.training is False  # the encoder leaves the model's mode as it was
 
 
+def test_encoder_cloud_workers_agree_and_leave_thread_count() -> None:
+    """Clouds run side by side on worker threads give the model's descriptors, in batch order,
+    and the workers' single intra-op thread does not leak into the calling thread."""
+    cfg = CONFIGS["paper-narrow"]
+    model = trained_like(cfg)
+    x = clouds(7, seed=4)
+    with torch.no_grad():
+        want = model(x).numpy()
+    threads = torch.get_num_threads()
+    serial = Encoder(model, cfg, cloud_workers=1)
+    side_by_side = Encoder(model, cfg, cloud_workers=3, batch_size=4)
+    try:
+        a, b = serial.embed(x), side_by_side.embed(x)
+        assert side_by_side._pool is not None and serial._pool is None
+        assert np.abs(a - want).max() < 1e-5 and np.abs(b - want).max() < 1e-5
+        assert torch.get_num_threads() == threads
+        side_by_side.close()
+        assert np.abs(side_by_side.embed(x.flip(0)) - want[::-1]).max() < 1e-5
+    finally:
+        side_by_side.close()
+    with pytest.raises(InputError, match="cloud_workers"):
+        Encoder(model, cfg, cloud_workers=0)
+
+
 def test_encoder_accepts_single_cloud_float64_and_other_sizes() -> None:
     cfg = CONFIGS["compact"]
     model = trained_like(cfg)

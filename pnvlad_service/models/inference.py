@@ -12,7 +12,12 @@ The encoder runs the network as the matrix products it is, on plain tensors:
   features: the norms divide the K cluster logits and the soft-assignment weights instead;
 - the per-point network runs one cloud at a time and its widest layer (with the NetVLAD sums
   [K, N] x [N, D], or the max of PN_MAX) ``point_tile`` points at a time, so activations stay in
-  cache; the fully connected head runs on the whole batch as one product.
+  cache; the fully connected head runs on the whole batch as one product;
+- on CPU, a batch of several clouds is spread over ``cloud_workers`` threads (default: torch's
+  thread count), each running whole clouds with one intra-op thread. Small products and the
+  element-wise steps between them then keep every core busy instead of one core waiting for the
+  other at each of the ~100 operations of a cloud (measured on 2 cores: ~20 % more clouds/s at
+  batch 32). A single cloud still uses all of torch's threads.
 
 ``dtype="bfloat16"`` runs the matrix products in bfloat16 (fast on CPUs with AMX / AVX512-BF16);
 ``dtype="auto"`` uses bfloat16 only when the CPU supports it *and* a self-check on given clouds
@@ -23,6 +28,8 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -114,7 +121,9 @@ class Encoder:
     [M, N, 3] with M >= 3, show top-1 leave-one-out retrieval agreeing with float32 on at least
     99 % of the M clouds; float32 otherwise). The per-point network runs one cloud at a time,
     ``point_tile`` points at a time (cache blocking); the fully connected head runs on
-    ``batch_size`` clouds at a time as one product.
+    ``batch_size`` clouds at a time as one product. ``cloud_workers``: threads that run the
+    clouds of a batch side by side on CPU, one intra-op thread each (None: torch's thread count
+    when the first batch comes; 1: one cloud at a time on all of torch's threads).
     """
 
     def __init__(
@@ -127,6 +136,7 @@ class Encoder:
         check_points: Any = None,
         batch_size: int = 32,
         point_tile: int = 512,
+        cloud_workers: int | None = None,
         weights_sha256: str | None = None,
     ) -> None:
         import torch
@@ -135,6 +145,11 @@ class Encoder:
             raise InputError(f"dtype must be float32, bfloat16 or auto, got {dtype!r}", "dtype")
         if batch_size < 1:
             raise InputError(f"batch_size must be >= 1, got {batch_size}", "batch_size")
+        if cloud_workers is not None and cloud_workers < 1:
+            raise InputError(f"cloud_workers must be >= 1, got {cloud_workers}", "cloud_workers")
+        self.cloud_workers = cloud_workers
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_lock = threading.Lock()
         self.cfg = cfg
         self.device = torch.device(device or "cpu")
         self.batch_size = batch_size
@@ -325,7 +340,7 @@ class Encoder:
         import torch
         import torch.nn.functional as F
 
-        pooled = torch.stack([self._cloud(x[i], q) for i in range(x.shape[0])])
+        pooled = torch.stack(self._clouds(x, q))
         if self.cfg.arch == "pointnetvlad":
             k, d = self.cfg.cluster_size, self.cfg.feature_dim
             v = pooled[:, : k * d].reshape(-1, k, d)
@@ -339,6 +354,48 @@ class Encoder:
             g = q["gate"]
             y = y * torch.sigmoid(torch.addmm(g.b, y, g.w))
         return F.normalize(y, dim=1)
+
+    def _clouds(self, x: torch.Tensor, q: dict[str, Any]) -> list[torch.Tensor]:
+        """``_cloud`` of every cloud of x [b, n, 3]: side by side on the worker threads when
+        on CPU with b >= 2 and more than one worker, else one after the other here."""
+        pool = self._worker_pool() if x.shape[0] > 1 and self.device.type == "cpu" else None
+        if pool is None:
+            return [self._cloud(x[i], q) for i in range(x.shape[0])]
+
+        def one(i: int) -> torch.Tensor:
+            import torch
+
+            with torch.inference_mode():  # thread-local: enter it in the worker too
+                return self._cloud(x[i], q)
+
+        return list(pool.map(one, range(x.shape[0])))
+
+    def _worker_pool(self) -> ThreadPoolExecutor | None:
+        """The cloud worker threads (made on first use), or None for a single worker."""
+        import torch
+
+        with self._pool_lock:
+            if self._pool is None:
+                workers = self.cloud_workers or torch.get_num_threads()
+                if workers < 2:
+                    return None
+
+                def single_threaded() -> None:
+                    # OpenMP's thread count is per calling thread: this leaves the rest of the
+                    # process (and a batch of one cloud) on all of torch's threads.
+                    torch.set_num_threads(1)
+
+                self._pool = ThreadPoolExecutor(
+                    workers, thread_name_prefix="pnvlad-encoder", initializer=single_threaded
+                )
+            return self._pool
+
+    def close(self) -> None:
+        """Stop the cloud worker threads (a later batch starts them again)."""
+        with self._pool_lock:
+            if self._pool is not None:
+                self._pool.shutdown(wait=True)
+                self._pool = None
 
     def _cloud(self, x: torch.Tensor, q: dict[str, Any]) -> torch.Tensor:
         """One cloud x float32 [n, 3] -> pooled float32: PN_VLAD the un-normalised residual sums
