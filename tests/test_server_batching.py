@@ -71,6 +71,27 @@ def test_announced_requests_are_waited_for() -> None:
         b.close()
 
 
+def test_two_lanes_start_the_next_batch_while_one_is_busy() -> None:
+    """A slow batch does not hold back a request that arrives after it with two lanes; with
+    one lane the second request waits for the first batch to finish."""
+    for lanes, ends_after in ((2, 0.15), (1, 0.3)):
+        sizes: list[int] = []
+        b = MicroBatcher(echo(sizes, delay=0.15), max_size=8, wait_ms=0.0, lanes=lanes)
+        try:
+            t0 = time.perf_counter()
+            a = b.submit(np.zeros((4, 3), np.float32), 1)
+            time.sleep(0.02)
+            c = b.submit(np.ones((4, 3), np.float32), 1)
+            assert c.result(5).ids.tolist() == [1] and a.result(5).ids.tolist() == [0]
+            took = time.perf_counter() - t0
+            assert sizes == [1, 1]
+            assert (took < 0.27) if lanes == 2 else (took >= ends_after)
+        finally:
+            b.close()
+    with pytest.raises(ValueError, match="lanes"):
+        MicroBatcher(echo([]), lanes=0)
+
+
 def test_a_failing_batch_reaches_its_callers_and_the_worker_lives_on() -> None:
     calls = {"n": 0}
 

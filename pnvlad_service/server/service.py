@@ -277,6 +277,7 @@ class Localizer:
             max_size=settings.batch_max_size,
             wait_ms=settings.batch_wait_ms,
             on_batch=on_batch,
+            lanes=settings.batch_lanes,
         )
 
     @classmethod

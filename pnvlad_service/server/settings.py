@@ -44,6 +44,13 @@ class ServerSettings(BaseSettings):
         le=100.0,
         description="How long the batcher waits for requests already being parsed (ms).",
     )
+    batch_lanes: int = Field(
+        2,
+        ge=1,
+        le=16,
+        description="Batches in flight at once: with 2 the next batch is embedded while the "
+        "previous one finishes its head, search and answers.",
+    )
     torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
     faiss_threads: int | None = Field(
         1,
