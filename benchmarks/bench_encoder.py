@@ -10,6 +10,8 @@ is present) or on synthetic clouds.
     python benchmarks/bench_encoder.py                # everything (about 2 minutes)
     python benchmarks/bench_encoder.py --quick        # fewer repetitions
     python benchmarks/bench_encoder.py --threads 2 --configs paper
+    python benchmarks/bench_encoder.py --configs none --bf16-checkpoint RUN/model \
+        --bf16-submaps data/bench      # bfloat16 agreement with trained weights on real submaps
 """
 
 from __future__ import annotations
@@ -157,12 +159,52 @@ def bf16_check(cfg: ModelConfig, count: int) -> None:
     )
 
 
+def bf16_check_trained(checkpoint: Path, tree: Path, count: int) -> None:
+    """bfloat16 against float32 with trained weights, on ``count`` submaps of a benchmark tree
+    (every run's test-layout ``pointcloud_20m``): leave-one-out top-1 agreement, the rule
+    ``Encoder(dtype="auto")`` applies (>= 99 %), and the smallest cosine between the two."""
+    from pnvlad_service.index import read_submap
+
+    if not bf16_supported():
+        print("\nbfloat16: not supported on this CPU")
+        return
+    files = sorted(tree.glob("*/*/pointcloud_20m/*.bin"))
+    if not files:
+        raise SystemExit(f"no */*/pointcloud_20m/*.bin submaps under {tree}")
+    rng = np.random.default_rng(0)
+    pick = sorted(rng.choice(len(files), min(count, len(files)), replace=False))
+    clouds = np.stack([read_submap(files[i]) for i in pick]).astype(np.float32)
+    enc = Encoder.from_checkpoint(checkpoint)
+    ref = enc.embed(clouds)
+    enc.dtype = "bfloat16"
+    t = time.perf_counter()
+    low = enc.embed(clouds)
+    dt = time.perf_counter() - t
+    enc.dtype = "float32"
+    t = time.perf_counter()
+    enc.embed(clouds)
+    dt32 = time.perf_counter() - t
+    cos = float((ref * low).sum(1).min())
+    agree = top1_agreement(ref, low)
+    print(
+        f"\nbfloat16 vs float32, trained weights {checkpoint} ({enc.cfg.arch}), {len(pick)} "
+        f"submaps of {tree}: top-1 agreement {100 * agree:.1f} % "
+        f"({'used' if agree >= 0.99 else 'refused'} by dtype=auto), min cosine {cos:.5f}, "
+        f"{1e3 * dt / len(pick):.1f} ms/cloud bfloat16 vs {1e3 * dt32 / len(pick):.1f} float32"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fewer repetitions")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
-    ap.add_argument("--configs", default="paper,compact", help="comma-separated: paper,compact")
+    ap.add_argument(
+        "--configs", default="paper,compact", help="paper,compact (comma-separated) or none"
+    )
     ap.add_argument("--no-bf16", action="store_true", help="skip the bfloat16 path")
+    ap.add_argument("--bf16-checkpoint", type=Path, help="trained model for the bfloat16 check")
+    ap.add_argument("--bf16-submaps", type=Path, help="benchmark tree for --bf16-checkpoint")
+    ap.add_argument("--bf16-count", type=int, default=1000, help="submaps for that check")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -178,7 +220,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     configs = {"paper": ModelConfig.paper(), "compact": ModelConfig.compact()}
     for name in args.configs.split(","):
-        bench_config(name, configs[name], reps, dtypes)
+        if name != "none":
+            bench_config(name, configs[name], reps, dtypes)
+    if args.bf16_checkpoint:
+        if not args.bf16_submaps:
+            ap.error("--bf16-checkpoint needs --bf16-submaps")
+        bf16_check_trained(args.bf16_checkpoint, args.bf16_submaps, args.bf16_count)
+    if not RESULTS:
+        return 0
     best = max(SGEMM)
     print(f"\nsummary: share of the best float32 sgemm rate seen in this run ({best:.0f} GFLOP/s)")
     for name, dtype, batch, got in RESULTS:
