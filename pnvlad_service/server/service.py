@@ -309,7 +309,11 @@ class Localizer:
         return cls(bundle, encoder, ident, settings, on_batch=on_batch)
 
     def close(self) -> None:
+        """Finish queued batches, then stop the encoder's cloud worker threads."""
         self.batcher.close()
+        close = getattr(self.encoder, "close", None)
+        if close is not None:
+            close()
 
     # identity ---------------------------------------------------------------------------
     def model_info(self) -> dict[str, Any]:
