@@ -277,6 +277,41 @@ def test_encoder_cloud_workers_agree_and_leave_thread_count() -> None:
         Encoder(model, cfg, cloud_workers=0)
 
 
+def test_encoder_embeds_from_several_threads_at_once() -> None:
+    """The server's batcher lanes call embed concurrently: every call gets its own clouds'
+    descriptors, whether its clouds run on the workers or on the calling thread."""
+    import threading
+
+    cfg = CONFIGS["paper-narrow"]
+    model = trained_like(cfg)
+    batches = [clouds(b, seed=10 + b) for b in (1, 3, 2, 1, 5, 1)]
+    with torch.no_grad():
+        want = [model(x).numpy() for x in batches]
+    enc = Encoder(model, cfg, cloud_workers=2)
+    got: dict[int, np.ndarray] = {}
+    errors: list[BaseException] = []
+
+    def run(i: int) -> None:
+        try:
+            for _ in range(3):
+                got[i] = enc.embed(batches[i])
+        except BaseException as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(len(batches))]
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(60)
+    finally:
+        enc.close()
+    assert not errors
+    for i, w in enumerate(want):
+        assert np.abs(got[i] - w).max() < 1e-5, i
+    assert enc._embedding == 0
+
+
 def test_encoder_accepts_single_cloud_float64_and_other_sizes() -> None:
     cfg = CONFIGS["compact"]
     model = trained_like(cfg)
