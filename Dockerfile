@@ -30,7 +30,7 @@ ENV PATH=/opt/venv/bin:$PATH \
     PNVLAD_PORT=8000 \
     PNVLAD_INDEX=/data/index \
     PNVLAD_CHECKPOINT=/data/model
-USER pnvlad
+USER 10001:10001
 WORKDIR /tmp
 VOLUME ["/data"]
 EXPOSE 8000
