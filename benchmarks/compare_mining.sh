@@ -18,22 +18,13 @@ POINTS="${PNVLAD_TRAIN_POINTS:-1024}"
 CFG=benchmarks/configs/compact-short.yaml
 mkdir -p "$OUT"
 
-train() {  # NAME, extra options...
-    local name=$1; shift
-    if [ ! -f "$OUT/$name/model/model.json" ]; then
-        pnvlad -q train -c "$CFG" --root "$ROOT" --splits "$ROOT/splits.json" -o "$OUT/$name" \
-            --max-minutes "$MINUTES" --num-points "$POINTS" --no-progress \
-            --arch pointnetvlad --loss lazy_quadruplet "$@" > "$OUT/$name.log" 2>&1
-    fi
-}
+. benchmarks/compare_lib.sh  # train NAME OPTIONS..., evaluate NAME
 
-train tuple_lazyquad --mining tuple &
-train inbatch_lazyquad --mining in_batch -b 16 &
+LAZYQUAD=(--arch pointnetvlad --loss lazy_quadruplet)
+train tuple_lazyquad "${LAZYQUAD[@]}" --mining tuple &
+train inbatch_lazyquad "${LAZYQUAD[@]}" --mining in_batch -b 16 &
 wait
-for m in tuple_lazyquad inbatch_lazyquad; do
-    pnvlad -q eval --checkpoint "$OUT/$m/model" --root "$ROOT" --splits "$ROOT/splits.json" \
-        -o "$OUT/$m.json" --num-points 4096 --no-progress
-done
+for m in tuple_lazyquad inbatch_lazyquad; do evaluate "$m"; done
 
 python - "$OUT" "$MINUTES" <<'PY'
 import json, sys

@@ -19,18 +19,7 @@ POINTS="${PNVLAD_TRAIN_POINTS:-1024}"  # points a cloud while training (all 4096
 CFG=benchmarks/configs/compact-short.yaml
 mkdir -p "$OUT"
 
-train() {  # NAME, extra options...
-    local name=$1; shift
-    if [ ! -f "$OUT/$name/model/model.json" ]; then
-        pnvlad -q train -c "$CFG" --root "$ROOT" --splits "$ROOT/splits.json" -o "$OUT/$name" \
-            --max-minutes "$MINUTES" --num-points "$POINTS" --no-progress "$@" \
-            > "$OUT/$name.log" 2>&1
-    fi
-}
-evaluate() {  # NAME
-    pnvlad -q eval --checkpoint "$OUT/$1/model" --root "$ROOT" --splits "$ROOT/splits.json" \
-        -o "$OUT/$1.json" --num-points 4096 --no-progress
-}
+. benchmarks/compare_lib.sh  # train NAME OPTIONS..., evaluate NAME
 
 train pnvlad_lazyquad --arch pointnetvlad --loss lazy_quadruplet &
 train pnmax_lazyquad --arch pointnet-max --loss lazy_quadruplet &
