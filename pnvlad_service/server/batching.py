@@ -8,8 +8,8 @@ while concurrent ones share one forward pass and one FAISS search.
 
 With two lanes (the default) the next batch starts while the previous one finishes its fully
 connected head, its search and its answers, and while its last clouds are still being embedded:
-the encoder's cloud workers never wait for a whole batch to drain (on 2 cores, 8 clients: ~20 %
-more requests/s than one lane).
+the encoder's cloud workers never wait for a whole batch to drain (on 2 cores, 8 clients: the
+server kept 1.86 of the 2 cores busy instead of 1.73, 25.4 requests/s instead of 24.2).
 """
 
 from __future__ import annotations
