@@ -338,8 +338,9 @@ class Encoder:
     def _forward(self, x: torch.Tensor, q: dict[str, Any]) -> torch.Tensor:
         """Descriptors float32 [b, out] of points float32 [b, n, 3] (folded network).
 
-        The per-point network runs one cloud at a time (its activations stay in cache); the
-        fully connected head runs on the whole batch as one product.
+        The per-point network runs cloud by cloud (its activations stay in cache), several
+        clouds side by side on the worker threads (``_clouds``); the fully connected head runs
+        on the whole batch as one product.
         """
         import torch
         import torch.nn.functional as F
