@@ -348,6 +348,17 @@ def test_training_mode_model_is_folded_with_running_stats() -> None:
 
 
 @pytest.mark.skipif(not bf16_supported(), reason="CPU without native bfloat16")
+def test_bfloat16_paper_head_at_batch_24() -> None:
+    """The paper head (65,536 -> 256) in bfloat16 for 24 clouds: torch 2.13's bfloat16 F.linear
+    of that shape dies with SIGFPE, so the encoder must not route bfloat16 through it."""
+    cfg = ModelConfig.paper()
+    torch.manual_seed(0)
+    enc = Encoder(build_model(cfg).eval(), cfg, dtype="bfloat16")
+    out = enc.embed(clouds(24, n=64, seed=1))
+    assert out.shape == (24, 256) and np.allclose(np.linalg.norm(out, axis=1), 1, atol=1e-3)
+
+
+@pytest.mark.skipif(not bf16_supported(), reason="CPU without native bfloat16")
 def test_bfloat16_path_and_auto_self_check() -> None:
     cfg = CONFIGS["paper-narrow"]
     model = trained_like(cfg)

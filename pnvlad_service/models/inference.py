@@ -248,9 +248,13 @@ class Encoder:
             "feature_tnet": tnet(p["feature_tnet"]),
             "stem": [dense(x) for x in p["stem"]],
             "trunk": [dense(x) for x in p["trunk"]],
-            # The head as F.linear wants it, w [out, in]: a batch of 1-8 pooled vectors against
-            # this layout reads the 64 MB paper head about twice as fast as against [in, out].
-            "fc": _Dense(p["fc"].w.t().to(dev, mm).contiguous(), p["fc"].b.to(dev, f32)),
+            # float32: the head as F.linear wants it, w [out, in] - a batch of 1-8 pooled vectors
+            # reads the 64 MB paper head about twice as fast as against [in, out]. bfloat16 keeps
+            # [in, out]: torch 2.13's bfloat16 F.linear of [24, 65536] x [256, 65536]^T dies with
+            # SIGFPE on this CPU (oneDNN), while the [in, out] product does not.
+            "fc": _Dense(p["fc"].w.t().to(dev, mm).contiguous(), p["fc"].b.to(dev, f32))
+            if mm == torch.float32
+            else dense(p["fc"], mm),
             "gate": dense(p["gate"], f32),
         }
         if "cluster" in p:
@@ -354,7 +358,10 @@ class Encoder:
             v = F.normalize(v, dim=2)  # intra-normalisation over D for every cluster
             pooled = F.normalize(v.reshape(v.shape[0], -1), dim=1)
         fc = q["fc"]
-        y = F.linear(pooled.to(fc.w.dtype), fc.w).float().add_(fc.b)  # fc.w [out, in]
+        # float32 fc.w is [out, in], bfloat16 fc.w [in, out] (see _cast)
+        f32 = fc.w.dtype == torch.float32
+        y = F.linear(pooled, fc.w) if f32 else pooled.to(fc.w.dtype) @ fc.w
+        y = y.float().add_(fc.b)
         if q["gate"] is not None:
             g = q["gate"]
             y = y * torch.sigmoid(torch.addmm(g.b, y, g.w))
