@@ -1,9 +1,9 @@
 """Per-area recall of the training-free baseline descriptor on a benchmark tree.
 
 For every evaluation set of the splits (one per area of a ``pnvlad synth`` tree): read each
-run's database submaps once, describe them with ``pnvlad_service.baseline`` (a Scan-Context
-style polar height grid), search every ordered run pair with FAISS (``IndexFlatL2``, exact, 25
-neighbours), score with ``metrics.pair_recall_from_neighbours`` and average over pairs as the
+run's database submaps once, describe them with ``pnvlad_service.evaluation.baseline``
+(a Scan-Context style polar height grid), search every ordered run pair with FAISS
+(``IndexFlatL2``, exact, 25 neighbours), score with ``metrics.pair_recall_from_neighbours`` and average over pairs as the
 published evaluation does. Prints a markdown table (area, runs, database submaps, queries,
 recall@1, recall@1%) and, with --json, writes the figures.
 
@@ -23,7 +23,7 @@ import numpy as np
 
 def read_submaps(root: Path, files: list[str]) -> np.ndarray:
     """float64 [B, 4096, 3]: the submaps ``files`` (paths relative to ``root``)."""
-    from pnvlad_service.readers import read_points
+    from pnvlad_service.io.readers import read_points
 
     return np.stack([read_points(root / f, "benchmark") for f in files])
 
@@ -32,8 +32,8 @@ def area_recall(root: Path, es: object) -> dict:
     """Recall@1 and recall@1% (percent) of one ``EvaluationSet``, averaged over run pairs."""
     import faiss
 
-    from pnvlad_service import baseline
-    from pnvlad_service.metrics import average_pairs, pair_recall_from_neighbours
+    from pnvlad_service.evaluation import baseline
+    from pnvlad_service.evaluation.metrics import average_pairs, pair_recall_from_neighbours
 
     db_desc = [baseline.describe(read_submaps(root, d.files)) for d in es.database]
     per_pair, skipped = [], []
@@ -70,7 +70,7 @@ def main() -> None:
     ap.add_argument("--splits", type=Path, help="splits JSON (default ROOT/splits.json)")
     ap.add_argument("--json", type=Path, help="also write the figures to this JSON file")
     args = ap.parse_args()
-    from pnvlad_service.splits import load_splits
+    from pnvlad_service.data.splits import load_splits
 
     splits = load_splits(args.splits or args.root / "splits.json")
     started = time.perf_counter()

@@ -117,7 +117,7 @@ def bench_config(name: str, cfg: ModelConfig, reps: int, dtypes: list[str]) -> N
                 f"{100 * got / rate:5.1f} % of sgemm ({rate:.0f} GFLOP/s)"
             )
     # Training step: forward + backward of one tuple batch (1 query, 2 pos, 18 neg, 1 other neg).
-    from pnvlad_service.losses import lazy_quadruplet_loss
+    from pnvlad_service.training.losses import lazy_quadruplet_loss
 
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-5)
@@ -172,7 +172,7 @@ def bf16_check_trained(checkpoint: Path, tree: Path, count: int) -> None:
     """bfloat16 against float32 with trained weights, on ``count`` submaps of a benchmark tree
     (every run's test-layout ``pointcloud_20m``): leave-one-out top-1 agreement, the rule
     ``Encoder(dtype="auto")`` applies (>= 99 %), and the smallest cosine between the two."""
-    from pnvlad_service.index import read_submap
+    from pnvlad_service.index.bundle import read_submap
 
     if not bf16_supported():
         print("\nbfloat16: not supported on this CPU")

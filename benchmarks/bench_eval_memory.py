@@ -32,7 +32,8 @@ def peak_rss_mib() -> float:
 
 def make_tree(root: Path, runs: int, db_per_run: int, distinct: int, seed: int = 0) -> int:
     """Runs along the same 4 km route, a submap every ~9.7 m; queries: the middle third."""
-    from pnvlad_service import benchmark, splits
+    from pnvlad_service.data import splits
+    from pnvlad_service.data import tree as benchmark
 
     rng = np.random.default_rng(seed)
     pool = root / ".pool"
@@ -80,8 +81,8 @@ def main() -> None:
 
     import torch
 
-    from pnvlad_service.dataset import load_eval_runs
-    from pnvlad_service.evaluate import evaluate_runs
+    from pnvlad_service.data.dataset import load_eval_runs
+    from pnvlad_service.evaluation.evaluate import evaluate_runs
     from pnvlad_service.models.config import ModelConfig
     from pnvlad_service.models.inference import Encoder
     from pnvlad_service.models.pointnetvlad import build_model

@@ -33,12 +33,12 @@ def main() -> None:
     import torch
     from test_train import make_tiny_tree  # the tests' synthetic street
 
-    from pnvlad_service.dataset import load_eval_runs
-    from pnvlad_service.evaluate import evaluate_runs, model_embedder
+    from pnvlad_service.data.dataset import load_eval_runs
+    from pnvlad_service.evaluation.evaluate import evaluate_runs, model_embedder
     from pnvlad_service.models.pointnetvlad import build_model
     from pnvlad_service.models.store import load_model
-    from pnvlad_service.train import train
-    from pnvlad_service.trainconfig import TrainConfig
+    from pnvlad_service.training.config import TrainConfig
+    from pnvlad_service.training.train import train
 
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pnvlad_service import preprocess as g
-from pnvlad_service.readers import read_points
+from pnvlad_service.data import preprocess as g
+from pnvlad_service.io.readers import read_points
 
 SCANS = [
     ("kitti00_000000.bin", "kitti", 1.0),

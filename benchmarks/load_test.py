@@ -39,7 +39,7 @@ def load_queries(index: Path | None, count: int, seed: int = 0) -> list[np.ndarr
     """Submaps of the bundle's map (read from the indexed tree), else random clouds."""
     rng = np.random.default_rng(seed)
     if index is not None:
-        from pnvlad_service.index import Metadata, read_manifest
+        from pnvlad_service.index.bundle import Metadata, read_manifest
 
         manifest = read_manifest(index)
         meta = Metadata.load(index / "metadata.npz")
@@ -57,7 +57,7 @@ def load_queries(index: Path | None, count: int, seed: int = 0) -> list[np.ndarr
 
 def encoder_baseline(checkpoint: Path, clouds: list[np.ndarray], repeats: int) -> dict:
     """Batch-1 median latency (ms) and batch-32 throughput (clouds/s) of the encoder alone."""
-    from pnvlad_service.index import load_encoder
+    from pnvlad_service.index.bundle import load_encoder
 
     enc = load_encoder(checkpoint)
     x1 = clouds[0][None]
@@ -179,7 +179,7 @@ def main() -> None:
     clouds = load_queries(args.index, args.queries)
     checkpoint = args.checkpoint
     if checkpoint is None and args.index is not None:
-        from pnvlad_service.index import read_manifest
+        from pnvlad_service.index.bundle import read_manifest
 
         checkpoint = Path(read_manifest(args.index)["model"]["checkpoint"])
     result: dict = {}

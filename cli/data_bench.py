@@ -13,7 +13,7 @@ import typer
 from pnvlad_cli.common import user_errors
 
 if TYPE_CHECKING:
-    from pnvlad_service.splits import Splits
+    from pnvlad_service.data.splits import Splits
 
 
 def check(
@@ -36,7 +36,7 @@ def check(
 
         pnvlad data check benchmark_datasets/
     """
-    from pnvlad_service.benchmark import check_tree, format_report
+    from pnvlad_service.data.tree import check_tree, format_report
 
     with user_errors():
         report = check_tree(root, deep=deep, progress=True)
@@ -86,7 +86,7 @@ def splits(
 
         pnvlad data splits benchmark_datasets/ -d oxford --export-pickles pickles/
     """
-    from pnvlad_service import splits as sp
+    from pnvlad_service.data import splits as sp
 
     with user_errors():
         reg = sp.load_regions(regions) if regions else None
@@ -146,7 +146,7 @@ def import_pickles(
 
         pnvlad data import-pickles generating_queries/ -o splits.json
     """
-    from pnvlad_service import splits as sp
+    from pnvlad_service.data import splits as sp
 
     with user_errors():
         result = sp.import_pickles(pickles)
@@ -169,7 +169,7 @@ def export_pickles(
 
         pnvlad data export-pickles splits.json -o pickles/
     """
-    from pnvlad_service import splits as sp
+    from pnvlad_service.data import splits as sp
 
     with user_errors():
         for p in sp.export_pickles(sp.load_splits(splits_file), out, progress=True):

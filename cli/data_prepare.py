@@ -1,6 +1,6 @@
 """`pnvlad data prepare`: a recorded drive -> one benchmark run of submaps (see cli/data.py).
 
-A thin layer over :mod:`pnvlad_service.prepare`; library imports happen inside the command so
+A thin layer over :mod:`pnvlad_service.data.prepare`; library imports happen inside the command so
 that `pnvlad --help` stays fast.
 """
 
@@ -208,8 +208,8 @@ def prepare(
       --out bench/campus/run1
     """
     with user_errors():
+        from pnvlad_service.data.prepare import CsvDrive, KittiSequence, prepare_drive
         from pnvlad_service.errors import InputError
-        from pnvlad_service.prepare import CsvDrive, KittiSequence, prepare_drive
 
         if (kitti is None) == (scans is None):
             raise InputError("give either --kitti SEQ_DIR or --scans DIR --poses CSV", "--kitti")
@@ -285,8 +285,8 @@ def _load_g_config(path: Path):  # -> GConfig
     import yaml
     from pydantic import ValidationError
 
+    from pnvlad_service.data.preprocess import GConfig
     from pnvlad_service.errors import InputError
-    from pnvlad_service.preprocess import GConfig
 
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))

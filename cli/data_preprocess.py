@@ -106,9 +106,9 @@ def preprocess(
     with user_errors():
         from pydantic import ValidationError
 
+        from pnvlad_service.data.preprocess import GConfig, apply_g
         from pnvlad_service.errors import InputError
-        from pnvlad_service.preprocess import GConfig, apply_g
-        from pnvlad_service.readers import read_points, write_submap
+        from pnvlad_service.io.readers import read_points, write_submap
 
         if out.suffix.lower() not in (".bin", ".npy"):
             raise InputError("the submap is written as .bin or .npy", source=out)

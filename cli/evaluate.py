@@ -97,8 +97,8 @@ def evaluate(
       pnvlad eval --plot a.json --plot base.json --figures figs/
     """
     with user_errors():
-        from pnvlad_service import evaluate as ev
         from pnvlad_service.errors import InputError
+        from pnvlad_service.evaluation import evaluate as ev
 
         others = [(p.stem, ev.read_report(p)) for p in (plot or [])]
         if checkpoint is None and not baseline:
@@ -111,7 +111,7 @@ def evaluate(
             return
         if checkpoint is not None and baseline:
             raise InputError("give --checkpoint or --baseline, not both", "--baseline")
-        from pnvlad_service.dataset import load_eval_runs
+        from pnvlad_service.data.dataset import load_eval_runs
 
         runs = load_eval_runs(root, splits, pickles, sets)
         if baseline:

@@ -88,7 +88,7 @@ def build(
 
     Example: pnvlad index build -c runs/model -r benchmark_datasets -d oxford -o map.index
     """
-    from pnvlad_service.index import build_bundle
+    from pnvlad_service.index.bundle import build_bundle
 
     budget = parse_size(memory_budget)
     with user_errors():
@@ -135,7 +135,7 @@ def add(
     Example: pnvlad index add map.index -c runs/model -r benchmark_datasets \
       --run 2015-02-03-08-45-10
     """
-    from pnvlad_service.index import add_to_bundle
+    from pnvlad_service.index.bundle import add_to_bundle
 
     with user_errors():
         rep = add_to_bundle(
@@ -164,7 +164,7 @@ def info(
 
     Example: pnvlad index info map.index
     """
-    from pnvlad_service.index import read_manifest, verify_bundle
+    from pnvlad_service.index.bundle import read_manifest, verify_bundle
 
     with user_errors():
         manifest = read_manifest(bundle)
@@ -175,7 +175,7 @@ def info(
     if ckpt:
         wfile = Path(ckpt) / "model.safetensors"
         if wfile.is_file():
-            from pnvlad_service.index import sha256_file
+            from pnvlad_service.index.bundle import sha256_file
 
             same = sha256_file(wfile) == model.get("weights_sha256")
             ckpt_state = "OK (same weights)" if same else "DIFFERENT weights"

@@ -186,7 +186,7 @@ def localize(
       pnvlad localize scan.bin --reader kitti --preprocess --index map.index --json
     """
     from pnvlad_service.errors import InputError
-    from pnvlad_service.readers import read_points
+    from pnvlad_service.io.readers import read_points
 
     with user_errors():
         if (url is None) == (index is None):

@@ -130,7 +130,7 @@ def train(
     """
     with user_errors():
         from pnvlad_service.errors import InputError
-        from pnvlad_service.trainconfig import TrainConfig
+        from pnvlad_service.training.config import TrainConfig
 
         if resume and out is None:
             raise InputError("--resume needs --out, the run directory to continue", "--out")
@@ -164,7 +164,7 @@ def train(
             return
         if out is None:
             raise InputError("give --out, the run directory", "--out")
-        from pnvlad_service.train import train as run
+        from pnvlad_service.training.train import train as run
 
         res = run(cfg, out, resume=resume, progress=progress)
         if res.model_dir is not None:

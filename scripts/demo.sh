@@ -44,7 +44,7 @@ pnvlad data check "$CITY"
 # The first dataset (area) of the tree, its last run held out of the index as the query run.
 read -r DATASET HELD INDEXED < <(python - "$CITY" <<'EOF'
 import sys
-from pnvlad_service.benchmark import BenchmarkTree
+from pnvlad_service.data.tree import BenchmarkTree
 tree = BenchmarkTree(sys.argv[1])
 ds = tree.datasets[0]
 runs = tree.runs(ds)

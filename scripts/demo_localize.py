@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pnvlad_service.benchmark import BenchmarkTree
-from pnvlad_service.readers import read_points
-from pnvlad_service.splits import resolve_regions
+from pnvlad_service.data.splits import resolve_regions
+from pnvlad_service.data.tree import BenchmarkTree
+from pnvlad_service.io.readers import read_points
 
 
 def _post(url: str, body: bytes, top_n: int) -> dict:

@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service import baseline
+from pnvlad_service.evaluation import baseline
 
 
 def _reference(points: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from pnvlad_service.benchmark import (
+from pnvlad_service.data.tree import (
     LAYOUTS,
     SUBMAP_BYTES,
     BenchmarkTree,

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pnvlad_service import evaluate
-from pnvlad_service.dataset import EvalRun
+from pnvlad_service.data.dataset import EvalRun
 from pnvlad_service.errors import InputError
+from pnvlad_service.evaluation import evaluate
 
 
 def mean_embedder(points: np.ndarray) -> np.ndarray:
@@ -282,7 +282,7 @@ def test_cli_eval_from_published_pickles_matches_splits(
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
-    from pnvlad_service import splits as sp
+    from pnvlad_service.data import splits as sp
 
     root, splits, run = trained
     sp.export_pickles(sp.load_splits(splits), tmp_path / "pk")

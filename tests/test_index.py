@@ -22,8 +22,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service import index as ix
 from pnvlad_service.errors import InputError
+from pnvlad_service.index import bundle as ix
 
 RUNS = ("2014-05-19-13-20-57", "2014-06-26-09-24-58")
 PER_RUN = 16

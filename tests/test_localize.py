@@ -12,7 +12,7 @@ from test_index import PER_RUN, make_checkpoint, make_tree
 from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
-from pnvlad_service import index as ix
+from pnvlad_service.index import bundle as ix
 
 
 @pytest.fixture(scope="module")

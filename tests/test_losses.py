@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.losses import (
+from pnvlad_service.training.losses import (
     LOSSES,
     get_loss,
     lazy_quadruplet_loss,

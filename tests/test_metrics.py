@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.metrics import (
+from pnvlad_service.evaluation.metrics import (
     nearest,
     one_percent_n,
     pair_recall_from_neighbours,

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service import mining
-from pnvlad_service.dataset import TrainingSet
+from pnvlad_service.data.dataset import TrainingSet
+from pnvlad_service.training import mining
 
 
 def line_set(n: int = 60, spacing: float = 5.0) -> TrainingSet:
@@ -157,8 +157,8 @@ def test_negative_lists_from_pickle_style_sets() -> None:
 
 
 def test_training_sets_of_two_datasets_pool_with_offsets(tmp_path) -> None:
-    from pnvlad_service.dataset import training_set_from_tuples
-    from pnvlad_service.splits import TrainingTuples
+    from pnvlad_service.data.dataset import training_set_from_tuples
+    from pnvlad_service.data.splits import TrainingTuples
 
     def tt(name: str, n: int) -> TrainingTuples:
         north = np.arange(n) * 6.0

@@ -461,7 +461,7 @@ def test_compact_config_learns_to_tell_places_apart() -> None:
     """60 Adam steps of the lazy quadruplet loss on 12 synthetic 'places' (the same four blobs,
     each place moving them a little; a new point sample and offset every time) lift top-1
     retrieval of fresh samples well above the untrained network's."""
-    from pnvlad_service.losses import lazy_quadruplet_loss
+    from pnvlad_service.training.losses import lazy_quadruplet_loss
 
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(0)

@@ -1,4 +1,4 @@
-"""Tests of pnvlad_service.prepare (drives -> submaps) and `pnvlad data prepare`.
+"""Tests of pnvlad_service.data.prepare (drives -> submaps) and `pnvlad data prepare`.
 
 Drives are built in tmp_path from the real KITTI scans (symlinked, never copied into the repo)
 with poses along a straight line, so several submaps are cut; expectations are computed
@@ -18,8 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service.errors import InputError
-from pnvlad_service.prepare import (
+from pnvlad_service.data.prepare import (
     SUBMAP_BYTES,
     CsvDrive,
     Drive,
@@ -30,6 +29,7 @@ from pnvlad_service.prepare import (
     submap_cuts,
     travelled_distance,
 )
+from pnvlad_service.errors import InputError
 
 FRAMES = 40  # scans in the synthetic KITTI sequence
 STEP_M = 1.5  # metres between consecutive scans (camera z, i.e. forward)
@@ -327,7 +327,7 @@ def test_a_stop_adds_one_scan_not_all(tmp_path: Path, real_scans: Path) -> None:
 
 
 def test_check_tree_accepts_the_run(reference_run) -> None:
-    from pnvlad_service.benchmark import check_tree
+    from pnvlad_service.data.tree import check_tree
 
     _, run, _, _ = reference_run
     report = check_tree(run.parent.parent)
@@ -433,7 +433,7 @@ def test_inhouse_layout_crops_to_the_box(reference_run, tmp_path: Path) -> None:
 
 
 def test_accumulate_subtracts_the_centre_before_float32_precision_matters() -> None:
-    from pnvlad_service.prepare import accumulate
+    from pnvlad_service.data.prepare import accumulate
 
     poses = np.tile(np.eye(4), (2, 1, 1))
     poses[0, :3, 3] = [620_000.0, 5_735_000.0, 0.0]
@@ -464,7 +464,7 @@ class ListDrive:
 
 
 def test_scan_cache_drops_bad_points_and_caps_range_and_count() -> None:
-    from pnvlad_service.prepare import _ScanCache
+    from pnvlad_service.data.prepare import _ScanCache
 
     pts = np.array(
         [[1.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [0.0, 3.0, 4.0], [0.0, 6.0, 8.0], [np.inf, 0, 0]],

@@ -11,8 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from pnvlad_service.errors import InputError
-from pnvlad_service.preprocess import (
+from pnvlad_service.data.preprocess import (
     GConfig,
     apply_g,
     crop_mask,
@@ -25,7 +24,8 @@ from pnvlad_service.preprocess import (
     voxel_average,
     voxel_count,
 )
-from pnvlad_service.readers import read_points
+from pnvlad_service.errors import InputError
+from pnvlad_service.io.readers import read_points
 
 # --- crop ------------------------------------------------------------------------------------
 

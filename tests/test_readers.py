@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pnvlad_service.errors import InputError, MissingDependencyError
-from pnvlad_service.readers import READERS, read_points, reader_for, write_submap
+from pnvlad_service.io.readers import READERS, read_points, reader_for, write_submap
 
 # A few points with values that are exact in float32 and not symmetric in x, y, z.
 XYZ = [(1.5, -2.25, 0.125), (-10.0, 3.75, -1.5), (0.0, 0.5, 7.0), (100.25, -0.75, 2.0)]

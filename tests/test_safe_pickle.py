@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.safe_pickle import dump_plain, safe_load, safe_loads
+from pnvlad_service.io.pickles import dump_plain, safe_load, safe_loads
 
 PUBLISHED_LIKE = [
     {

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from test_index import PER_RUN, free_port, make_checkpoint, make_tree, read_cloud
 
-from pnvlad_service import index as ix
+from pnvlad_service.index import bundle as ix
 
 MAX_BODY = 4 * 1024 * 1024
 PROBLEM = "application/problem+json"
@@ -484,8 +484,8 @@ def test_ops_endpoints(client, local) -> None:
 
 
 def test_raw_scan_with_preprocess_equals_local_filter_g(client, local, real_scans) -> None:
-    preprocess = pytest.importorskip("pnvlad_service.preprocess")
-    from pnvlad_service.readers import read_points
+    preprocess = pytest.importorskip("pnvlad_service.data.preprocess")
+    from pnvlad_service.io.readers import read_points
 
     raw = read_points(real_scans / "kitti00_000000.bin", "kitti")
     r = client.post(

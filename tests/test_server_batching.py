@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from pnvlad_service.server.batching import MicroBatcher
+from pnvlad_service.localization.batching import MicroBatcher
 
 
 def echo(sizes: list[int], delay: float = 0.0):

@@ -19,10 +19,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from pnvlad_service import splits as sp
-from pnvlad_service.benchmark import LAYOUTS, BenchmarkTree
+from pnvlad_service.data import splits as sp
+from pnvlad_service.data.tree import LAYOUTS, BenchmarkTree
 from pnvlad_service.errors import InputError
-from pnvlad_service.safe_pickle import dump_plain, safe_load
+from pnvlad_service.io.pickles import dump_plain, safe_load
 
 # A centre whose coordinates are exact binary fractions, so c ± 150 is exact too.
 CN, CE = 5735712.75, 620084.25

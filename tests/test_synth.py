@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
-from pnvlad_service.benchmark import check_tree
-from pnvlad_service.splits import load_splits
+from pnvlad_service.data.splits import load_splits
+from pnvlad_service.data.tree import check_tree
 from pnvlad_service.synth.generate import choose_test_regions, generate, get_preset
 from pnvlad_service.synth.lidar import LidarConfig, cast_scan, ray_bundle
 from pnvlad_service.synth.runs import SimulatedDrive, make_route
@@ -185,7 +185,7 @@ def test_eval_scores_every_area_of_a_multi_area_tree(tiny: Path, tmp_path: Path)
     import json
     import shutil
 
-    from pnvlad_service.splits import build_splits, save_splits
+    from pnvlad_service.data.splits import build_splits, save_splits
 
     root = tmp_path / "two"
     shutil.copytree(tiny / "business", root / "business")
@@ -204,7 +204,7 @@ def test_eval_scores_every_area_of_a_multi_area_tree(tiny: Path, tmp_path: Path)
 
 
 def test_runs_follow_trajectories_a_user_supplies(tmp_path: Path) -> None:
-    from pnvlad_service.benchmark import BenchmarkTree
+    from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.synth.generate import _world
 
     spec = get_preset("tiny")

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.trainconfig import TrainConfig
+from pnvlad_service.training.config import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
 BASE_N, BASE_E = 5_000_000.0, 600_000.0
@@ -68,7 +68,8 @@ def _cloud(lm: np.ndarray, north: float, east: float, rng: np.random.Generator) 
 def make_tiny_tree(root: Path, runs: int = 3, train_step: float = 4.0) -> Path:
     """A benchmark tree ``root/city/run<k>`` (oxford layout) with a test region around 220 m
     (half size 50 m) and ``root/splits.json``. Returns the splits path."""
-    from pnvlad_service import benchmark, splits
+    from pnvlad_service.data import splits
+    from pnvlad_service.data import tree as benchmark
 
     lm = _landmarks()
     for r in range(runs):
@@ -182,7 +183,7 @@ def test_shipped_configs_load() -> None:
 
 
 def test_schedules_hand_worked() -> None:
-    from pnvlad_service.train import bn_momentum, learning_rate
+    from pnvlad_service.training.train import bn_momentum, learning_rate
 
     cfg = TrainConfig()  # batch 2, decay every 200,000 tuples
     assert learning_rate(cfg, 0) == pytest.approx(5e-5)
@@ -200,7 +201,7 @@ def test_schedules_hand_worked() -> None:
 
 def test_each_cloud_embedded_once_per_step(tiny_tree: tuple[Path, Path], tmp_path: Path) -> None:
     torch = pytest.importorskip("torch")
-    from pnvlad_service.train import train
+    from pnvlad_service.training.train import train
 
     root, splits = tiny_tree
     cfg = tiny_config(root, splits, max_steps=3, cache_refresh_steps=100)
@@ -224,7 +225,7 @@ def test_each_cloud_embedded_once_per_step(tiny_tree: tuple[Path, Path], tmp_pat
         assert table.shape == (2, 1 + 2 + 6 + 1)
         assert n == len(set(table.ravel().tolist())) == rec["clouds"]
     # the cache (eval mode) embedded the training set once
-    from pnvlad_service.dataset import load_training_data
+    from pnvlad_service.data.dataset import load_training_data
 
     ts, _ = load_training_data(cfg.data)
     assert sum(n for training, n in calls if not training) == len(ts)
@@ -245,7 +246,7 @@ def test_each_cloud_embedded_once_per_step(tiny_tree: tuple[Path, Path], tmp_pat
 
 def test_in_batch_mining_reuses_embeddings(tiny_tree: tuple[Path, Path], tmp_path: Path) -> None:
     torch = pytest.importorskip("torch")
-    from pnvlad_service.train import train
+    from pnvlad_service.training.train import train
 
     root, splits = tiny_tree
     cfg = tiny_config(root, splits, max_steps=2, mining="in_batch", batch_size=6, val_every=2)
@@ -272,7 +273,7 @@ def test_in_batch_mining_reuses_embeddings(tiny_tree: tuple[Path, Path], tmp_pat
 
 def test_refuses_to_overwrite_a_run(tiny_tree: tuple[Path, Path], tmp_path: Path) -> None:
     pytest.importorskip("torch")
-    from pnvlad_service.train import train
+    from pnvlad_service.training.train import train
 
     root, splits = tiny_tree
     cfg = tiny_config(root, splits, max_steps=1)
@@ -320,7 +321,7 @@ def test_resume_after_sigkill_continues_exactly(
     # reference: an uninterrupted run of 9 steps (in this process: one torch start-up less)
     import torch
 
-    from pnvlad_service.train import train
+    from pnvlad_service.training.train import train
 
     ref = tmp_path / "ref"
     threads = torch.get_num_threads()
@@ -408,8 +409,8 @@ def test_published_pickles_train_like_our_splits(
 ) -> None:
     """Tuples read from exported published-format pickles give the very same run."""
     torch = pytest.importorskip("torch")
-    from pnvlad_service import splits as sp
-    from pnvlad_service.train import train
+    from pnvlad_service.data import splits as sp
+    from pnvlad_service.training.train import train
 
     root, splits = tiny_tree
     sp.export_pickles(sp.load_splits(splits), tmp_path / "pk")

@@ -4,7 +4,7 @@
 into point arrays and raise :class:`~pnvlad_service.errors.InputError` naming the field;
 :class:`Localizer` loads the checkpoint and the bundle once, checks that the bundle was built
 with these weights, runs the filter G on raw scans and answers queries via a
-:class:`~pnvlad_service.server.batching.MicroBatcher`.
+:class:`~pnvlad_service.localization.batching.MicroBatcher`.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.index import SUBMAP_POINTS, IndexBundle, load_encoder, read_manifest
-from pnvlad_service.server.batching import BatchResult, MicroBatcher
+from pnvlad_service.index.bundle import SUBMAP_POINTS, IndexBundle, load_encoder, read_manifest
+from pnvlad_service.localization.batching import BatchResult, MicroBatcher
 from pnvlad_service.server.settings import ServerSettings
 
 log = logging.getLogger(__name__)
@@ -235,7 +235,7 @@ def resolve_checkpoint(settings: ServerSettings) -> Path:
 
 def check_compatible(index_dir: Path, checkpoint: Path) -> dict[str, Any]:
     """Raise :class:`InputError` naming both when the bundle was built with other weights."""
-    from pnvlad_service.index import model_identity
+    from pnvlad_service.index.bundle import model_identity
 
     manifest = read_manifest(index_dir)
     ident = model_identity(checkpoint)
@@ -331,7 +331,7 @@ class Localizer:
     def preprocess(self, points: np.ndarray) -> np.ndarray:
         """Raw scan float64 [N, 3] -> float32 [4096, 3] through the bundle's filter G."""
         try:
-            from pnvlad_service.preprocess import GConfig, filter_g
+            from pnvlad_service.data.preprocess import GConfig, filter_g
         except ImportError as exc:
             from pnvlad_service.server.problems import Problem
 

@@ -7,11 +7,11 @@
     OUT/<area>/<run>/pointcloud_20m/<timestamp>.bin            test layout, every 20 m
     OUT/<area>/<run>/pointcloud_locations_20m.csv
     OUT/<area>/test_regions.json     squares chosen on the area's route (read by `data splits`)
-    OUT/splits.json                  training tuples and evaluation sets (pnvlad_service.splits)
+    OUT/splits.json                  training tuples and evaluation sets (data.splits)
     OUT/synth.json                   preset, seed, parameters, sizes and timings
 
 Every run is a :class:`~pnvlad_service.synth.runs.SimulatedDrive` cut into submaps by
-:func:`pnvlad_service.prepare.prepare_drive`, the path a user's own drive takes (accumulation
+:func:`pnvlad_service.data.prepare.prepare_drive`, the path a user's own drive takes (accumulation
 over 20 m of trajectory, filter G, 4096 points). Runs are generated in parallel processes; every
 random stream is derived from ``(seed, area, run)``, so the bytes do not depend on the number of
 workers. The tree is built under a temporary name and renamed when complete.
@@ -239,7 +239,7 @@ def choose_test_regions(
 
 def _run_job(job: dict[str, Any]) -> dict[str, Any]:
     """Generate one run (in a worker process): world, route, drive, prepare_drive."""
-    from pnvlad_service.prepare import prepare_drive
+    from pnvlad_service.data.prepare import prepare_drive
 
     preset = SynthPreset.model_validate(job["preset"])
     area = AreaSpec.model_validate(job["area"])
@@ -299,8 +299,8 @@ def generate(
     """
     from tqdm import tqdm
 
+    from pnvlad_service.data.splits import TestRegions, build_splits, save_regions, save_splits
     from pnvlad_service.fileio import atomic_directory, atomic_write_text
-    from pnvlad_service.splits import TestRegions, build_splits, save_regions, save_splits
 
     spec = get_preset(preset) if isinstance(preset, str) else preset
     out = Path(out)

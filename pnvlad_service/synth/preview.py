@@ -40,9 +40,9 @@ def render_map(root: str | Path, out_png: str | Path, *, seed: int | None = None
     of its training submaps, with their GNSS/INS error) and the test regions."""
     from matplotlib.patches import Polygon, Rectangle
 
-    from pnvlad_service.benchmark import BenchmarkTree
+    from pnvlad_service.data.splits import resolve_regions
+    from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.fileio import atomic_open
-    from pnvlad_service.splits import resolve_regions
     from pnvlad_service.synth.generate import SynthPreset, _world
     from pnvlad_service.synth.world import KIND_BUILDING
 
@@ -109,10 +109,10 @@ def render_submap(
 ) -> Path:
     """A place at each stage: one raw scan (rings, occlusion shadows), the accumulated 20 m
     window before G (ground included), and the 4096-point submap after G (top and side)."""
-    from pnvlad_service.benchmark import BenchmarkTree
+    from pnvlad_service.data.prepare import accumulate
+    from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.fileio import atomic_open
-    from pnvlad_service.prepare import accumulate
-    from pnvlad_service.readers import read_points
+    from pnvlad_service.io.readers import read_points
     from pnvlad_service.synth.generate import SynthPreset, simulated_drive
 
     plt = _plt()

@@ -218,10 +218,10 @@ def list_database_submaps(
     "train": the 10 m ones) of the benchmark tree at ``root``.
 
     ``datasets`` and ``runs`` restrict by folder name. Order: datasets and runs sorted, CSV
-    rows in file order (:class:`pnvlad_service.benchmark.BenchmarkTree`'s order). Raises
+    rows in file order (:class:`pnvlad_service.data.tree.BenchmarkTree`'s order). Raises
     :class:`InputError` when nothing matches or a named run is missing.
     """
-    from pnvlad_service.benchmark import BenchmarkTree
+    from pnvlad_service.data.tree import BenchmarkTree
 
     if layout not in ("test", "train"):
         raise InputError(f"layout must be 'test' or 'train', got {layout!r}", "layout")
@@ -251,7 +251,7 @@ def list_database_submaps(
 
 def read_submap(path: str | Path) -> np.ndarray:
     """A benchmark submap file: float64 [4096, 3] (``.bin``: no header, 98,304 bytes)."""
-    from pnvlad_service.readers import read_points
+    from pnvlad_service.io.readers import read_points
 
     return read_points(path, "benchmark")
 
@@ -487,7 +487,7 @@ def load_encoder(checkpoint: str | Path, device: str | None = None) -> Any:
 def default_preprocess_config() -> dict[str, Any] | None:
     """The default filter G configuration as JSON, or ``None`` if preprocess is missing."""
     try:
-        from pnvlad_service.preprocess import GConfig
+        from pnvlad_service.data.preprocess import GConfig
     except ImportError:  # pragma: no cover - depends on the data engineers' module
         return None
     return GConfig().model_dump(mode="json")

@@ -112,7 +112,7 @@ class EvalRun:
 
 def read_submap(path: str | Path) -> np.ndarray:
     """One submap as float32 [P, 3]: ``.bin`` (float64 x, y, z interleaved), ``.npy`` or any
-    format :func:`pnvlad_service.readers.read_points` knows."""
+    format :func:`pnvlad_service.io.readers.read_points` knows."""
     path = Path(path)
     try:
         if path.suffix == ".bin":
@@ -125,7 +125,7 @@ def read_submap(path: str | Path) -> np.ndarray:
             return np.asarray(arr, dtype=np.float32).reshape(-1, 3)
     except FileNotFoundError:
         raise InputError("submap file not found", path) from None
-    from pnvlad_service.readers import read_points
+    from pnvlad_service.io.readers import read_points
 
     return np.asarray(read_points(path), dtype=np.float32)[:, :3]
 
@@ -240,7 +240,7 @@ def load_splits_any(
 ) -> Any:
     """``splits.Splits`` from our JSON (``splits``), the published pickles (``pickles``: a
     folder or file), or, with neither, built from the tree at ``root`` (its test regions)."""
-    from pnvlad_service import splits as sp
+    from pnvlad_service.data import splits as sp
 
     if splits is not None and pickles is not None:
         raise InputError("give either a splits file or the pickles, not both", "splits")

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from pnvlad_service.dataset import TrainingSet
+from pnvlad_service.data.dataset import TrainingSet
 
 log = logging.getLogger(__name__)
 

@@ -239,7 +239,7 @@ def recall_at_n(
 
     ``db_desc[i]``: float32 [N_i, D] descriptors of run i's database; ``query_desc[j]``: float32
     [M_j, D] of run j's queries; ``truth[j][i][q]``: true indices into database i for query q
-    of run j (``EvaluationSet.truth`` from ``pnvlad_service.splits``). Exact search (numpy,
+    of run j (``EvaluationSet.truth`` from ``pnvlad_service.data.splits``). Exact search (numpy,
     float64). Returns the averages over the scorable pairs (see the module docstring).
     """
     if len(db_desc) != len(query_desc) or len(truth) != len(query_desc):

@@ -35,17 +35,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pnvlad_service import mining
-from pnvlad_service.checkpoint import (
+from pnvlad_service.data.dataset import EvalRun, TrainingSet, load_clouds
+from pnvlad_service.errors import InputError
+from pnvlad_service.fileio import atomic_write_text
+from pnvlad_service.training import mining
+from pnvlad_service.training.checkpoint import (
     TrainingState,
     latest_checkpoint,
     load_checkpoint,
     save_checkpoint,
 )
-from pnvlad_service.dataset import EvalRun, TrainingSet, load_clouds
-from pnvlad_service.errors import InputError
-from pnvlad_service.fileio import atomic_write_text
-from pnvlad_service.trainconfig import TrainConfig
+from pnvlad_service.training.config import TrainConfig
 
 if TYPE_CHECKING:
     import torch
@@ -162,7 +162,7 @@ def _cpu_count() -> int:
 
 def make_loss(cfg: TrainConfig) -> Callable[..., torch.Tensor]:
     """``loss(query [B,D], positives [B,P,D], negatives [B,Nn,D], other [B,D]) -> scalar``."""
-    from pnvlad_service import losses
+    from pnvlad_service.training import losses
 
     t = cfg.train
     fn = losses.get_loss(t.loss)
@@ -315,7 +315,7 @@ def train(
         )
 
     if training_set is None:
-        from pnvlad_service.dataset import load_training_data
+        from pnvlad_service.data.dataset import load_training_data
 
         training_set, loaded_val = load_training_data(cfg.data)
         val_runs = val_runs if val_runs is not None else loaded_val
@@ -578,7 +578,7 @@ def _validate(
     step: int,
 ) -> dict[str, Any]:
     """Recall of the current weights on (up to ``data.val_max_runs``) evaluation runs."""
-    from pnvlad_service.evaluate import evaluate_runs, model_embedder
+    from pnvlad_service.evaluation.evaluate import evaluate_runs, model_embedder
 
     runs = runs[: cfg.data.val_max_runs]
     tv = time.monotonic()

@@ -26,9 +26,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pnvlad_service import metrics
-from pnvlad_service.dataset import EvalRun, load_clouds
+from pnvlad_service.data.dataset import EvalRun, load_clouds
 from pnvlad_service.errors import InputError, MissingDependencyError
+from pnvlad_service.evaluation import metrics
 from pnvlad_service.fileio import atomic_open, atomic_write_text
 
 if TYPE_CHECKING:
@@ -86,7 +86,7 @@ def checkpoint_embedder(
 
 def baseline_embedder() -> tuple[Embedder, int, dict]:
     """(embedder, 4096, description) for the training-free baseline descriptor."""
-    from pnvlad_service import baseline
+    from pnvlad_service.evaluation import baseline
 
     return baseline.describe, 4096, {"kind": "baseline", "name": "baseline"}
 

@@ -2,8 +2,9 @@
 
 A *drive* is a sequence of LiDAR scans with their poses (the :class:`Drive` protocol). This
 module accumulates the scans of a stretch of trajectory in the world frame, cuts a submap every
-``stride`` metres of travelled distance, runs the filter G (:mod:`pnvlad_service.preprocess`) on
-each and writes the benchmark's files (see docs/PREPARE.md and BENCHMARK_FORMAT.md)::
+``stride`` metres of travelled distance, runs the filter G
+(:mod:`pnvlad_service.data.preprocess`) on each and writes the benchmark's files (see
+docs/PREPARE.md and BENCHMARK_FORMAT.md)::
 
     <out_run_dir>/pointcloud_20m_10overlap/<timestamp>.bin   training layout, every 10 m
     <out_run_dir>/pointcloud_locations_20m_10overlap.csv
@@ -35,7 +36,7 @@ from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_write_text
 
 if TYPE_CHECKING:
-    from pnvlad_service.preprocess import GConfig
+    from pnvlad_service.data.preprocess import GConfig
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ class Geometry:
 
     ``stride_m``: distance travelled between submaps; ``window_m``: stretch of trajectory
     accumulated; ``box_m``: side of the square crop around the submap (``None``: no crop).
-    Folder and CSV names come from :data:`pnvlad_service.benchmark.LAYOUTS`.
+    Folder and CSV names come from :data:`pnvlad_service.data.tree.LAYOUTS`.
     """
 
     stride_m: float
@@ -347,7 +348,7 @@ class CsvDrive:
       column ``c``; ``r03`` = easting, ``r13`` = northing, ``r23`` = height) or ``r00 .. r33``.
 
     Scan ``i`` is the file ``<timestamp>.<ext>`` in ``scans_dir`` (any suffix ``read_points``
-    knows; ``reader`` forces one, see :mod:`pnvlad_service.readers`). A row without a file or a
+    knows; ``reader`` forces one, see :mod:`pnvlad_service.io.readers`). A row without a file or a
     file without a row raises :class:`InputError`, unless ``skip_missing`` (then both are
     dropped with a warning). Rows are sorted by timestamp.
     """
@@ -503,8 +504,8 @@ class CsvDrive:
         return len(self.files)
 
     def scan(self, i: int) -> np.ndarray:
-        """Scan ``i`` through :func:`pnvlad_service.readers.read_points`: [N, 3] metres."""
-        from pnvlad_service.readers import read_points
+        """Scan ``i`` through :func:`pnvlad_service.io.readers.read_points`: [N, 3] metres."""
+        from pnvlad_service.io.readers import read_points
 
         return read_points(self.files[i], self.reader)
 
@@ -749,7 +750,7 @@ def _resolve(
     stride_m: float | None,
 ) -> tuple[str, str, float, float | None, float]:
     """(folder, csv name, window, box, stride) for one layout and kind, defaults filled in."""
-    from pnvlad_service.benchmark import LAYOUTS
+    from pnvlad_service.data.tree import LAYOUTS
 
     if layout not in LAYOUTS or (layout, kind) not in GEOMETRY:
         raise InputError(
@@ -800,9 +801,9 @@ def prepare_drive(
     ``FileExistsError`` when an output folder already holds submaps and neither ``resume`` nor
     ``overwrite`` is given.
     """
-    from pnvlad_service.benchmark import write_locations_csv
-    from pnvlad_service.preprocess import GConfig, filter_g
-    from pnvlad_service.readers import write_submap
+    from pnvlad_service.data.preprocess import GConfig, filter_g
+    from pnvlad_service.data.tree import write_locations_csv
+    from pnvlad_service.io.readers import write_submap
 
     started = time.perf_counter()
     out = Path(out_run_dir)

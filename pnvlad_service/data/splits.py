@@ -36,10 +36,10 @@ from typing import Any
 
 import numpy as np
 
-from pnvlad_service.benchmark import BenchmarkTree, Kind
+from pnvlad_service.data.tree import BenchmarkTree, Kind
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_open, atomic_write_text
-from pnvlad_service.safe_pickle import dump_plain, safe_load
+from pnvlad_service.io.pickles import dump_plain, safe_load
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,1 @@
+"""Reading and writing point-cloud files and the benchmark's published files (stage: read)."""

@@ -1,0 +1,1 @@
+"""Training the encoder: configuration, losses, hard-negative mining, checkpoints, the loop."""
