@@ -3,9 +3,9 @@
 For every evaluation set of the splits (one per area of a ``pnvlad synth`` tree): read each
 run's database submaps once, describe them with ``pnvlad_service.evaluation.baseline``
 (a Scan-Context style polar height grid), search every ordered run pair with FAISS
-(``IndexFlatL2``, exact, 25 neighbours), score with ``metrics.pair_recall_from_neighbours`` and average over pairs as the
-published evaluation does. Prints a markdown table (area, runs, database submaps, queries,
-recall@1, recall@1%) and, with --json, writes the figures.
+(``IndexFlatL2``, exact, 25 neighbours), score with ``metrics.pair_recall_from_neighbours``
+and average over pairs as the published evaluation does. Prints a markdown table (area, runs,
+database submaps, queries, recall@1, recall@1%) and, with --json, writes the figures.
 
     python benchmarks/baseline_recall.py data/bench                 # splits: data/bench/splits.json
     python benchmarks/baseline_recall.py data/bench --json base.json
