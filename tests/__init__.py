@@ -1,1 +1,1 @@
-"""The test suite; subfolders mirror pnvlad_service/ (a package, so tests/io does not shadow the io module)."""
+"""The test suite; subfolders mirror pnvlad_service/ (a package: tests/io never shadows io)."""
