@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -36,12 +37,71 @@ CONFIG_FILE = "model.json"
 __all__ = [
     "CONFIG_FILE",
     "WEIGHTS_FILE",
+    "ModelIdentity",
     "config_sha256",
     "load_model",
+    "model_identity",
     "read_model_json",
+    "resolve_model_dir",
     "save_model",
     "weights_sha256",
 ]
+
+
+def resolve_model_dir(path: str | Path) -> Path:
+    """The model directory that ``path`` names: a model directory itself (``model.json`` +
+    ``model.safetensors``, a training checkpoint included) or a training run's output
+    directory, whose final model is ``OUT/model``. Raises :class:`InputError` naming ``path``.
+    """
+    path = Path(path)
+    if (path / CONFIG_FILE).is_file():
+        return path
+    if (path / "model" / CONFIG_FILE).is_file():
+        return path / "model"
+    if not path.exists():
+        raise InputError("model directory not found", source=path)
+    if (path / "checkpoints").is_dir():
+        raise InputError(
+            "a training run without a final model (OUT/model): the run has not finished; "
+            "pass one of its checkpoints, OUT/checkpoints/step-*",
+            source=path,
+        )
+    raise InputError(
+        f"not a model directory (no {CONFIG_FILE}) nor a training run (no model/{CONFIG_FILE})",
+        source=path,
+    )
+
+
+@dataclass(frozen=True)
+class ModelIdentity:
+    """What identifies a model: its directory, the sha256 of its weights file and of its
+    configuration's canonical JSON, and the configuration itself (JSON-ready)."""
+
+    checkpoint: str
+    weights_sha256: str
+    config_sha256: str
+    config: dict[str, Any]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "checkpoint": self.checkpoint,
+            "weights_sha256": self.weights_sha256,
+            "config_sha256": self.config_sha256,
+            "config": self.config,
+        }
+
+
+def model_identity(directory: str | Path) -> ModelIdentity:
+    """The :class:`ModelIdentity` of a model directory (or training run, see
+    :func:`resolve_model_dir`)."""
+    directory = resolve_model_dir(directory)
+    cfg, _ = read_model_json(directory)
+    return ModelIdentity(
+        checkpoint=str(directory.resolve()),
+        weights_sha256=weights_sha256(directory),
+        config_sha256=config_sha256(cfg),
+        config=cfg.model_dump(mode="json"),
+    )
 
 
 def _sha256_file(path: Path) -> str:
