@@ -6,6 +6,7 @@ import contextlib
 import logging
 import sys
 from collections.abc import Iterator
+from typing import Any
 
 import typer
 
@@ -41,3 +42,51 @@ def user_errors() -> Iterator[None]:
     except (PnvladError, FileNotFoundError, FileExistsError, IsADirectoryError) as exc:
         typer.secho(f"error: {exc}", err=True, fg=typer.colors.RED)
         raise typer.Exit(code=2) from None
+
+
+# Options that several commands take, declared once so that a flag means the same everywhere:
+# -m/--model is always a model (a model directory or the training run that made it), -r/--root
+# always a benchmark tree, -c only ever --config (pnvlad train).
+MODEL_HELP = (
+    "A model directory (model.json + model.safetensors, a training checkpoint included) or a "
+    "training run directory (its model/ is used)."
+)
+
+
+def model_option(default: Any = None, help: str = "", panel: str | None = None) -> Any:
+    """``-m/--model`` (``--checkpoint`` also accepted): resolve the value with
+    ``pnvlad_service.models.store.resolve_model_dir``."""
+    return typer.Option(
+        default,
+        "--model",
+        "--checkpoint",
+        "-m",
+        help=f"{help} {MODEL_HELP}".strip(),
+        rich_help_panel=panel,
+    )
+
+
+def root_option(default: Any = None, panel: str | None = None) -> Any:
+    """``-r/--root``: a benchmark tree."""
+    return typer.Option(
+        default,
+        "--root",
+        "-r",
+        help="Benchmark tree root (holds oxford/, ...).",
+        rich_help_panel=panel,
+    )
+
+
+def splits_option(panel: str | None = None) -> Any:
+    """``--splits``: our splits JSON."""
+    return typer.Option(
+        None,
+        "--splits",
+        help="Splits JSON from 'pnvlad data splits' (default: built from the tree).",
+        rich_help_panel=panel,
+    )
+
+
+def pickles_option(help: str, panel: str | None = None) -> Any:
+    """``--pickles``: the published pickles instead of ``--splits``."""
+    return typer.Option(None, "--pickles", help=help, rich_help_panel=panel)
