@@ -103,7 +103,9 @@ def _open_bag(bag: Path) -> AnyReader:
         reader = any_reader([bag], default_typestore=get_typestore(Stores.LATEST))
         reader.open()
     except Exception as exc:  # rosbags raises many kinds (ReaderError, apsw, struct, KeyError)
-        raise InputError(f"not a readable ROS bag ({_reason(exc)})", bag) from None
+        raise InputError(
+            f"not a readable ROS bag (truncated, damaged or another format: {_reason(exc)})", bag
+        ) from None
     return reader
 
 
