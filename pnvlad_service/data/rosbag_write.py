@@ -223,6 +223,7 @@ def write_drive_bag(
     odom_frame: str = "odom",
     truth: np.ndarray | None = None,
     truth_topic: str = "/ground_truth",
+    tf_topic: str | None = None,
     ros: Literal[1, 2] | None = None,
     storage: Literal["sqlite3", "mcap"] = "sqlite3",
     progress: bool = False,
@@ -232,7 +233,8 @@ def write_drive_bag(
     Poses are written in ``odom_frame``, the UTM frame shifted so that ``origin_ne`` (northing,
     easting) is its origin (``RosbagDrive(..., origin_ne=origin_ne)`` reads them back in UTM);
     ``truth`` (float64 [T, 4, 4], UTM) adds a second Odometry topic, e.g. a simulated drive's
-    true poses. Messages are stamped with the drive's timestamps (µs -> ns), clouds first.
+    true poses; ``tf_topic`` (e.g. ``"/tf"``) also writes each pose as a transform
+    ``odom_frame`` <- ``frame_id``. Messages are stamped with the drive's timestamps (µs -> ns).
     """
     shift = np.array([origin_ne[1], origin_ne[0], 0.0])
     poses = np.asarray(drive.poses, dtype=np.float64).copy()
@@ -243,7 +245,9 @@ def write_drive_bag(
     from tqdm.auto import tqdm
 
     with BagWriter(path, ros=ros, storage=storage) as bag:
-        for i in tqdm(range(len(drive)), desc="bag", unit="scan", disable=not progress):
+        for i in tqdm(
+            range(len(drive)), desc="bag", unit="scan", disable=None if progress else True
+        ):
             ns = int(drive.timestamps[i]) * 1000
             pts = np.asarray(drive.scan(i), dtype=np.float32)
             bag.write(cloud_topic, pointcloud2(bag.types, pts, ns, frame_id), ns)
@@ -251,4 +255,7 @@ def write_drive_bag(
             if truth is not None:
                 msg = odometry(bag.types, truth[i], ns, odom_frame, frame_id)
                 bag.write(truth_topic, msg, ns)
+            if tf_topic is not None:
+                msg = tf_message(bag.types, [(odom_frame, frame_id, poses[i], ns)])
+                bag.write(tf_topic, msg, ns)
     return Path(path)
