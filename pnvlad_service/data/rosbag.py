@@ -27,14 +27,15 @@ bag is cut into submaps by the same code path as a KITTI sequence or a CSV drive
   placed (:func:`pnvlad_service.data.prepare.kitti_poses_to_world`; translations snapped to the
   same grid, so a bag and a KITTI sequence of the same scans and poses give the same bytes).
 
-Scans are read lazily: opening the drive indexes the cloud topic (each message's bag time and
-header stamp, parsed from the first bytes of the message without decoding the cloud) and reads
-the pose stream; :meth:`RosbagDrive.scan` decodes one cloud. Reads in time order stream through
-the bag (what the submap cutter does); a jump back or far ahead reopens the stream at the
-message's bag time. Every problem with the bag (not a bag, truncated, a missing topic or one of
-another type, a cloud without x/y/z, poses that do not overlap the clouds) is an
-:class:`~pnvlad_service.errors.InputError` whose source is the bag and whose message names the
-topic.
+Clouds are decoded by :mod:`pnvlad_service.data.pointcloud2`, poses interpolated and /tf chained
+by :mod:`pnvlad_service.data.pose_streams`. Scans are read lazily: opening the drive indexes the
+cloud topic (each message's bag time and header stamp, parsed from the first bytes of the
+message without decoding the cloud) and reads the pose stream; :meth:`RosbagDrive.scan` decodes
+one cloud. Reads in time order stream through the bag (what the submap cutter does); a jump back
+or far ahead reopens the stream at the message's bag time. Every problem with the bag (not a
+bag, truncated, a missing topic or one of another type, a cloud without x/y/z, poses that do not
+overlap the clouds) is an :class:`~pnvlad_service.errors.InputError` whose source is the bag and
+whose message names the topic.
 """
 
 from __future__ import annotations
@@ -49,6 +50,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pnvlad_service.data.pointcloud2 import CloudError, decode_pointcloud2, header_stamp
+from pnvlad_service.data.pose_streams import (
+    POSE_AFTER,
+    POSE_BEFORE,
+    POSE_GAP,
+    POSE_OK,
+    PoseStream,
+    TransformTree,
+    rotations,
+)
 from pnvlad_service.data.prepare import snap_m, yaw_matrix
 from pnvlad_service.errors import InputError, MissingDependencyError
 
@@ -65,9 +76,6 @@ TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: Message types a ``pose_topic`` may have.
 POSE_TYPES = (ODOMETRY_TYPE, POSE_STAMPED_TYPE, POSE_COV_TYPE)
 
-#: PointField datatypes allowed for x, y and z (the others are integers).
-_FLOAT_FIELDS = {7: "f4", 8: "f8"}
-_FIELD_NAMES = {1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32"}
 
 #: A read this many messages or fewer ahead of the stream's position advances the stream;
 #: farther (or backwards) it is reopened at the message's bag time.
@@ -107,6 +115,10 @@ def _open_bag(bag: Path) -> AnyReader:
             f"not a readable ROS bag (truncated, damaged or another format: {_reason(exc)})", bag
         ) from None
     return reader
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def _reason(exc: BaseException) -> str:
@@ -159,189 +171,6 @@ def _connections(
             f"topic {topic!r} holds {', '.join(sorted(found))}, not {' or '.join(types)}", bag
         )
     return conns, next(iter(found))
-
-
-# --------------------------------------------------------------------------------------------
-# Clouds
-
-
-class CloudError(ValueError):
-    """A PointCloud2 message that cannot be decoded (the drive adds the bag and topic)."""
-
-
-def decode_pointcloud2(msg: Any) -> np.ndarray:
-    """x, y, z of a ``sensor_msgs/msg/PointCloud2`` message: [height * width, 3], row order.
-
-    float32 when x, y and z are all float32, else float64; non-finite points are kept (the
-    drive drops and counts them). ``msg`` needs ``height``, ``width``, ``fields`` (``name``,
-    ``offset``, ``datatype``), ``is_bigendian``, ``point_step``, ``row_step`` and ``data``.
-    Raises :class:`CloudError` on a cloud without x/y/z, with integer coordinates, or whose
-    sizes do not fit its data.
-    """
-    fields = {}
-    for f in msg.fields:
-        fields.setdefault(f.name, f)
-    missing = [n for n in "xyz" if n not in fields]
-    if missing:
-        names = ", ".join(f.name for f in msg.fields) or "none"
-        raise CloudError(f"PointCloud2 without field(s) {', '.join(missing)} (fields: {names})")
-    order = ">" if msg.is_bigendian else "<"
-    formats, offsets = [], []
-    for n in "xyz":
-        f = fields[n]
-        code = _FLOAT_FIELDS.get(int(f.datatype))
-        if code is None:
-            kind = _FIELD_NAMES.get(int(f.datatype), f"datatype {f.datatype}")
-            raise CloudError(f"field {n} is {kind}: x, y and z must be float32 or float64")
-        if f.offset + int(code[1]) > msg.point_step:
-            raise CloudError(
-                f"field {n} at offset {f.offset} does not fit a point of {msg.point_step} bytes"
-            )
-        formats.append(order + code)
-        offsets.append(int(f.offset))
-    height, width = int(msg.height), int(msg.width)
-    step, row = int(msg.point_step), int(msg.row_step)
-    out_dtype = np.float32 if all(c.endswith("f4") for c in formats) else np.float64
-    if height * width == 0:
-        return np.empty((0, 3), dtype=out_dtype)
-    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
-    need = (height - 1) * row + width * step
-    if row < width * step or data.size < need:
-        raise CloudError(
-            f"{height} x {width} points of {step} bytes in rows of {row} bytes need "
-            f"{need} bytes of data, the message has {data.size}"
-        )
-    dtype = np.dtype(
-        {"names": list("xyz"), "formats": formats, "offsets": offsets, "itemsize": step}
-    )
-    grid = np.ndarray((height, width), dtype=dtype, buffer=data, strides=(row, step))
-    pts = np.empty((height * width, 3), dtype=out_dtype)
-    for k, n in enumerate("xyz"):
-        pts[:, k] = grid[n].reshape(-1)
-    return pts
-
-
-def _header_stamp(raw: bytes | memoryview, ros2: bool) -> tuple[int, str] | None:
-    """(header stamp ns, frame_id) read from a serialised message that starts with a Header.
-
-    ROS 1: seq, secs, nsecs, frame_id; ROS 2 CDR: 4 bytes of encapsulation, sec, nanosec,
-    frame_id (NUL-terminated). ``None`` for an encapsulation this does not know (the caller then
-    deserialises the message).
-    """
-    if ros2:
-        kind = raw[1]
-        if raw[0] != 0 or kind not in (0, 1):
-            return None
-        fmt = "<" if kind == 1 else ">"
-        sec, nsec, n = struct.unpack_from(fmt + "iII", raw, 4)
-        n = max(n - 1, 0)  # the CDR string's length counts its NUL
-    else:
-        sec, nsec, n = struct.unpack_from("<III", raw, 4)
-    frame = bytes(raw[16 : 16 + n])
-    if len(frame) != n:
-        raise struct.error("frame_id runs past the end of the message")
-    return sec * 1_000_000_000 + nsec, frame.decode("utf-8", "replace")
-
-
-# --------------------------------------------------------------------------------------------
-# Poses
-
-
-def _stamp_ns(stamp: Any) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def _rotations(quats: np.ndarray) -> Any:
-    """scipy Rotations from [K, 4] x, y, z, w quaternions (ROS order); ValueError on a zero."""
-    from scipy.spatial.transform import Rotation
-
-    norms = np.linalg.norm(quats, axis=1)
-    if not np.all(np.isfinite(quats)) or np.any(norms < 1e-9):
-        raise ValueError("a pose holds a zero or non-finite quaternion")
-    return Rotation.from_quat(quats)
-
-
-def _matrices(positions: np.ndarray, rotations: Any) -> np.ndarray:
-    m = np.tile(np.eye(4), (len(positions), 1, 1))
-    m[:, :3, :3] = rotations.as_matrix()
-    m[:, :3, 3] = positions
-    return m
-
-
-#: Codes of :func:`interpolate_poses`' ``status``.
-POSE_OK, POSE_BEFORE, POSE_AFTER, POSE_GAP = 0, 1, 2, 3
-
-
-def interpolate_poses(
-    times_ns: np.ndarray,
-    positions: np.ndarray,
-    quats: np.ndarray,
-    query_ns: np.ndarray,
-    *,
-    max_gap_ns: int | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Poses at ``query_ns``: linear in position, slerp in rotation between the two samples.
-
-    ``times_ns``: int64 [K] strictly increasing; ``positions``: float64 [K, 3]; ``quats``:
-    float64 [K, 4] (x, y, z, w); ``query_ns``: int64 [T]. Returns (float64 [T, 4, 4], int8 [T]
-    status: :data:`POSE_OK`, :data:`POSE_BEFORE` / :data:`POSE_AFTER` the samples' span, or
-    :data:`POSE_GAP` when the two samples around it are more than ``max_gap_ns`` apart). A query
-    at a sample's time gets that sample exactly. Poses whose status is not OK are identities.
-    """
-    from scipy.spatial.transform import Rotation
-
-    t = np.asarray(times_ns, dtype=np.int64)
-    q_ns = np.asarray(query_ns, dtype=np.int64)
-    out = np.tile(np.eye(4), (len(q_ns), 1, 1))
-    status = np.zeros(len(q_ns), dtype=np.int8)
-    status[q_ns < t[0]] = POSE_BEFORE
-    status[q_ns > t[-1]] = POSE_AFTER
-    inside = np.nonzero(status == POSE_OK)[0]
-    q = q_ns[inside]
-    k = np.searchsorted(t, q, side="right") - 1  # t[k] <= q
-    exact = t[k] == q
-    k1 = np.minimum(k + 1, len(t) - 1)
-    if max_gap_ns is not None:
-        gap = ~exact & (t[k1] - t[k] > max_gap_ns)
-        status[inside[gap]] = POSE_GAP
-        inside, k, k1, q, exact = inside[~gap], k[~gap], k1[~gap], q[~gap], exact[~gap]
-    rot = _rotations(np.asarray(quats, dtype=np.float64))
-    pos = np.asarray(positions, dtype=np.float64)
-    # Fractions from integer differences: exact for stamps near 1.7e18 ns.
-    span = np.where(exact, 1, t[k1] - t[k]).astype(np.float64)
-    alpha = np.where(exact, 0.0, (q - t[k]).astype(np.float64) / span)
-    p = pos[k] + alpha[:, None] * (pos[k1] - pos[k])
-    r0 = rot[k] if len(k) else Rotation.identity(0)
-    if len(k):
-        rel = (r0.inv() * rot[k1]).as_rotvec()
-        r = r0 * Rotation.from_rotvec(rel * alpha[:, None])
-        mats = _matrices(p, r)
-        mats[exact] = _matrices(pos[k[exact]], rot[k[exact]])
-        out[inside] = mats
-    return out, status
-
-
-@dataclass
-class _Stream:
-    """A pose time series: int64 [K] ns, float64 [K, 3], float64 [K, 4] (x, y, z, w)."""
-
-    times: np.ndarray
-    positions: np.ndarray
-    quats: np.ndarray
-
-    @classmethod
-    def of(cls, rows: list[tuple[int, Sequence[float], Sequence[float]]]) -> _Stream:
-        rows.sort(key=lambda r: r[0])
-        t = np.array([r[0] for r in rows], dtype=np.int64)
-        keep = np.r_[True, np.diff(t) > 0]  # the first of equal stamps
-        p = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
-        q = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
-        return cls(t[keep], p[keep], q[keep])
-
-    def at(self, query_ns: np.ndarray, max_gap_ns: int | None) -> tuple[np.ndarray, np.ndarray]:
-        return interpolate_poses(
-            self.times, self.positions, self.quats, query_ns, max_gap_ns=max_gap_ns
-        )
 
 
 @dataclass
@@ -487,7 +316,7 @@ class RosbagDrive:
         frames: set[str] = set()
         for conn, t, raw in self._messages(self._conns):
             try:
-                head = _header_stamp(raw, ros2)
+                head = header_stamp(raw, ros2)
             except (struct.error, IndexError):
                 raise InputError(
                     self._where(f"message {len(log_ns)} is too short for a PointCloud2"), self.bag
@@ -547,7 +376,7 @@ class RosbagDrive:
 
     # -- poses ----------------------------------------------------------------------------
 
-    def _read_stream(self, conns: list[Any], msgtype: str) -> tuple[_Stream, str, str | None]:
+    def _read_stream(self, conns: list[Any], msgtype: str) -> tuple[PoseStream, str, str | None]:
         """A pose topic as a stream: (poses of its child frame, parent frame, child frame)."""
         topic = conns[0].topic
         rows, parents, children = [], set(), set()
@@ -573,12 +402,12 @@ class RosbagDrive:
         if not rows:
             raise InputError(f"topic {topic!r}: no messages", self.bag)
         try:
-            _rotations(np.array([r[2] for r in rows], dtype=np.float64))
+            rotations(np.array([r[2] for r in rows], dtype=np.float64))
         except ValueError as exc:
             raise InputError(f"topic {topic!r}: {exc}", self.bag) from None
         child = children.pop() if len(children) == 1 else None
         parent = parents.pop() if len(parents) == 1 else "?"
-        return _Stream.of(rows), parent, child
+        return PoseStream.of(rows), parent, child
 
     def _poses(self, pose_topic: str | None, tf_frame: str | None, gap: int | None) -> np.ndarray:
         """Local poses (fixed frame <- cloud frame) of the kept scans; drops the others."""
@@ -650,9 +479,9 @@ class RosbagDrive:
             )
         return poses[order]
 
-    def _tf_tree(self, *, static_only: bool) -> _TfTree:
+    def _tf_tree(self, *, static_only: bool) -> TransformTree:
         assert self._reader is not None
-        tree = _TfTree()
+        tree = TransformTree()
         dyn, stat = self.tf_topics
         for topic, is_static in ((stat, True), (dyn, False)):
             if static_only and not is_static:
@@ -667,16 +496,20 @@ class RosbagDrive:
                 msg = self._deserialize(raw, TF_TYPE, topic)
                 for tr in msg.transforms:
                     stamp = _stamp_ns(tr.header.stamp)
-                    tree.add(
-                        tr.header.frame_id.lstrip("/"),
-                        tr.child_frame_id.lstrip("/"),
-                        t if self.use_log_time or stamp == 0 else stamp,
-                        tr.transform,
-                        static=is_static,
-                        topic=topic,
-                        bag=self.bag,
-                    )
-        return tree.finish(self.bag)
+                    try:
+                        tree.add(
+                            tr.header.frame_id.lstrip("/"),
+                            tr.child_frame_id.lstrip("/"),
+                            t if self.use_log_time or stamp == 0 else stamp,
+                            tr.transform,
+                            static=is_static,
+                        )
+                    except ValueError as exc:
+                        raise InputError(f"{topic}: {exc}", self.bag) from None
+        try:
+            return tree.finish()
+        except ValueError as exc:
+            raise InputError(f"{' + '.join(self.tf_topics)}: {exc}", self.bag) from None
 
     # -- the Drive face -------------------------------------------------------------------
 
@@ -716,98 +549,3 @@ class RosbagDrive:
 
 def _span(span: tuple[int, int]) -> str:
     return f"{span[0] / 1e9:.3f}..{span[1] / 1e9:.3f} s"
-
-
-class _TfTree:
-    """Transforms of /tf and /tf_static: each child frame with its parent and its poses in it."""
-
-    def __init__(self) -> None:
-        self.parent: dict[str, str] = {}
-        self.rows: dict[str, list[tuple[int, Sequence[float], Sequence[float]]]] = {}
-        self.static: dict[str, bool] = {}
-        self.streams: dict[str, _Stream] = {}
-
-    def add(
-        self,
-        parent: str,
-        child: str,
-        stamp: int,
-        transform: Any,
-        *,
-        static: bool,
-        topic: str,
-        bag: Path,
-    ) -> None:
-        old = self.parent.setdefault(child, parent)
-        if old != parent:
-            raise InputError(
-                f"{topic}: frame {child!r} has two parents, {old!r} and {parent!r}", bag
-            )
-        tr, rot = transform.translation, transform.rotation
-        self.rows.setdefault(child, []).append(
-            (stamp, (tr.x, tr.y, tr.z), (rot.x, rot.y, rot.z, rot.w))
-        )
-        if static:
-            self.static[child] = True
-        else:
-            self.static.setdefault(child, False)
-
-    def finish(self, bag: Path) -> _TfTree:
-        for child, rows in self.rows.items():
-            if self.static[child]:
-                rows = rows[-1:]  # a static transform: the latest one holds at every time
-            try:
-                _rotations(np.array([r[2] for r in rows], dtype=np.float64))
-            except ValueError as exc:
-                raise InputError(f"transform {self.parent[child]} <- {child}: {exc}", bag) from None
-            self.streams[child] = _Stream.of(list(rows))
-        return self
-
-    def frames(self) -> list[str]:
-        return sorted(set(self.parent) | set(self.parent.values()))
-
-    def _up(self, frame: str) -> list[str]:
-        """``frame`` and its ancestors, up to the root."""
-        path = [frame]
-        while path[-1] in self.parent and len(path) <= len(self.parent):
-            path.append(self.parent[path[-1]])
-        return path
-
-    def has_path(self, a: str, b: str) -> bool:
-        return a == b or bool(set(self._up(a)) & set(self._up(b)))
-
-    def _to_ancestor(
-        self, frame: str, ancestor: str, query: np.ndarray, gap: int | None
-    ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-        """ancestor <- frame at each query time, worst status and the dynamic edges' span."""
-        total = np.tile(np.eye(4), (len(query), 1, 1))
-        status = np.zeros(len(query), dtype=np.int8)
-        lo, hi = -(2**62), 2**62
-        f = frame
-        while f != ancestor:
-            stream = self.streams[f]
-            if self.static[f]:
-                edge = _matrices(stream.positions[-1:], _rotations(stream.quats[-1:]))
-            else:
-                edge, st = stream.at(query, gap)
-                status = np.maximum(status, st)
-                lo, hi = max(lo, int(stream.times[0])), min(hi, int(stream.times[-1]))
-            total = edge @ total
-            f = self.parent[f]
-        return total, status, (lo, hi)
-
-    def chain(
-        self, fixed: str, frame: str, query: np.ndarray, gap: int | None
-    ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-        """fixed <- frame at each query time: (float64 [T, 4, 4], status [T], span ns)."""
-        up_frame = self._up(frame)
-        common = next(f for f in self._up(fixed) if f in up_frame)
-        a, status, span = self._to_ancestor(frame, common, query, gap)
-        if fixed != common:  # the fixed frame hangs below the common ancestor: go down to it
-            b, sb, span_b = self._to_ancestor(fixed, common, query, gap)
-            a = np.linalg.inv(b) @ a
-            status = np.maximum(status, sb)
-            span = (max(span[0], span_b[0]), min(span[1], span_b[1]))
-        if span == (-(2**62), 2**62):  # static transforms only
-            span = (int(query.min()), int(query.max()))
-        return a, status, span

@@ -18,21 +18,13 @@ from typing import Any, Literal
 
 import numpy as np
 
+from pnvlad_service.data.pointcloud2 import POINTFIELD_TYPES
 from pnvlad_service.errors import InputError, MissingDependencyError
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 
-#: numpy kind + size -> PointField datatype.
-_POINTFIELD = {
-    ("i", 1): 1,
-    ("u", 1): 2,
-    ("i", 2): 3,
-    ("u", 2): 4,
-    ("i", 4): 5,
-    ("u", 4): 6,
-    ("f", 4): 7,
-    ("f", 8): 8,
-}
+#: numpy type code -> PointField datatype.
+_POINTFIELD = {code: datatype for datatype, code in POINTFIELD_TYPES.items()}
 
 
 class BagWriter:
@@ -139,7 +131,7 @@ def pointcloud2(
     fields = []
     for name in names:
         dt, offset = arr.dtype.fields[name][:2]
-        code = _POINTFIELD[(dt.kind, dt.itemsize)]
+        code = _POINTFIELD[f"{dt.kind}{dt.itemsize}"]
         fields.append(field_cls(name=name, offset=offset, datatype=code, count=1))
     big = any(arr.dtype.fields[n][0].byteorder == ">" for n in names)
     if len(arr) % height:

@@ -20,18 +20,16 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from pnvlad_service.data.prepare import KittiSequence, kitti_poses_to_world, prepare_drive
-from pnvlad_service.data.rosbag import (
+from pnvlad_service.data.pointcloud2 import decode_pointcloud2
+from pnvlad_service.data.pose_streams import (
     POSE_AFTER,
     POSE_BEFORE,
     POSE_GAP,
     POSE_OK,
-    BagTopic,
-    RosbagDrive,
-    decode_pointcloud2,
     interpolate_poses,
-    list_topics,
 )
+from pnvlad_service.data.prepare import KittiSequence, kitti_poses_to_world, prepare_drive
+from pnvlad_service.data.rosbag import BagTopic, RosbagDrive, list_topics
 from pnvlad_service.data.rosbag_write import (
     BagWriter,
     odometry,
@@ -137,6 +135,27 @@ def test_bag_is_the_same_drive_as_the_kitti_sequence(
             np.testing.assert_array_equal(got, kitti.scan(i))
         assert drive.stats.clouds == drive.stats.scans == FRAMES
         assert drive.stats.dropped() == ""
+
+
+def test_scans_are_decoded_only_when_asked_for(
+    sequence: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import pnvlad_service.data.rosbag as rosbag
+
+    decoded: list[int] = []
+    real = rosbag.decode_pointcloud2
+
+    def counting(msg):
+        decoded.append(msg.header.stamp.nanosec)
+        return real(msg)
+
+    monkeypatch.setattr(rosbag, "decode_pointcloud2", counting)
+    bag = bag_of_sequence(tmp_path / "lazy.bag", sequence, ros=1)
+    with RosbagDrive(bag, "/velodyne_points", pose_topic="/odom") as drive:
+        assert len(decoded) == 1  # opening checks the first cloud's fields, no more
+        drive.scan(7)
+        drive.scan(8)
+        assert decoded[1:] == [700_000_000, 800_000_000]
 
 
 @pytest.mark.parametrize(
@@ -285,7 +304,7 @@ def test_cloud_with_extra_fields_in_any_order_and_byte_order(tmp_path: Path, ord
 def test_decode_refuses_clouds_whose_sizes_do_not_fit() -> None:
     from types import SimpleNamespace as NS
 
-    from pnvlad_service.data.rosbag import CloudError
+    from pnvlad_service.data.pointcloud2 import CloudError
 
     fields = [NS(name=n, offset=4 * k, datatype=7, count=1) for k, n in enumerate("xyz")]
     ok = NS(
@@ -623,16 +642,16 @@ def test_missing_rosbags_names_the_extra(monkeypatch: pytest.MonkeyPatch, small_
 def test_header_parse_matches_the_deserialiser(small_bag: Path) -> None:
     from rosbags.highlevel import AnyReader
 
-    from pnvlad_service.data.rosbag import _header_stamp
+    from pnvlad_service.data.pointcloud2 import header_stamp
 
     with AnyReader([small_bag]) as reader:
         conn = next(c for c in reader.connections if c.topic == "/points")
         for _, _, raw in reader.messages(connections=[conn]):
             msg = reader.deserialize(raw, conn.msgtype)
             stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-            assert _header_stamp(raw, ros2=False) == (stamp, "lidar")
+            assert header_stamp(raw, ros2=False) == (stamp, "lidar")
     with pytest.raises(struct.error):
-        _header_stamp(b"\x00" * 10, ros2=False)
+        header_stamp(b"\x00" * 10, ros2=False)
 
 
 # --------------------------------------------------------------------------------------------
