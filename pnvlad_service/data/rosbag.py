@@ -238,7 +238,7 @@ class RosbagDrive:
         tf_frame: str | None = None,
         origin_ne: tuple[float, float] = (0.0, 0.0),
         yaw_deg: float = 0.0,
-        max_pose_gap_s: float | None = 1.0,
+        max_pose_gap_s: float | None = 2.0,
         use_log_time: bool = False,
         tf_topics: tuple[str, str] = ("/tf", "/tf_static"),
         name: str | None = None,
