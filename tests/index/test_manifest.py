@@ -130,3 +130,16 @@ def test_read_refuses_what_is_not_a_manifest(world: dict[str, Path], tmp_path: P
         (tmp_path / MANIFEST_FILE).write_text(text)
         with pytest.raises(InputError, match=message):
             Manifest.read(tmp_path)
+
+
+def test_a_bundle_written_before_the_typed_manifest_loads_unchanged() -> None:
+    """tests/index/bundle_v1: 8 vectors written by the dict-manifest code (commit d61b219)."""
+    from pnvlad_service.index.bundle import IndexBundle
+
+    old = Path(__file__).parent / "bundle_v1"
+    doc = json.loads((old / MANIFEST_FILE).read_text())
+    assert Manifest.read(old).to_json() == doc
+    bundle = IndexBundle.load(old)
+    assert (bundle.count, bundle.dim, bundle.key) == (8, 16, "Flat")
+    assert bundle.manifest.model.weights_sha256 == doc["model"]["weights_sha256"]
+    assert bundle.manifest.build == {"processes": 1, "embed_seconds": doc["build"]["embed_seconds"]}
