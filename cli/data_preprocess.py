@@ -108,7 +108,8 @@ def preprocess(
 
         from pnvlad_service.data.preprocess import GConfig, apply_g
         from pnvlad_service.errors import InputError
-        from pnvlad_service.io.readers import read_points, write_submap
+        from pnvlad_service.io.readers import read_points
+        from pnvlad_service.io.submap import write_submap
 
         if out.suffix.lower() not in (".bin", ".npy"):
             raise InputError("the submap is written as .bin or .npy", source=out)

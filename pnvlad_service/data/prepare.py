@@ -803,7 +803,7 @@ def prepare_drive(
     """
     from pnvlad_service.data.preprocess import GConfig, filter_g
     from pnvlad_service.data.tree import write_locations_csv
-    from pnvlad_service.io.readers import write_submap
+    from pnvlad_service.io.submap import write_submap
 
     started = time.perf_counter()
     out = Path(out_run_dir)

@@ -30,15 +30,12 @@ import numpy as np
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_write_text
+from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_BYTES, SUBMAP_POINTS, read_submap
 
 log = logging.getLogger(__name__)
 
 Kind = Literal["train", "test"]
 KINDS: tuple[Kind, Kind] = ("train", "test")
-
-#: Points per submap and bytes per ``.bin`` file (float64 × 3 × 4096).
-SUBMAP_POINTS = 4096
-SUBMAP_BYTES = SUBMAP_POINTS * 3 * 8
 
 CSV_COLUMNS = ("timestamp", "northing", "easting")
 
@@ -366,12 +363,12 @@ def _check_bin(path: Path, deep: bool) -> str | None:
     size = path.stat().st_size
     if size != SUBMAP_BYTES:
         what = "truncated" if size < SUBMAP_BYTES else "oversized"
-        return f"{what}: {size} bytes, expected {SUBMAP_BYTES} (4096 points × 3 float64)"
+        return f"{what}: {size} bytes, expected {SUBMAP_BYTES} ({SUBMAP_POINTS} points × 3 float64)"
     if deep:
-        pts = np.fromfile(path, dtype="<f8")
+        pts = read_submap(path)
         if not np.isfinite(pts).all():
             return "holds NaN or infinite coordinates"
-        if np.abs(pts).max() > 1.0:
+        if np.abs(pts).max() > SUBMAP_BOUND:
             return f"coordinates outside [-1, 1] (max |value| {np.abs(pts).max():.3g})"
     return None
 
