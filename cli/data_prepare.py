@@ -208,7 +208,8 @@ def prepare(
       --out bench/campus/run1
     """
     with user_errors():
-        from pnvlad_service.data.prepare import CsvDrive, KittiSequence, prepare_drive
+        from pnvlad_service.data.drives import CsvDrive, KittiSequence
+        from pnvlad_service.data.prepare import prepare_drive
         from pnvlad_service.errors import InputError
 
         if (kitti is None) == (scans is None):
