@@ -1,4 +1,4 @@
-"""benchmark.py: layouts, location CSVs, BenchmarkTree, check_tree and `pnvlad data check`."""
+"""data.tree: layouts, location CSVs, BenchmarkTree, check_tree and `pnvlad data check`."""
 
 from __future__ import annotations
 
@@ -12,13 +12,13 @@ from typer.testing import CliRunner
 
 from pnvlad_service.data.tree import (
     LAYOUTS,
-    SUBMAP_BYTES,
     BenchmarkTree,
     check_tree,
     read_locations_csv,
     write_locations_csv,
 )
 from pnvlad_service.errors import InputError
+from pnvlad_service.io.submap import SUBMAP_BYTES
 
 
 def make_run(
@@ -240,6 +240,41 @@ def test_check_folder_without_csv_and_empty_dataset(tmp_path: Path) -> None:
     (root / "empty_area").mkdir()
     assert "without pointcloud_locations_20m.csv" in _one_problem(root, "folder without")
     assert _one_problem(root, "empty dataset").startswith("empty_area")
+
+
+def test_check_lists_ten_of_each_and_counts_the_rest(tmp_path: Path) -> None:
+    root = good_tree(tmp_path)
+    run = root / RUN
+    rows = "".join(f"{1000 + k},5735000.0,620000.0\n" for k in range(13))
+    (run / "pointcloud_locations_20m.csv").write_text("timestamp,northing,easting\n" + rows)
+    for k in range(12):
+        np.zeros((4096, 3)).tofile(run / "pointcloud_20m" / f"{5000 + k}.bin")
+    report = check_tree(root)
+    messages = [(p.path, p.message) for p in report.problems]
+    folder = f"{RUN}/pointcloud_20m"
+    no_file = [p for p, m in messages if m == "CSV row without a file"]
+    assert no_file == [f"{folder}/{1000 + k}.bin" for k in range(10)]
+    assert (folder, "3 more rows without file") in messages
+    extra = sorted(f"{t}.bin" for t in [15, 25, *range(5000, 5012)])[:10]
+    no_row = [p for p, m in messages if m.startswith("file without a row")]
+    assert no_row == [f"{folder}/{name}" for name in extra]
+    assert (folder, "4 more files without row") in messages
+    assert len(messages) == 10 + 1 + 10 + 1
+
+
+def test_check_csv_without_folder_and_a_root_without_datasets(tmp_path: Path) -> None:
+    root = good_tree(tmp_path / "a")
+    for f in (root / RUN / "pointcloud_20m").iterdir():
+        f.unlink()
+    (root / RUN / "pointcloud_20m").rmdir()
+    assert _one_problem(root, "CSV without folder") == (
+        f"{RUN}/pointcloud_locations_20m.csv: CSV without folder pointcloud_20m"
+    )
+    (tmp_path / "b").mkdir()
+    report = check_tree(tmp_path / "b")
+    assert [(p.path, p.message) for p in report.problems] == [
+        (str(tmp_path / "b"), "no dataset folders")
+    ]
 
 
 def test_check_deep_reads_values(tmp_path: Path) -> None:
