@@ -294,19 +294,6 @@ class BenchmarkTree:
             for k, (t, n, e) in enumerate(loc.rows())
         ]
 
-    def all_submaps(self, dataset: str, kind: Kind) -> list[Submap]:
-        """The submaps of every run of ``dataset`` that has ``kind``: runs sorted, CSV order."""
-        out: list[Submap] = []
-        for run in self.runs(dataset):
-            if self.has(dataset, run, kind):
-                out.extend(self.submaps(dataset, run, kind))
-        return out
-
-    def abspath(self, submap: Submap | str) -> Path:
-        """Absolute path of a submap (a ``Submap`` or a relative path)."""
-        rel = submap.path if isinstance(submap, Submap) else submap
-        return self.root.joinpath(*rel.split("/"))
-
 
 # --------------------------------------------------------------------------------------------
 # check_tree

@@ -218,16 +218,6 @@ def _concat_cylinders(*parts: Cylinders) -> Cylinders:
     )
 
 
-def _empty_boxes() -> Boxes:
-    return Boxes(
-        np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int8)
-    )
-
-
-def _empty_cylinders() -> Cylinders:
-    return Cylinders(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.int8))
-
-
 @dataclass
 class _Movers:
     """Objects moving along the streets: road index, start distance, speed (m/s, signed),

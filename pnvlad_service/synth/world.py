@@ -23,12 +23,9 @@ same arrays.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, Field
-
-District = Literal["business", "residential", "campus"]
 
 # Kinds, stored as int8 next to each primitive (used by runs.py for per-run edits and by
 # preview.py for colours).
