@@ -53,7 +53,8 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None, help="scratch folder (default: tmp)")
     args = parser.parse_args()
 
-    from pnvlad_service.data.prepare import KittiSequence, prepare_drive
+    from pnvlad_service.data.drives import KittiSequence
+    from pnvlad_service.data.prepare import prepare_drive
     from pnvlad_service.data.rosbag import RosbagDrive
     from tests.data.test_rosbag import EPOCH_US, KITTI_POINT, STEP_M, bag_of_sequence
 

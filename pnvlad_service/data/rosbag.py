@@ -1,7 +1,7 @@
 """A recorded ROS bag as a drive: PointCloud2 scans with their poses, read lazily.
 
 :class:`RosbagDrive` has the face of every other drive (the ``Drive`` protocol of
-:mod:`pnvlad_service.data.prepare`): ``timestamps`` int64 [T] µs, ``poses`` float64 [T, 4, 4]
+:mod:`pnvlad_service.data.drives`): ``timestamps`` int64 [T] µs, ``poses`` float64 [T, 4, 4]
 sensor-to-world (x east, y north, z up, UTM metres) and ``scan(i)`` [N, 3] sensor frame, so the
 bag is cut into submaps by the same code path as a KITTI sequence or a CSV drive.
 
@@ -24,7 +24,7 @@ bag is cut into submaps by the same code path as a KITTI sequence or a CSV drive
 - Placement: the fixed frame (the odometry's ``odom``, the ``--tf`` frame) is taken as a local
   metric frame with z up; ``origin_ne`` (northing, easting) puts its origin in UTM and
   ``yaw_deg`` turns its x axis counter-clockwise from east, exactly as a KITTI sequence is
-  placed (:func:`pnvlad_service.data.prepare.kitti_poses_to_world`; translations snapped to the
+  placed (:func:`pnvlad_service.data.drives.kitti_poses_to_world`; translations snapped to the
   same grid, so a bag and a KITTI sequence of the same scans and poses give the same bytes).
 
 Clouds are decoded by :mod:`pnvlad_service.data.pointcloud2`, poses interpolated and /tf chained
@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pnvlad_service.data.drives import snap_m, yaw_matrix
 from pnvlad_service.data.pointcloud2 import CloudError, decode_pointcloud2, header_stamp
 from pnvlad_service.data.pose_streams import (
     POSE_AFTER,
@@ -60,7 +61,6 @@ from pnvlad_service.data.pose_streams import (
     TransformTree,
     rotations,
 )
-from pnvlad_service.data.prepare import snap_m, yaw_matrix
 from pnvlad_service.errors import InputError, MissingDependencyError
 
 if TYPE_CHECKING:

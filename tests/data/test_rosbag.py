@@ -20,6 +20,7 @@ import pytest
 
 pytest.importorskip("rosbags")
 
+from pnvlad_service.data.drives import KittiSequence, kitti_poses_to_world
 from pnvlad_service.data.pointcloud2 import decode_pointcloud2
 from pnvlad_service.data.pose_streams import (
     POSE_AFTER,
@@ -28,7 +29,7 @@ from pnvlad_service.data.pose_streams import (
     POSE_OK,
     interpolate_poses,
 )
-from pnvlad_service.data.prepare import KittiSequence, kitti_poses_to_world, prepare_drive
+from pnvlad_service.data.prepare import prepare_drive
 from pnvlad_service.data.rosbag import BagTopic, RosbagDrive, list_topics
 from pnvlad_service.data.rosbag_write import (
     BagWriter,
@@ -330,7 +331,7 @@ def test_decode_refuses_clouds_whose_sizes_do_not_fit() -> None:
 
 
 def yaw_pose(yaw_deg: float, xyz: tuple[float, float, float]) -> np.ndarray:
-    from pnvlad_service.data.prepare import yaw_matrix
+    from pnvlad_service.data.drives import yaw_matrix
 
     m = np.eye(4)
     m[:3, :3] = yaw_matrix(math.radians(yaw_deg))
