@@ -703,3 +703,91 @@ def test_write_drive_bag_round_trip_in_utm(tmp_path: Path, ros: int, storage: st
                 np.testing.assert_array_equal(d.scan(i), scans[i])
     with pytest.raises(InputError, match="already exists"):
         write_drive_bag(ListDrive(scans, poses, stamps), path)
+
+
+# --------------------------------------------------------------------------------------------
+# CLI: pnvlad data prepare --rosbag
+
+
+def run_cli(*args: str):
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    return CliRunner().invoke(app, ["data", "prepare", *args])
+
+
+def test_cli_prepare_rosbag_gives_the_kitti_bytes(
+    sequence: Path, kitti_run: Path, tmp_path: Path
+) -> None:
+    bag = bag_of_sequence(tmp_path / "d.bag", sequence, ros=1, poses_as="tf")
+    origin = f"{ORIGIN[0]!r},{ORIGIN[1]!r}"
+    out = tmp_path / "bench" / "city" / "run"
+    res = run_cli(
+        "--rosbag", str(bag), "--cloud-topic", "/velodyne_points", "--tf", "odom",
+        "--origin", origin, "--yaw", "30", "--points-per-scan", "2000", "--out", str(out),
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "pointcloud_20m_10overlap: 4 submaps" in res.output
+    assert f"d.bag: {FRAMES} of {FRAMES} clouds on /velodyne_points used; poses from /tf" in (
+        res.output
+    )
+    assert tree_bytes(out) == tree_bytes(kitti_run)
+
+
+def test_cli_list_topics(small_bag: Path) -> None:
+    res = run_cli("--rosbag", str(small_bag), "--list")
+    assert res.exit_code == 0, res.output
+    lines = res.output.splitlines()
+    assert lines[0].split() == ["TOPIC", "TYPE", "MESSAGES", "USE", "WITH"]
+    assert lines[2].split() == ["/odom", "nav_msgs/msg/Odometry", "4", "--pose-topic"]
+    assert lines[3].split() == ["/points", "sensor_msgs/msg/PointCloud2", "4", "--cloud-topic"]
+    assert lines[4].split() == ["/tf", "tf2_msgs/msg/TFMessage", "4", "--tf", "FRAME"]
+    assert len(lines) == 6
+
+
+def test_cli_bad_rosbag_input_exits_2_with_one_line(small_bag: Path, tmp_path: Path) -> None:
+    text = tmp_path / "notes.bag"
+    text.write_text("not a bag\n")
+    out = tmp_path / "run"
+    base = ["--out", str(out)]
+    bag = ["--rosbag", str(small_bag)]
+    cases = [
+        ([*bag, "--cloud-topic", "/points", "--pose-topic", "/odom2"], "topic '/odom2' not found"),
+        ([*bag, "--cloud-topic", "/odom", "--pose-topic", "/odom"], "holds nav_msgs/msg/Odometry"),
+        ([*bag, "--cloud-topic", "/points"], "--rosbag needs --pose-topic TOPIC or --tf FRAME"),
+        ([*bag, "--pose-topic", "/odom"], "--rosbag needs --cloud-topic"),
+        ([*bag, "--cloud-topic", "/points", "--pose-topic", "/odom", "--tf", "odom"], "not both"),
+        ([*bag, "--cloud-topic", "/points", "--tf", "map"], "no chain of transforms from 'map'"),
+        ([*bag, "--cloud-topic", "/points", "--pose-topic", "/odom", "--poses", "p.csv"],
+         "do not apply to --rosbag"),
+        (["--rosbag", str(text), "--cloud-topic", "/p", "--tf", "odom"], "not a readable ROS bag"),
+        (["--kitti", str(tmp_path), "--cloud-topic", "/points"], "--cloud-topic: applies to"),
+        (["--kitti", str(tmp_path), "--rosbag", str(small_bag)], "give one of --kitti"),
+        (["--list"], "--list: applies to --rosbag only"),
+    ]  # fmt: skip
+    for args, message in cases:
+        res = run_cli(*args, *base)
+        assert res.exit_code == 2, (args, res.output)
+        errors = [line for line in res.output.splitlines() if line.startswith("error: ")]
+        assert len(errors) == 1 and message in errors[0], (args, res.output)
+    res = run_cli(*bag, "--cloud-topic", "/points", "--pose-topic", "/odom")
+    assert res.exit_code == 2 and "--out: missing" in res.output
+    assert not out.exists()
+
+
+def test_cli_poses_that_do_not_overlap_leave_nothing(tmp_path: Path) -> None:
+    path = tmp_path / "late.bag"
+    t0 = EPOCH_US * 1000
+    with BagWriter(path) as bag:
+        for k in range(3):
+            ns = t0 + k * 100_000_000
+            bag.write("/points", pointcloud2(bag.types, np.ones((3, 3), np.float32), ns, "l"), ns)
+            late = ns + 60 * 10**9
+            bag.write("/odom", odometry(bag.types, np.eye(4), late, "odom", "l"), late)
+    out = tmp_path / "run"
+    res = run_cli("--rosbag", str(path), "--cloud-topic", "/points", "--pose-topic", "/odom",
+                  "--out", str(out))  # fmt: skip
+    assert res.exit_code == 2
+    assert f"error: {path}: pose topic '/odom' does not overlap the clouds" in res.output
+    assert not out.exists()
