@@ -46,7 +46,7 @@ import struct
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -208,25 +208,16 @@ class RosbagStats:
 # The drive
 
 
-class RosbagDrive:
-    """A ROS bag's clouds and poses as a drive (see the module docstring).
+_Clouds = TypeVar("_Clouds", bound="RosbagClouds")
 
-    - ``bag``: a ROS 1 ``.bag`` file, a ROS 2 bag folder, or a ``.db3`` / ``.mcap`` file.
-    - ``cloud_topic``: a ``sensor_msgs/msg/PointCloud2`` topic.
-    - exactly one of ``pose_topic`` (Odometry, PoseStamped or PoseWithCovarianceStamped) and
-      ``tf_frame`` (the fixed frame of ``/tf`` + ``/tf_static`` that the cloud's frame is
-      posed in, e.g. ``odom`` or ``map``).
-    - ``origin_ne`` (northing, easting) and ``yaw_deg``: where the fixed frame lies in UTM and
-      which way its x axis points (counter-clockwise from east), as for a KITTI sequence.
-    - ``max_pose_gap_s``: scans between two pose samples further apart than this are dropped
-      (``None``: interpolate across any gap).
-    - ``use_log_time``: time scans and poses by when the bag recorded them, not by their header
-      stamps (used anyway, with a warning, for a stream whose stamps are all zero).
-    - ``tf_topics``: the dynamic and static transform topics.
 
-    Attributes as the ``Drive`` protocol, plus ``stats`` (:class:`RosbagStats`), ``frame_id``
-    (the clouds' frame) and ``pose_source`` (a line saying where the poses came from). Holds the
-    bag open until :meth:`close` (also a context manager).
+class RosbagClouds:
+    """The clouds of a bag's PointCloud2 topic, in time order, without poses.
+
+    ``timestamps`` int64 [T] µs (header stamps, sorted, a repeated stamp dropped), ``scan(i)``
+    [N, 3] sensor frame, ``frame_id``, ``stats`` (:class:`RosbagStats`); what the replay of a
+    bag without poses needs. :class:`RosbagDrive` adds the poses. Arguments as there; holds
+    the bag open until :meth:`close` (also a context manager).
     """
 
     def __init__(
@@ -234,11 +225,6 @@ class RosbagDrive:
         bag: str | Path,
         cloud_topic: str,
         *,
-        pose_topic: str | None = None,
-        tf_frame: str | None = None,
-        origin_ne: tuple[float, float] = (0.0, 0.0),
-        yaw_deg: float = 0.0,
-        max_pose_gap_s: float | None = 2.0,
         use_log_time: bool = False,
         tf_topics: tuple[str, str] = ("/tf", "/tf_static"),
         name: str | None = None,
@@ -246,10 +232,6 @@ class RosbagDrive:
         self.bag = Path(bag)
         self.cloud_topic = cloud_topic
         self.name = name or (self.bag.stem if self.bag.is_file() else self.bag.name)
-        if (pose_topic is None) == (tf_frame is None):
-            raise InputError("give either a pose topic or a /tf fixed frame (not both)", self.bag)
-        if max_pose_gap_s is not None and not max_pose_gap_s > 0:
-            raise InputError(f"must be > 0 seconds, got {max_pose_gap_s}", "max_pose_gap_s")
         self.use_log_time = use_log_time
         self.tf_topics = tf_topics
         self.stats = RosbagStats()
@@ -261,17 +243,17 @@ class RosbagDrive:
                 self._reader, self.bag, cloud_topic, (CLOUD_TYPE,), "PointCloud2"
             )
             self._index_clouds()
-            gap = None if max_pose_gap_s is None else round(max_pose_gap_s * 1e9)
-            local = self._poses(pose_topic, tf_frame, gap)
         except BaseException:
             self.close()
             raise
-        place = np.eye(4)
-        place[:3, :3] = yaw_matrix(math.radians(yaw_deg))
-        world = place @ local
-        origin = snap_m(np.array([origin_ne[1], origin_ne[0], 0.0]))
-        world[:, :3, 3] = snap_m(world[:, :3, 3]) + origin
-        self.poses = world
+        # Stamps rounded to µs must increase strictly: sort, drop repeats (the first kept).
+        stamps_us = (self._stamp_ns + 500) // 1000
+        order = np.lexsort((np.arange(len(stamps_us)), stamps_us))
+        repeat = np.r_[False, np.diff(stamps_us[order]) == 0]
+        self.stats.duplicate_stamps = int(repeat.sum())
+        self._msg_index = order[~repeat]
+        self.timestamps = stamps_us[self._msg_index].astype(np.int64)
+        self.stats.scans = len(self._msg_index)
 
     # -- reading the bag ------------------------------------------------------------------
 
@@ -374,6 +356,99 @@ class RosbagDrive:
         except CloudError as exc:
             raise InputError(self._where(f"message {k}: {exc}"), self.bag) from None
 
+    # -- the Drive face -------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def scan(self, i: int) -> np.ndarray:
+        """Scan ``i``: [N, 3] sensor frame, metres (float32 if the cloud is); NaNs dropped."""
+        pts = self._decode(int(self._msg_index[i]))
+        finite = np.isfinite(pts[:, 0])  # column by column: 20x faster than .all(axis=1)
+        finite &= np.isfinite(pts[:, 1])
+        finite &= np.isfinite(pts[:, 2])
+        bad = len(pts) - int(finite.sum())
+        if bad:
+            self.stats.nonfinite_points += bad
+            self.stats.scans_with_nonfinite += 1
+            pts = pts[finite]
+        return pts
+
+    def close(self) -> None:
+        """Close the bag (a later :meth:`scan` opens it again)."""
+        self._stream = None
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            try:
+                reader.close()
+            except Exception:  # closing a reader that failed half-way
+                log.debug("closing %s failed", self.bag, exc_info=True)
+
+    def __enter__(self: _Clouds) -> _Clouds:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self.bag)!r}, {self.cloud_topic!r}, {len(self)} scans)"
+
+
+class RosbagDrive(RosbagClouds):
+    """A ROS bag's clouds and poses as a drive (see the module docstring).
+
+    - ``bag``: a ROS 1 ``.bag`` file, a ROS 2 bag folder, or a ``.db3`` / ``.mcap`` file.
+    - ``cloud_topic``: a ``sensor_msgs/msg/PointCloud2`` topic.
+    - exactly one of ``pose_topic`` (Odometry, PoseStamped or PoseWithCovarianceStamped) and
+      ``tf_frame`` (the fixed frame of ``/tf`` + ``/tf_static`` that the cloud's frame is
+      posed in, e.g. ``odom`` or ``map``).
+    - ``origin_ne`` (northing, easting) and ``yaw_deg``: where the fixed frame lies in UTM and
+      which way its x axis points (counter-clockwise from east), as for a KITTI sequence.
+    - ``max_pose_gap_s``: scans between two pose samples further apart than this are dropped
+      (``None``: interpolate across any gap).
+    - ``use_log_time``: time scans and poses by when the bag recorded them, not by their header
+      stamps (used anyway, with a warning, for a stream whose stamps are all zero).
+    - ``tf_topics``: the dynamic and static transform topics.
+
+    Attributes as the ``Drive`` protocol, plus ``stats`` (:class:`RosbagStats`), ``frame_id``
+    (the clouds' frame) and ``pose_source`` (a line saying where the poses came from). Holds the
+    bag open until :meth:`close` (also a context manager).
+    """
+
+    def __init__(
+        self,
+        bag: str | Path,
+        cloud_topic: str,
+        *,
+        pose_topic: str | None = None,
+        tf_frame: str | None = None,
+        origin_ne: tuple[float, float] = (0.0, 0.0),
+        yaw_deg: float = 0.0,
+        max_pose_gap_s: float | None = 2.0,
+        use_log_time: bool = False,
+        tf_topics: tuple[str, str] = ("/tf", "/tf_static"),
+        name: str | None = None,
+    ) -> None:
+        if (pose_topic is None) == (tf_frame is None):
+            raise InputError("give either a pose topic or a /tf fixed frame (not both)", bag)
+        if max_pose_gap_s is not None and not max_pose_gap_s > 0:
+            raise InputError(f"must be > 0 seconds, got {max_pose_gap_s}", "max_pose_gap_s")
+        super().__init__(
+            bag, cloud_topic, use_log_time=use_log_time, tf_topics=tf_topics, name=name
+        )
+        try:
+            gap = None if max_pose_gap_s is None else round(max_pose_gap_s * 1e9)
+            local = self._poses(pose_topic, tf_frame, gap)
+        except BaseException:
+            self.close()
+            raise
+        place = np.eye(4)
+        place[:3, :3] = yaw_matrix(math.radians(yaw_deg))
+        world = place @ local
+        origin = snap_m(np.array([origin_ne[1], origin_ne[0], 0.0]))
+        world[:, :3, 3] = snap_m(world[:, :3, 3]) + origin
+        self.poses = world
+
     # -- poses ----------------------------------------------------------------------------
 
     def _read_stream(self, conns: list[Any], msgtype: str) -> tuple[PoseStream, str, str | None]:
@@ -412,7 +487,7 @@ class RosbagDrive:
     def _poses(self, pose_topic: str | None, tf_frame: str | None, gap: int | None) -> np.ndarray:
         """Local poses (fixed frame <- cloud frame) of the kept scans; drops the others."""
         assert self._reader is not None
-        query = self._stamp_ns
+        query = self._stamp_ns[self._msg_index]
         if pose_topic is not None:
             conns, msgtype = _connections(self._reader, self.bag, pose_topic, POSE_TYPES, "pose")
             stream, parent, child = self._read_stream(conns, msgtype)
@@ -457,27 +532,20 @@ class RosbagDrive:
                 f"{_span(span)}, clouds {_span((int(query.min()), int(query.max())))}",
                 self.bag,
             )
-        # Stamps rounded to µs must increase strictly: sort, drop repeats (the first kept).
-        stamps_us = (self._stamp_ns + 500) // 1000
-        order = np.lexsort((np.arange(len(query)), stamps_us))
-        order = order[keep[order]]
-        repeat = np.r_[False, np.diff(stamps_us[order]) == 0]
-        self.stats.duplicate_stamps = int(repeat.sum())
-        order = order[~repeat]
-        self._msg_index = order
-        self.timestamps = stamps_us[order].astype(np.int64)
-        self.stats.scans = len(order)
+        self._msg_index = self._msg_index[keep]
+        self.timestamps = self.timestamps[keep]
+        self.stats.scans = len(self._msg_index)
         self.pose_source = source
         dropped = self.stats.dropped()
         if dropped:
             log.warning(
                 "%s: %d of %d clouds dropped: %s",
                 self.bag,
-                len(query) - len(order),
-                len(query),
+                self.stats.clouds - self.stats.scans,
+                self.stats.clouds,
                 dropped,
             )
-        return poses[order]
+        return poses[keep]
 
     def _tf_tree(self, *, static_only: bool) -> TransformTree:
         assert self._reader is not None
@@ -510,43 +578,6 @@ class RosbagDrive:
             return tree.finish()
         except ValueError as exc:
             raise InputError(f"{' + '.join(self.tf_topics)}: {exc}", self.bag) from None
-
-    # -- the Drive face -------------------------------------------------------------------
-
-    def __len__(self) -> int:
-        return len(self.timestamps)
-
-    def scan(self, i: int) -> np.ndarray:
-        """Scan ``i``: [N, 3] sensor frame, metres (float32 if the cloud is); NaNs dropped."""
-        pts = self._decode(int(self._msg_index[i]))
-        finite = np.isfinite(pts[:, 0])  # column by column: 20x faster than .all(axis=1)
-        finite &= np.isfinite(pts[:, 1])
-        finite &= np.isfinite(pts[:, 2])
-        bad = len(pts) - int(finite.sum())
-        if bad:
-            self.stats.nonfinite_points += bad
-            self.stats.scans_with_nonfinite += 1
-            pts = pts[finite]
-        return pts
-
-    def close(self) -> None:
-        """Close the bag (a later :meth:`scan` opens it again)."""
-        self._stream = None
-        reader, self._reader = self._reader, None
-        if reader is not None:
-            try:
-                reader.close()
-            except Exception:  # closing a reader that failed half-way
-                log.debug("closing %s failed", self.bag, exc_info=True)
-
-    def __enter__(self) -> RosbagDrive:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def __repr__(self) -> str:
-        return f"RosbagDrive({str(self.bag)!r}, {self.cloud_topic!r}, {len(self)} scans)"
 
 
 def _span(span: tuple[int, int]) -> str:

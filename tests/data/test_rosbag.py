@@ -30,7 +30,7 @@ from pnvlad_service.data.pose_streams import (
     interpolate_poses,
 )
 from pnvlad_service.data.prepare import prepare_drive
-from pnvlad_service.data.rosbag import BagTopic, RosbagDrive, list_topics
+from pnvlad_service.data.rosbag import BagTopic, RosbagClouds, RosbagDrive, list_topics
 from pnvlad_service.data.rosbag_write import (
     BagWriter,
     odometry,
@@ -487,6 +487,14 @@ def test_list_topics(small_bag: Path) -> None:
         BagTopic("/tf", "tf2_msgs/msg/TFMessage", 4),
         BagTopic("/tf_static", "tf2_msgs/msg/TFMessage", 1),
     ]
+
+
+def test_clouds_without_poses(small_bag: Path) -> None:
+    with RosbagClouds(small_bag, "/points") as clouds:
+        assert clouds.timestamps.tolist() == [EPOCH_US + k * 100_000 for k in range(4)]
+        assert clouds.scan(2).shape == (5, 3)
+        assert not hasattr(clouds, "poses")
+        assert repr(clouds) == f"RosbagClouds({str(small_bag)!r}, '/points', 4 scans)"
 
 
 def test_tf_chain_through_a_static_transform(small_bag: Path) -> None:
