@@ -20,9 +20,10 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -30,49 +31,35 @@ from pnvlad_service.data.dataset import EvalRun, load_clouds
 from pnvlad_service.errors import InputError, MissingDependencyError
 from pnvlad_service.evaluation import metrics
 from pnvlad_service.fileio import atomic_open, atomic_write_text
-
-if TYPE_CHECKING:
-    import torch
+from pnvlad_service.io.submap import SUBMAP_POINTS
+from pnvlad_service.models.embedding import EmbedFn, embed_in_chunks
 
 log = logging.getLogger(__name__)
-
-#: ``embed(points float32 [B, N, 3]) -> float32 [B, D]``.
-Embedder = Callable[[np.ndarray], np.ndarray]
 
 FORMAT = "pnvlad-eval"
 VERSION = 1
 DEFAULT_THRESHOLDS = (2.5, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 40.0, 50.0)
 
 
-def model_embedder(
-    model: torch.nn.Module, device: torch.device | str = "cpu", batch: int = 64
-) -> Embedder:
-    """An embedder from a ``torch.nn.Module`` (eval mode while embedding, mode restored)."""
-    import torch
+@dataclass(frozen=True)
+class EvalEncoder:
+    """What is evaluated: its embed function, the points a cloud it expects, the report's
+    ``encoder`` record and the ``label`` that names it in the summary and the figures."""
 
-    device = torch.device(device)
-
-    def embed(points: np.ndarray) -> np.ndarray:
-        was = model.training
-        model.eval()
-        out = []
-        with torch.inference_mode():
-            for s in range(0, len(points), batch):
-                x = torch.from_numpy(np.ascontiguousarray(points[s : s + batch])).to(device)
-                out.append(model(x).float().cpu().numpy())
-        model.train(was)
-        return np.concatenate(out)
-
-    return embed
+    embed: EmbedFn
+    num_points: int
+    info: dict[str, Any]
+    label: str
 
 
-def checkpoint_embedder(
-    directory: str | Path, device: str | None = None
-) -> tuple[Embedder, int, dict]:
-    """(embedder, num_points, description) for a model or training checkpoint directory, through
-    the batch-norm-folded ``models.inference.Encoder``."""
+def model_encoder(model: str | Path, device: str | None = None) -> EvalEncoder:
+    """A model directory or the training run that made it (``store.resolve_model_dir``),
+    through the batch-norm-folded ``models.inference.Encoder``; labelled with the model
+    directory and its architecture."""
     from pnvlad_service.models.inference import Encoder
+    from pnvlad_service.models.store import resolve_model_dir
 
+    directory = resolve_model_dir(model)
     enc = Encoder.from_checkpoint(directory, device=device, batch_size=32)
     info = {
         "kind": "checkpoint",
@@ -81,18 +68,19 @@ def checkpoint_embedder(
         "arch": enc.cfg.arch,
         "dim": enc.dim,
     }
-    return enc.embed, enc.cfg.num_points, info
+    return EvalEncoder(enc.embed, enc.cfg.num_points, info, f"{directory} ({enc.cfg.arch})")
 
 
-def baseline_embedder() -> tuple[Embedder, int, dict]:
-    """(embedder, 4096, description) for the training-free baseline descriptor."""
+def baseline_encoder() -> EvalEncoder:
+    """The training-free baseline descriptor, on whole 4096-point submaps."""
     from pnvlad_service.evaluation import baseline
 
-    return baseline.describe, 4096, {"kind": "baseline", "name": "baseline"}
+    info = {"kind": "baseline", "name": "baseline"}
+    return EvalEncoder(baseline.describe, SUBMAP_POINTS, info, "baseline")
 
 
 def embed_paths(
-    embed: Embedder,
+    embed: EmbedFn,
     paths: Sequence[str | Path],
     num_points: int,
     *,
@@ -102,17 +90,13 @@ def embed_paths(
 ) -> np.ndarray:
     """float32 [len(paths), D] descriptors, reading ``chunk`` submaps at a time (memory holds
     one chunk of clouds and the descriptors, never all the clouds)."""
-    from tqdm import tqdm
-
-    parts: list[np.ndarray] = []
-    with tqdm(total=len(paths), desc="embedding", unit="submap", disable=not progress) as bar:
-        for s in range(0, len(paths), chunk):
-            clouds = load_clouds(paths[s : s + chunk], num_points, workers=workers)
-            parts.append(np.asarray(embed(clouds), dtype=np.float32))
-            bar.update(len(clouds))
-    if not parts:
+    if not paths:
         raise InputError("nothing to embed", source="evaluation set")
-    return np.concatenate(parts)
+
+    def load(start: int, stop: int) -> np.ndarray:
+        return load_clouds(paths[start:stop], num_points, workers=workers)
+
+    return embed_in_chunks(embed, len(paths), load, chunk=chunk, progress=progress)
 
 
 def _faiss_search(db: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
@@ -221,7 +205,7 @@ def _joint_report(
 
 
 def evaluate_runs(
-    embed: Embedder,
+    embed: EmbedFn,
     runs: list[EvalRun],
     num_points: int,
     *,
@@ -314,6 +298,24 @@ def evaluate_runs(
     return report
 
 
+def summary_lines(label: str, report: dict[str, Any]) -> list[str]:
+    """The report in a few lines: ``label``'s recall over all run pairs, then each area's (when
+    there are several) and the joint database's (when evaluated)."""
+    lines = [
+        f"{label}: {_fmt(report)} over {report['n_pairs']} run pairs "
+        f"({report['n_queries_evaluated']} queries)"
+    ]
+    if len(report["per_area"]) > 1:
+        lines += [f"  {area}: {_fmt(a)}" for area, a in report["per_area"].items()]
+    if "joint" in report and report["joint"].get("n_queries"):
+        lines.append(f"  joint database: {_fmt(report['joint'])}")
+    return lines
+
+
+def _fmt(r: dict[str, Any]) -> str:
+    return f"recall@1 {r['recall_at_1']:.2f} %, recall@1% {r['recall_at_1pct']:.2f} %"
+
+
 def write_report(report: dict[str, Any], path: str | Path) -> Path:
     """Write the report as indented JSON, atomically (NaN written as null)."""
 
@@ -403,3 +405,19 @@ def plot_query_map(report: dict[str, Any], path: str | Path) -> Path:
         fig.savefig(fh, format="png")
     plt.close(fig)
     return Path(path)
+
+
+def write_figures(
+    label: str,
+    report: dict[str, Any],
+    folder: str | Path,
+    others: Sequence[tuple[str, dict[str, Any]]] = (),
+) -> None:
+    """Into ``folder``: ``recall_at_n.png`` (``report`` as ``label`` beside the ``others``),
+    ``query_map.png`` and, for several scored areas, ``recall_at_n_by_area.png``."""
+    folder = Path(folder)
+    plot_recall_curves([(label, report), *others], folder / "recall_at_n.png")
+    plot_query_map(report, folder / "query_map.png")
+    areas = [(a, r) for a, r in report["per_area"].items() if r.get("n_pairs")]
+    if len(areas) > 1:
+        plot_recall_curves(areas, folder / "recall_at_n_by_area.png", title=label)

@@ -325,10 +325,6 @@ def average_pairs(
     )
 
 
-#: The name in the coordinator's brief; the same function.
-evaluate_descriptors = recall_at_n
-
-
 def recall_at_1_by_distance(
     query_xy: np.ndarray, top1_xy: np.ndarray, thresholds: Sequence[float]
 ) -> np.ndarray:
