@@ -164,6 +164,16 @@ class TrainConfig(BaseModel):
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
 
 
+def run_config(config: str | Path | None, resumed_run: Path | None = None) -> TrainConfig:
+    """The config a run starts from: ``config`` (a file or a shipped preset name) when given;
+    else, when resuming ``resumed_run``, the ``config.yaml`` that run wrote; else the paper's."""
+    if config is not None:
+        return TrainConfig.from_file(config)
+    if resumed_run is not None and (Path(resumed_run) / "config.yaml").is_file():
+        return TrainConfig.from_file(Path(resumed_run) / "config.yaml")
+    return TrainConfig.preset("paper")
+
+
 def _parse(text: str, name: str) -> Any:
     try:
         if name.endswith(".toml"):
