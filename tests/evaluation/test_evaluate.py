@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from pnvlad_service.data.dataset import EvalRun
 from pnvlad_service.errors import InputError
 from pnvlad_service.evaluation import evaluate
+from tests.training.street import make_tiny_tree, tiny_config
 
 
 def mean_embedder(points: np.ndarray) -> np.ndarray:
@@ -174,16 +176,17 @@ def test_bad_inputs(tmp_path: Path) -> None:
 
 
 def test_real_model_path_on_tiny_model(tmp_path: Path) -> None:
-    """A tiny real network through model_embedder: descriptors of unit norm, recall in range."""
+    """A tiny real network through module_embedder: descriptors of unit norm, recall in range."""
     torch = pytest.importorskip("torch")
     from pnvlad_service.models.config import ModelConfig
+    from pnvlad_service.models.embedding import module_embedder
     from pnvlad_service.models.pointnetvlad import build_model
 
     runs, _ = hand_case(tmp_path)
     torch.manual_seed(0)
     cfg = ModelConfig.compact(num_points=64, cluster_size=4, output_dim=16)
     model = build_model(cfg)
-    emb = evaluate.model_embedder(model)
+    emb = module_embedder(model)
     d = evaluate.embed_paths(emb, runs[0].db_paths, 64, chunk=3)
     assert d.shape == (10, 16) and d.dtype == np.float32
     assert np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4)
@@ -199,7 +202,6 @@ def test_real_model_path_on_tiny_model(tmp_path: Path) -> None:
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
     """A tiny tree with splits and a 2-step training run through `pnvlad train`."""
     pytest.importorskip("torch")
-    from test_train import make_tiny_tree, tiny_config
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
@@ -254,6 +256,7 @@ def test_cli_eval_checkpoint_report_and_figures(
     assert rep["recall_at_1pct"] == pytest.approx(rep["recall_at_1"])
     assert rep["recall_at_n"] == sorted(rep["recall_at_n"])  # cumulative
     assert "joint" in rep and rep["joint"]["n_queries"] > 0
+    assert rep["encoder"]["path"] == str(run / "model")  # the run directory's final model
     assert f"recall@1 {rep['recall_at_1']:.2f}" in res.output
     if _has_matplotlib():
         assert (tmp_path / "fig" / "recall_at_n.png").is_file()
@@ -311,17 +314,44 @@ def test_cli_eval_from_published_pickles_matches_splits(
     assert reps[0]["recall_at_1pct"] == pytest.approx(reps[1]["recall_at_1pct"])
 
 
+def test_cli_eval_summary_names_what_was_evaluated(
+    trained: tuple[Path, Path, Path], tmp_path: Path
+) -> None:
+    """The summary line names the model directory and its architecture (or "baseline"), not
+    the folder the command was pointed at: `-m RUN` evaluates RUN/model."""
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    root, splits, run = trained
+    data = ["--root", str(root), "--splits", str(splits), "--no-progress"]
+    for what, label in (
+        (["-m", str(run)], f"{run / 'model'} (pointnetvlad)"),
+        (["--model", str(run / "model")], f"{run / 'model'} (pointnetvlad)"),
+        (["--baseline"], "baseline"),
+    ):
+        res = CliRunner().invoke(app, ["-q", "eval", *what, *data])
+        assert res.exit_code == 0, res.output
+        first = res.stdout.splitlines()[0]
+        pattern = rf"{re.escape(label)}: recall@1 [\d.]+ %, recall@1% [\d.]+ % over 6 run pairs"
+        assert re.fullmatch(pattern + r" \(\d+ queries\)", first), first
+
+
 def test_cli_eval_errors_exit_2(tmp_path: Path) -> None:
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
 
     res = CliRunner().invoke(app, ["eval", "--root", str(tmp_path)])
-    assert res.exit_code == 2 and "--checkpoint" in res.output
+    assert res.exit_code == 2 and "--model" in res.output
     res = CliRunner().invoke(
         app, ["eval", "--checkpoint", str(tmp_path / "none"), "--root", str(tmp_path)]
     )
     assert res.exit_code == 2
+    # a training run that has not written its final model yet: named as such
+    (tmp_path / "run" / "checkpoints").mkdir(parents=True)
+    res = CliRunner().invoke(app, ["eval", "-m", str(tmp_path / "run"), "--root", str(tmp_path)])
+    assert res.exit_code == 2 and "has not finished" in res.output
 
 
 def _has_matplotlib() -> bool:
