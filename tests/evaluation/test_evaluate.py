@@ -325,9 +325,11 @@ def test_cli_eval_summary_names_what_was_evaluated(
 
     root, splits, run = trained
     data = ["--root", str(root), "--splits", str(splits), "--no-progress"]
+    model = f"{run / 'model'} (pointnetvlad)"  # the run's final model: a compact PN_VLAD
     for what, label in (
-        (["-m", str(run)], f"{run / 'model'} (pointnetvlad)"),
-        (["--model", str(run / "model")], f"{run / 'model'} (pointnetvlad)"),
+        (["--checkpoint", str(run)], model),
+        (["-m", str(run)], model),
+        (["--model", str(run / "model")], model),
         (["--baseline"], "baseline"),
     ):
         res = CliRunner().invoke(app, ["-q", "eval", *what, *data])
