@@ -225,17 +225,8 @@ def evaluate_runs(
     if len(runs) < 2:
         raise InputError(f"need at least 2 runs to evaluate, got {len(runs)}", "evaluation set")
     t0 = time.monotonic()
-    unique: dict[str, int] = {}
-    for r in runs:
-        for p in [*r.db_paths, *r.query_paths]:
-            unique.setdefault(str(p), len(unique))
-    paths = list(unique)
-    log.info("embedding %d unique submaps of %d runs", len(paths), len(runs))
-    desc = embed_paths(embed, paths, num_points, workers=workers, progress=progress)
+    n_unique, db_desc, q_desc = _embed_runs(embed, runs, num_points, workers, progress)
     t_embed = time.monotonic() - t0
-    db_desc = [desc[[unique[str(p)] for p in r.db_paths]] for r in runs]
-    q_desc = [desc[[unique[str(p)] for p in r.query_paths]] for r in runs]
-    del desc
     query_hits = [np.zeros(len(r.query_paths)) for r in runs]
     query_counts = [np.zeros(len(r.query_paths)) for r in runs]
     areas: dict[str, list[int]] = {}
@@ -245,17 +236,8 @@ def evaluate_runs(
         a: _pairs_report(runs, db_desc, q_desc, m, thresholds, query_hits, query_counts)
         for a, m in areas.items()
     }
-    # Overall: the mean over every scored pair of every area.
     pairs = [p for rep in per_area.values() for p in rep["per_pair"]]
-    if pairs:
-        ks = [a for a, rep in per_area.items() if rep["n_pairs"]]
-        weights = np.array([per_area[a]["n_pairs"] for a in ks], dtype=np.float64)
-        ran = np.average([per_area[a]["recall_at_n"] for a in ks], axis=0, weights=weights)
-        r1p = float(np.average([per_area[a]["recall_at_1pct"] for a in ks], weights=weights))
-        dist = [per_area[a]["recall_at_1_by_distance"] for a in ks]
-        rdist = [float(x) for x in np.average(dist, axis=0, weights=weights)]
-    else:
-        ran, r1p, rdist = np.full(metrics.NUM_NEIGHBOURS, np.nan), float("nan"), []
+    ran, r1p, rdist = _overall(per_area)
     report: dict[str, Any] = {
         "format": FORMAT,
         "version": VERSION,
@@ -265,7 +247,7 @@ def evaluate_runs(
         "n_runs": len(runs),
         "n_db": int(sum(len(r.db_paths) for r in runs)),
         "n_queries": int(sum(len(r.query_paths) for r in runs)),
-        "n_unique_submaps": len(paths),
+        "n_unique_submaps": n_unique,
         "n_pairs": len(pairs),
         "n_queries_evaluated": int(sum(p["n_queries"] for p in pairs)),
         "recall_at_n": [float(x) for x in ran],
@@ -277,25 +259,62 @@ def evaluate_runs(
             a: {k: v for k, v in rep.items() if k != "per_pair"} for a, rep in per_area.items()
         },
         "per_pair": pairs,
-        "queries": [
-            {
-                "run": r.name,
-                "area": r.area,
-                "northing": [float(x) for x in r.query_positions[:, 0]],
-                "easting": [float(x) for x in r.query_positions[:, 1]],
-                "top1_correct_share": [
-                    float(h / c) if c else None
-                    for h, c in zip(query_hits[k], query_counts[k], strict=True)
-                ],
-            }
-            for k, r in enumerate(runs)
-        ],
+        "queries": _query_records(runs, query_hits, query_counts),
         "seconds_embedding": round(t_embed, 3),
     }
     if joint:
         report["joint"] = _joint_report(runs, db_desc, q_desc, thresholds)
     report["seconds"] = round(time.monotonic() - t0, 3)
     return report
+
+
+def _embed_runs(
+    embed: EmbedFn, runs: list[EvalRun], num_points: int, workers: int, progress: bool
+) -> tuple[int, list[np.ndarray], list[np.ndarray]]:
+    """Embed every unique submap of the runs once (a query is also in its run's database):
+    (unique submaps, each run's database descriptors, each run's query descriptors)."""
+    unique: dict[str, int] = {}
+    for r in runs:
+        for p in [*r.db_paths, *r.query_paths]:
+            unique.setdefault(str(p), len(unique))
+    paths = list(unique)
+    log.info("embedding %d unique submaps of %d runs", len(paths), len(runs))
+    desc = embed_paths(embed, paths, num_points, workers=workers, progress=progress)
+    db_desc = [desc[[unique[str(p)] for p in r.db_paths]] for r in runs]
+    q_desc = [desc[[unique[str(p)] for p in r.query_paths]] for r in runs]
+    return len(paths), db_desc, q_desc
+
+
+def _overall(per_area: dict[str, dict[str, Any]]) -> tuple[np.ndarray, float, list[float]]:
+    """recall@N, recall@1% and recall@1 by distance over every scored pair of every area (the
+    areas' figures weighted by their pairs); NaN and ``[]`` when no pair was scored."""
+    ks = [a for a, rep in per_area.items() if rep["n_pairs"]]
+    if not ks:
+        return np.full(metrics.NUM_NEIGHBOURS, np.nan), float("nan"), []
+    weights = np.array([per_area[a]["n_pairs"] for a in ks], dtype=np.float64)
+    ran = np.average([per_area[a]["recall_at_n"] for a in ks], axis=0, weights=weights)
+    r1p = float(np.average([per_area[a]["recall_at_1pct"] for a in ks], weights=weights))
+    dist = [per_area[a]["recall_at_1_by_distance"] for a in ks]
+    return ran, r1p, [float(x) for x in np.average(dist, axis=0, weights=weights)]
+
+
+def _query_records(
+    runs: list[EvalRun], hits: list[np.ndarray], counts: list[np.ndarray]
+) -> list[dict[str, Any]]:
+    """Each run's query positions with the share of run pairs where the query's top-1 was
+    right (``None`` where it was never scored)."""
+    return [
+        {
+            "run": r.name,
+            "area": r.area,
+            "northing": [float(x) for x in r.query_positions[:, 0]],
+            "easting": [float(x) for x in r.query_positions[:, 1]],
+            "top1_correct_share": [
+                float(h / c) if c else None for h, c in zip(hits[k], counts[k], strict=True)
+            ],
+        }
+        for k, r in enumerate(runs)
+    ]
 
 
 def summary_lines(label: str, report: dict[str, Any]) -> list[str]:
