@@ -9,7 +9,6 @@ refreshed every 700 steps. ``pnvlad train --dump-config`` prints them.
 
 from __future__ import annotations
 
-import logging
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
@@ -18,8 +17,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.models.config import ModelConfig
-
-log = logging.getLogger(__name__)
 
 LossName = Literal["lazy_quadruplet", "lazy_triplet", "quadruplet", "triplet"]
 

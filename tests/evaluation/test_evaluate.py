@@ -386,3 +386,30 @@ def test_cli_eval_num_points_overrides_the_models(
     assert reports[4096]["num_points"] == 4096
     res = CliRunner().invoke(app, [*common, "--num-points", "0"])
     assert res.exit_code == 2 and "--num-points" in res.output
+
+
+def test_summary_lines_and_figures_of_a_two_area_report(tmp_path: Path) -> None:
+    def figures(r1: float, pct: float, pairs: int) -> dict:
+        return {"recall_at_1": r1, "recall_at_1pct": pct, "n_pairs": pairs}
+
+    runs, _ = hand_case(tmp_path / "data")
+    rep = evaluate.evaluate_runs(mean_embedder, runs, 64, progress=False, joint=True)
+    rep["per_area"] = {"a": {**rep["per_area"]["line"]}, "b": {**rep["per_area"]["line"]}}
+    rep.update(figures(50.0, 62.5, 12), n_queries_evaluated=120)
+    rep["per_area"]["b"].update(figures(25.0, 37.125, 6))
+    rep["joint"].update(figures(12.5, 100.0, 0), n_queries=30)
+    a = rep["per_area"]["a"]
+    assert evaluate.summary_lines("m (pointnetvlad)", rep) == [
+        "m (pointnetvlad): recall@1 50.00 %, recall@1% 62.50 % over 12 run pairs (120 queries)",
+        f"  a: recall@1 {a['recall_at_1']:.2f} %, recall@1% {a['recall_at_1pct']:.2f} %",
+        "  b: recall@1 25.00 %, recall@1% 37.12 %",
+        "  joint database: recall@1 12.50 %, recall@1% 100.00 %",
+    ]
+    del rep["joint"]
+    rep["per_area"].pop("b")
+    assert len(evaluate.summary_lines("x", rep)) == 1  # one area: no per-area lines
+    pytest.importorskip("matplotlib")
+    rep["per_area"]["b"] = rep["per_area"]["a"]
+    evaluate.write_figures("x", rep, tmp_path / "fig", [("other", rep)])
+    names = sorted(p.name for p in (tmp_path / "fig").iterdir())
+    assert names == ["query_map.png", "recall_at_n.png", "recall_at_n_by_area.png"]

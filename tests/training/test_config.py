@@ -46,3 +46,16 @@ def test_shipped_configs_load() -> None:
     assert paper.train.lr == 5e-5 and paper.train.negatives == 18 and paper.train.positives == 2
     assert paper.model.cluster_size == 64
     assert TrainConfig.preset("compact").model.cluster_size == 16
+
+
+def test_run_config_file_then_the_resumed_runs_then_the_paper(tmp_path: Path) -> None:
+    from pnvlad_service.training.config import run_config
+
+    assert run_config(None) == TrainConfig.preset("paper")
+    assert run_config("compact") == TrainConfig.preset("compact")
+    run = tmp_path / "run"
+    assert run_config(None, run) == TrainConfig.preset("paper")  # no config.yaml yet
+    run.mkdir()
+    (run / "config.yaml").write_text(TrainConfig().with_overrides({"train.seed": 7}).to_yaml())
+    assert run_config(None, run).train.seed == 7
+    assert run_config("compact", run) == TrainConfig.preset("compact")  # a given file wins
