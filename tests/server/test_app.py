@@ -20,9 +20,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from test_index import PER_RUN, free_port, make_checkpoint, make_tree, read_cloud
 
 from pnvlad_service.index import bundle as ix
+from tests.test_index import PER_RUN, free_port, make_checkpoint, make_tree, read_cloud
 
 MAX_BODY = 4 * 1024 * 1024
 PROBLEM = "application/problem+json"
