@@ -80,9 +80,7 @@ class LocalizeClient:
         query = urllib.parse.urlencode(
             {"top_n": top_n, "preprocess": str(preprocess).lower(), "dtype": dtype}
         )
-        return self.call(
-            "POST", f"/localize?{query}", body.tobytes(), "application/octet-stream"
-        )
+        return self.call("POST", f"/localize?{query}", body.tobytes(), "application/octet-stream")
 
     def ready(self) -> bool:
         """Whether the server answers ``GET /readyz`` with 200 (False when unreachable)."""

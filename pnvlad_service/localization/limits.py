@@ -66,9 +66,7 @@ class Limits:
     def check_count(self, count: int, field: str) -> None:
         """A batch of ``count`` clouds: 1..max_batch_queries."""
         if not 1 <= count <= self.max_batch_queries:
-            raise InputError(
-                f"expected 1 to {self.max_batch_queries} clouds, got {count}", field
-            )
+            raise InputError(f"expected 1 to {self.max_batch_queries} clouds, got {count}", field)
 
     def check_points(self, points: np.ndarray, preprocess: bool, field: str) -> np.ndarray:
         """Validate one cloud; return float32 [4096, 3] (preprocessed) or float64 [N, 3] (raw).

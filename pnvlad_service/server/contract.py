@@ -45,9 +45,7 @@ class MalformedJSON(InputError):
 #: One point: three numbers (validated as a tuple: fast, and a short point is reported as such).
 Point = Annotated[
     tuple[float, float, float],
-    WithJsonSchema(
-        {"type": "array", "minItems": 3, "maxItems": 3, "items": {"type": "number"}}
-    ),
+    WithJsonSchema({"type": "array", "minItems": 3, "maxItems": 3, "items": {"type": "number"}}),
 ]
 
 POINTS_DOC = (
@@ -163,9 +161,7 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
 
         model_config = ConfigDict(extra="forbid", strict=True)
 
-        queries: list[BatchQuery] = Field(
-            ..., min_length=1, max_length=limits.max_batch_queries
-        )
+        queries: list[BatchQuery] = Field(..., min_length=1, max_length=limits.max_batch_queries)
         top_n: int = top_n_field()
 
     return LocalizeRequest, BatchRequest

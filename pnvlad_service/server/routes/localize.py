@@ -73,9 +73,7 @@ async def localize_one(
     top_n, preprocess, dtype = params
     dtype = dtype or request.headers.get("x-points-dtype", "float32")
     with loc.announce():
-        cloud = await run_in_threadpool(
-            read_query, contract, ctype, body, top_n, preprocess, dtype
-        )
+        cloud = await run_in_threadpool(read_query, contract, ctype, body, top_n, preprocess, dtype)
         parse_s = time.perf_counter() - t0
         t1 = time.perf_counter()
         prepared = await _prepare(loc, cloud, "points")
@@ -103,16 +101,13 @@ async def localize_many(
     batch = await run_in_threadpool(read_batch, contract, ctype, body, *params)
     parse_s = time.perf_counter() - t0
     t1 = time.perf_counter()
-    prepared = [
-        await _prepare(loc, q, f"queries[{i}].points") for i, q in enumerate(batch.queries)
-    ]
+    prepared = [await _prepare(loc, q, f"queries[{i}].points") for i, q in enumerate(batch.queries)]
     preprocess_s = (time.perf_counter() - t1) / len(prepared)
     futures = [loc.submit(c, batch.top_n) for c in prepared]
     results = await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))
     total_s = time.perf_counter() - t0
     answers = [
-        loc.answer(r, parse_s=parse_s, preprocess_s=preprocess_s, total_s=total_s)
-        for r in results
+        loc.answer(r, parse_s=parse_s, preprocess_s=preprocess_s, total_s=total_s) for r in results
     ]
     for a in answers:
         metrics.observe(a.timings.seconds())
