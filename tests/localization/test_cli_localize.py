@@ -13,16 +13,7 @@ from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
 from pnvlad_service.index import bundle as ix
-from tests.test_index import PER_RUN, make_checkpoint, make_tree
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    base = tmp_path_factory.mktemp("localize")
-    tree = make_tree(base / "tree")
-    ckpt = make_checkpoint(base / "ckpt")
-    ix.build_bundle(base / "map.index", ckpt, tree, progress=False)
-    return {"tree": tree, "ckpt": ckpt, "bundle": base / "map.index"}
+from tests.test_index import PER_RUN
 
 
 def test_table_and_json_name_the_submap_itself_first(world: dict[str, Path]) -> None:

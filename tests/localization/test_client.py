@@ -16,18 +16,9 @@ from pnvlad_service.index import bundle as ix
 from pnvlad_service.localization.client import LocalizeClient, ServerError, ServerRefused
 from pnvlad_service.localization.localizer import Localizer
 from tests.server.test_app import start_server, stop_server
-from tests.test_index import PER_RUN, free_port, make_checkpoint, make_tree, read_cloud
+from tests.test_index import PER_RUN, free_port, read_cloud
 
 KEY = "k3y-for-tests"
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    base = tmp_path_factory.mktemp("client")
-    tree = make_tree(base / "tree")
-    ckpt = make_checkpoint(base / "ckpt")
-    ix.build_bundle(base / "map.index", ckpt, tree, progress=False)
-    return {"tree": tree, "ckpt": ckpt, "bundle": base / "map.index"}
 
 
 @pytest.fixture(scope="module")

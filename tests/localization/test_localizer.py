@@ -23,16 +23,7 @@ from pnvlad_service.localization.localizer import (
     Match,
     checked_model,
 )
-from tests.test_index import PER_RUN, make_checkpoint, make_tree, read_cloud
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    base = tmp_path_factory.mktemp("localizer")
-    tree = make_tree(base / "tree")
-    ckpt = make_checkpoint(base / "ckpt")
-    ix.build_bundle(base / "map.index", ckpt, tree, progress=False)
-    return {"tree": tree, "ckpt": ckpt, "bundle": base / "map.index"}
+from tests.test_index import PER_RUN, make_checkpoint, read_cloud
 
 
 @pytest.fixture(scope="module")
