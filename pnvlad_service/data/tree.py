@@ -114,7 +114,8 @@ class Submap:
     ``path`` is relative to the tree root, with ``/`` separators, as the published pickles
     write it: ``oxford/<run>/pointcloud_20m/<timestamp>.bin``. ``timestamp`` is integer
     microseconds; ``northing``/``easting`` are float64 UTM metres of the submap's centroid;
-    ``kind`` is the layout role, ``"train"`` or ``"test"``; ``row`` its row in the CSV.
+    ``kind`` is the layout role, ``"train"`` or ``"test"``; ``row`` its row in the CSV;
+    ``utm_zone`` the UTM zone of the coordinates (``""`` when unknown).
     """
 
     dataset: str
@@ -125,6 +126,12 @@ class Submap:
     path: str
     kind: Kind
     row: int
+    utm_zone: str = ""
+
+    @property
+    def submap_id(self) -> str:
+        """``dataset/run/timestamp``: unique within a benchmark tree."""
+        return f"{self.dataset}/{self.run}/{self.timestamp}"
 
 
 def read_locations_csv(path: str | Path) -> Locations:

@@ -30,7 +30,9 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError, NotReadyError
-from pnvlad_service.index.bundle import IndexBundle, Match, load_encoder, read_manifest
+from pnvlad_service.index.build import load_encoder
+from pnvlad_service.index.bundle import IndexBundle, Match
+from pnvlad_service.index.manifest import Manifest
 from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
 from pnvlad_service.localization.limits import Limits
 from pnvlad_service.models.store import ModelIdentity, model_identity
@@ -145,37 +147,22 @@ class LocalizerInfo:
 
 
 # --------------------------------------------------------------------------------------------
-# The bundle's manifest: the only place that reads it. (A dict today; when the index package
-# has its typed Manifest: ``Manifest.read(index)``, ``manifest.model.checkpoint``,
-# ``manifest.check_model(identity)`` and ``bundle.manifest.to_json()`` go here and only here.)
+# The compatibility check
 # --------------------------------------------------------------------------------------------
 
 
 def checked_model(index: str | Path, model: str | Path | None = None) -> ModelIdentity:
     """The model to load with the bundle at ``index``: ``model`` (a model directory or a
     training run), else the one the bundle records. :class:`InputError` naming both files when
-    the bundle was built with other weights."""
-    manifest = read_manifest(index)
+    the bundle was built with other weights (``Manifest.check_model``)."""
+    manifest = Manifest.read(index)
     if model is None:
-        model = manifest.get("model", {}).get("checkpoint")
+        model = manifest.model.checkpoint
         if not model:
             raise InputError("the bundle records no checkpoint; pass --checkpoint", index)
-    ident = model_identity(model)
-    built = manifest["model"]["weights_sha256"]
-    if ident.weights_sha256 != built:
-        weights = Path(ident.checkpoint) / "model.safetensors"
-        raise InputError(
-            f"the index {Path(index) / 'manifest.json'} was built with other weights "
-            f"(sha256 {built[:16]}…) than the checkpoint {weights} "
-            f"(sha256 {ident.weights_sha256[:16]}…); rebuild the index or pass the "
-            "checkpoint it was built with",
-            source=model,
-        )
-    return ident
-
-
-def _manifest_json(bundle: IndexBundle) -> dict[str, Any]:
-    return bundle.manifest
+    identity = model_identity(model)
+    manifest.check_model(identity)
+    return identity
 
 
 # --------------------------------------------------------------------------------------------
@@ -220,8 +207,8 @@ class Localizer:
         self.bundle = bundle
         self.encoder = encoder
         self.identity = identity
-        recorded = _manifest_json(bundle).get("preprocess")
-        self._gconfig = GConfig.model_validate(recorded) if recorded else GConfig()
+        recorded = bundle.manifest.preprocess
+        self._gconfig = GConfig.model_validate(dict(recorded)) if recorded else GConfig()
         self.info = LocalizerInfo(
             model=ModelInfo(
                 weights_sha256=identity.weights_sha256,
@@ -290,8 +277,8 @@ class Localizer:
         self.close()
 
     def manifest_json(self) -> dict[str, Any]:
-        """The bundle's manifest as JSON."""
-        return _manifest_json(self.bundle)
+        """The bundle's manifest as JSON (``manifest.json``'s content)."""
+        return self.bundle.manifest.to_json()
 
     # the steps of a query ---------------------------------------------------------------
     @contextlib.contextmanager

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from pnvlad_service.index import bundle as ix
-from tests.test_index import make_checkpoint, make_tree
+from pnvlad_service.index import build as ix
+from tests.index.helpers import make_checkpoint, make_tree
 
 
 @pytest.fixture(scope="package")

@@ -12,8 +12,8 @@ import pytest
 from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
-from pnvlad_service.index import bundle as ix
-from tests.test_index import PER_RUN
+from pnvlad_service.index import build as ix
+from tests.index.helpers import PER_RUN
 
 
 def test_table_and_json_name_the_submap_itself_first(world: dict[str, Path]) -> None:

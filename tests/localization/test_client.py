@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 
 from pnvlad_service.errors import InputError, PnvladError
-from pnvlad_service.index import bundle as ix
+from pnvlad_service.index import build as ix
+from pnvlad_service.index.manifest import Manifest
 from pnvlad_service.localization.client import LocalizeClient, ServerError, ServerRefused
 from pnvlad_service.localization.localizer import Localizer
+from tests.index.helpers import PER_RUN, free_port, read_cloud
 from tests.server.test_app import start_server, stop_server
-from tests.test_index import PER_RUN, free_port, read_cloud
 
 KEY = "k3y-for-tests"
 
@@ -61,7 +62,7 @@ def test_ready_and_info(world, url, client) -> None:
     assert client.ready()
     info = client.info()
     assert info["limits"]["points_per_cloud"] == 4096
-    assert info["manifest"]["files"] == ix.read_manifest(world["bundle"])["files"]
+    assert info["manifest"] == Manifest.read(world["bundle"]).to_json()
     # /readyz is open to all; /info needs the key.
     with LocalizeClient(url) as anonymous:
         assert anonymous.ready()

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from pnvlad_service.errors import InputError, NotReadyError
-from pnvlad_service.index import bundle as ix
+from pnvlad_service.index import build as ix
+from pnvlad_service.index.bundle import IndexBundle
 from pnvlad_service.localization.localizer import (
     Answer,
     Batching,
@@ -23,7 +24,7 @@ from pnvlad_service.localization.localizer import (
     Match,
     checked_model,
 )
-from tests.test_index import PER_RUN, make_checkpoint, read_cloud
+from tests.index.helpers import PER_RUN, make_checkpoint, read_cloud
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +36,7 @@ def loc(world: dict[str, Path]):
 @pytest.fixture(scope="module")
 def plain(world: dict[str, Path]):
     """(encoder, bundle) loaded directly, for expected answers."""
-    return ix.load_encoder(world["ckpt"]), ix.IndexBundle.load(world["bundle"])
+    return ix.load_encoder(world["ckpt"]), IndexBundle.load(world["bundle"])
 
 
 def cloud(world: dict[str, Path], i: int) -> np.ndarray:
@@ -78,10 +79,10 @@ def test_a_typed_answer_equals_a_plain_search(world, loc, plain) -> None:
     with pytest.raises(dataclasses.FrozenInstanceError):
         answer.batch_size = 2  # type: ignore[misc]
     manifest = plain[1].manifest
-    assert loc.info.model.weights_sha256 == manifest["model"]["weights_sha256"]
+    assert loc.info.model.weights_sha256 == manifest.model.weights_sha256
     assert loc.info.model.dim == 16 and loc.info.index.count == 2 * PER_RUN
     assert loc.info.index.id == plain[1].bundle_id and loc.info.index.key == "Flat"
-    assert loc.manifest_json()["files"] == manifest["files"]
+    assert loc.manifest_json() == manifest.to_json()
     assert loc.identity.checkpoint == str(world["ckpt"].resolve())
 
 
@@ -115,7 +116,7 @@ def test_a_raw_scan_goes_through_the_bundles_filter_g(loc, plain) -> None:
 
     raw = raw_scan()
     answer = loc.localize(raw, preprocess=True, top_n=3)
-    cfg = GConfig.model_validate(plain[1].manifest["preprocess"])
+    cfg = GConfig.model_validate(dict(plain[1].manifest.preprocess))
     ids, dists = plain_search(plain, filter_g(raw, cfg, seed=0), 3)
     assert [m.id for m in answer.matches] == ids
     np.testing.assert_allclose([m.distance for m in answer.matches], dists, atol=1e-5)

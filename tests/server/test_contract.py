@@ -21,10 +21,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.index import bundle as ix
+from pnvlad_service.index import build as ix
 from pnvlad_service.localization.limits import Limits
 from pnvlad_service.server.contract import Contract
-from tests.test_index import make_checkpoint, make_tree
+from tests.index.helpers import make_checkpoint, make_tree
 
 IGNORED = {"title", "description", "default", "format"}
 TYPES = {
