@@ -205,7 +205,6 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
-    from tests.test_train import make_tiny_tree, tiny_config
 
     root = tmp_path_factory.mktemp("evaltree")
     splits = make_tiny_tree(root, runs=3, train_step=10.0)
