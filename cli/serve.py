@@ -13,19 +13,16 @@ from typing import Any
 
 import typer
 
-from pnvlad_cli.common import user_errors
+from pnvlad_cli.common import model_option, user_errors
 
 
 def serve(
     index: Path = typer.Option(
         None, "--index", "-i", help="Index bundle directory (pnvlad index build). Env PNVLAD_INDEX."
     ),
-    checkpoint: Path = typer.Option(
-        None,
-        "--checkpoint",
-        "-c",
-        help="Model checkpoint directory; default: the one the bundle records. It must hold "
-        "the weights the bundle was built with.",
+    model: Path = model_option(
+        help="The model; default: the one the bundle records. It must hold the weights the "
+        "bundle was built with. Env PNVLAD_CHECKPOINT."
     ),
     host: str = typer.Option(
         None, "--host", help="Interface to bind (default 127.0.0.1; 0.0.0.0 in a container)."
@@ -51,7 +48,7 @@ def serve(
     """
     options: dict[str, Any] = {
         "INDEX": index,
-        "CHECKPOINT": checkpoint,
+        "CHECKPOINT": model,
         "HOST": host,
         "PORT": port,
         "WORKERS": workers,
@@ -66,15 +63,16 @@ def serve(
 
     import uvicorn
 
-    from pnvlad_service.server.service import check_compatible, resolve_checkpoint
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.localization.localizer import checked_model
     from pnvlad_service.server.settings import ServerSettings
 
     with user_errors():
         settings = ServerSettings()
-        ckpt = resolve_checkpoint(settings)
-        assert settings.index is not None
-        check_compatible(settings.index, ckpt)
-    os.environ["PNVLAD_CHECKPOINT"] = str(ckpt.resolve())
+        if settings.index is None:
+            raise InputError("no index bundle given (--index or PNVLAD_INDEX)", "index")
+        identity = checked_model(settings.index, settings.checkpoint)
+    os.environ["PNVLAD_CHECKPOINT"] = identity.checkpoint
     uvicorn.run(
         "pnvlad_service.server.app:create_app_from_env",
         factory=True,
@@ -117,38 +115,19 @@ def format_matches(answer: dict[str, Any]) -> str:
     return "\n".join([line(header), *(line(r) for r in rows), footer])
 
 
-def _post(url: str, points: Any, preprocess: bool, top_n: int, api_key: str | None) -> Any:
-    import urllib.error
-    import urllib.parse
-    import urllib.request
+def _localize_here(
+    index: Path, model: Path | None, points: Any, preprocess: bool, top_n: int
+) -> dict[str, Any]:
+    """Search the bundle in this process: the same answer as the server's."""
+    from pnvlad_service.localization.limits import Limits
+    from pnvlad_service.localization.localizer import Localizer
 
-    import numpy as np
-
-    from pnvlad_service.errors import InputError
-
-    arr = np.ascontiguousarray(points)
-    dtype = "float64" if arr.dtype == np.float64 else "float32"
-    arr = arr.astype("<f8" if dtype == "float64" else "<f4", copy=False)
-    query = urllib.parse.urlencode(
-        {"top_n": top_n, "preprocess": str(preprocess).lower(), "dtype": dtype}
-    )
-    headers = {"Content-Type": "application/octet-stream", "Accept": "application/json"}
-    if api_key:
-        headers["Authorization"] = f"Bearer {api_key}"
-    req = urllib.request.Request(
-        f"{url.rstrip('/')}/localize?{query}", data=arr.tobytes(), headers=headers, method="POST"
-    )
-    try:
-        with urllib.request.urlopen(req, timeout=120) as resp:
-            return json.loads(resp.read())
-    except urllib.error.HTTPError as exc:
-        try:
-            detail = json.loads(exc.read()).get("detail", exc.reason)
-        except ValueError:
-            detail = exc.reason
-        raise InputError(f"server answered {exc.code}: {detail}", source=url) from None
-    except urllib.error.URLError as exc:
-        raise InputError(f"cannot reach the server: {exc.reason}", source=url) from None
+    top_n = max(top_n, 1)
+    # A local query is bounded by the bundle, not by the server's request limits.
+    limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)), max_top_n=top_n)
+    with Localizer.load(index, model) as loc:
+        answer = loc.localize(points, preprocess=preprocess, top_n=top_n, limits=limits)
+        return {**answer.to_json(), **loc.info.to_json()}
 
 
 def localize(
@@ -159,9 +138,7 @@ def localize(
     index: Path = typer.Option(
         None, "--index", "-i", help="Search this bundle locally instead of a server."
     ),
-    checkpoint: Path = typer.Option(
-        None, "--checkpoint", "-c", help="With --index: the model (default: the bundle's)."
-    ),
+    model: Path = model_option(help="With --index: the model (default: the bundle's)."),
     reader: str = typer.Option(
         None, "--reader", help="File format (benchmark, kitti, nuscenes, nclt, npy, pcd, ...)."
     ),
@@ -193,19 +170,12 @@ def localize(
             raise InputError("give exactly one of --url and --index", "--url")
         points = read_points(scan, reader)
         if url is not None:
-            answer = _post(url, points, preprocess, top_n, api_key)
-        else:
-            from pnvlad_service.server.service import Localizer
-            from pnvlad_service.server.settings import ServerSettings
+            from pnvlad_service.localization.client import LocalizeClient
 
-            settings = ServerSettings(
-                index=index, checkpoint=checkpoint, batch_wait_ms=0.0, max_top_n=max(top_n, 1)
-            )
-            loc = Localizer.load(settings)
-            try:
-                answer = loc.localize(points, preprocess, top_n)
-            finally:
-                loc.close()
+            with LocalizeClient(url, api_key=api_key) as client:
+                answer = client.localize(points, top_n, preprocess)
+        else:
+            answer = _localize_here(index, model, points, preprocess, top_n)
     if as_json:
         json.dump(answer, sys.stdout, indent=2)
         sys.stdout.write("\n")
