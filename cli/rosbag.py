@@ -22,7 +22,8 @@ ROSBAG = typer.Option(
     None,
     "--rosbag",
     help="ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap (needs the 'rosbag' extra). Use with "
-    "--cloud-topic and --pose-topic or --tf; --list shows its topics.",
+    "--cloud-topic and --pose-topic or --tf; `pnvlad data prepare --rosbag BAG --list` shows "
+    "its topics.",
     rich_help_panel=PANEL,
 )
 CLOUD_TOPIC = typer.Option(
