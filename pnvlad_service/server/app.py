@@ -2,7 +2,8 @@
 
 Routes (one router per resource, :mod:`pnvlad_service.server.routes`): ``POST /localize``
 (JSON, raw float32/float64 xyz, or ``.npy``), ``POST /localize/batch``, ``GET /healthz``,
-``GET /readyz``, ``GET /info``, ``GET /metrics`` and the OpenAPI docs at ``/docs``. Errors are
+``GET /readyz``, ``GET /info``, ``GET /metrics`` and the API docs at ``/docs`` and ``/redoc``
+(served from installed assets, :mod:`pnvlad_service.server.docs`). Errors are
 ``application/problem+json``. Bodies are bounded while read
 (:class:`~pnvlad_service.server.middleware.BodyLimit`). The lifespan loads the
 :class:`~pnvlad_service.localization.localizer.Localizer` once, in the thread pool; the routes
@@ -21,7 +22,7 @@ from fastapi.concurrency import run_in_threadpool
 from pnvlad_service import __version__
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.localizer import Localizer, set_threads
-from pnvlad_service.server import problems
+from pnvlad_service.server import docs, problems
 from pnvlad_service.server.contract import Contract
 from pnvlad_service.server.deps import require_key
 from pnvlad_service.server.metrics import Metrics
@@ -79,7 +80,16 @@ def create_app(
     """The service app. ``localizer`` (tests) skips loading; else the lifespan loads one."""
     settings = settings or ServerSettings()
     metrics = Metrics()
-    app = FastAPI(title="pnvlad", version=__version__, description=DESCRIPTION, lifespan=lifespan)
+    # FastAPI's own /docs and /redoc load their assets from a CDN: ours are served locally.
+    app = FastAPI(
+        title="pnvlad",
+        version=__version__,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
+    )
+    docs.install(app)
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.localizer = localizer
