@@ -13,6 +13,8 @@ from typing import Any
 
 import typer
 
+from pnvlad_cli import replay as replay_options
+from pnvlad_cli import rosbag as bag_options
 from pnvlad_cli.common import model_option, user_errors
 
 
@@ -132,7 +134,7 @@ def _localize_here(
 
 def localize(
     scan: Path = typer.Argument(
-        ..., help="Point-cloud file (.bin submap, KITTI .bin, .npy, .pcd...)."
+        None, help="Point-cloud file (.bin submap, KITTI .bin, .npy, .pcd...); not with --rosbag."
     ),
     url: str = typer.Option(None, "--url", "-u", help="Server to ask, e.g. http://127.0.0.1:8000."),
     index: Path = typer.Option(
@@ -150,17 +152,35 @@ def localize(
     api_key: str = typer.Option(
         None, "--api-key", envvar="PNVLAD_API_KEY", help="Bearer token of the server."
     ),
+    rosbag: Path = bag_options.ROSBAG,
+    cloud_topic: str = bag_options.CLOUD_TOPIC,
+    pose_topic: str = bag_options.POSE_TOPIC,
+    tf_frame: str = bag_options.TF_FRAME,
+    max_pose_gap: float = bag_options.MAX_POSE_GAP,
+    origin: str = replay_options.ORIGIN,
+    yaw: float = replay_options.YAW,
+    every: int = replay_options.EVERY,
+    out: Path = replay_options.OUT,
+    map_bundle: Path = replay_options.MAP,
+    plot: bool = replay_options.PLOT,
 ) -> None:
     """Where was this scan taken? Print the nearest map places (UTM metres) as a table.
 
     Asks a running `pnvlad serve` (--url) or searches a bundle locally (--index). A benchmark
     submap (4096 points in [-1, 1]) goes as it is; a raw sensor scan needs --preprocess.
 
+    With --rosbag, replays a bag instead: every Nth scan of --cloud-topic goes as a raw scan
+    and the answers are written to OUT.csv and OUT.png (the map, the answers, and with
+    --pose-topic or --tf the bag's own trajectory and each answer's error), then a summary line.
+
     Examples:
 
       pnvlad localize oxford/RUN/pointcloud_20m/TIMESTAMP.bin --url http://127.0.0.1:8000
 
       pnvlad localize scan.bin --reader kitti --preprocess --index map.index --json
+
+      pnvlad localize --rosbag drive.bag --cloud-topic /points --pose-topic /odom
+      --origin 5735712.8,620084.4 --url http://127.0.0.1:8000 --out replay/drive
     """
     from pnvlad_service.errors import InputError
     from pnvlad_service.io.readers import read_points
@@ -168,6 +188,40 @@ def localize(
     with user_errors():
         if (url is None) == (index is None):
             raise InputError("give exactly one of --url and --index", "--url")
+        bag = {"cloud_topic": cloud_topic, "pose_topic": pose_topic, "tf_frame": tf_frame}
+        bag |= {"max_pose_gap": max_pose_gap, "origin": origin, "every": every, "out": out}
+        bag |= {"map": map_bundle}
+        if rosbag is not None:
+            if scan is not None or reader is not None or preprocess or as_json:
+                raise InputError(
+                    "a scan file, --reader, --preprocess and --json do not go with --rosbag "
+                    "(its scans are raw: they are always preprocessed)",
+                    "--rosbag",
+                )
+            replay_options.replay_rosbag(
+                rosbag=rosbag,
+                cloud_topic=cloud_topic,
+                pose_topic=pose_topic,
+                tf_frame=tf_frame,
+                origin_ne=replay_options.parse_origin(origin),
+                yaw_deg=yaw,
+                max_pose_gap=max_pose_gap,
+                url=url,
+                index=index,
+                model=model,
+                api_key=api_key,
+                every=every,
+                out=out,
+                map_bundle=map_bundle,
+                plot=plot,
+                top_n=top_n,
+            )
+            return
+        bag_options.check_unused(None, **bag)
+        if yaw != 0.0:
+            raise InputError("applies to --rosbag only", "--yaw")
+        if scan is None:
+            raise InputError("give a scan file (or --rosbag BAG to replay a bag)", "SCAN")
         points = read_points(scan, reader)
         if url is not None:
             from pnvlad_service.localization.client import LocalizeClient
