@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -82,12 +82,8 @@ class ModelIdentity:
     config: dict[str, Any]
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "checkpoint": self.checkpoint,
-            "weights_sha256": self.weights_sha256,
-            "config_sha256": self.config_sha256,
-            "config": self.config,
-        }
+        """The four fields as a JSON object (``config`` copied)."""
+        return asdict(self)
 
 
 def model_identity(directory: str | Path) -> ModelIdentity:
