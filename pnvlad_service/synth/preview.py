@@ -12,20 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
-from pnvlad_service.errors import InputError, MissingDependencyError
+from pnvlad_service.errors import InputError
 
 log = logging.getLogger(__name__)
 
 
 def _plt():
-    try:
-        import matplotlib
-    except ImportError:
-        raise MissingDependencyError("matplotlib", "plot", "synth previews") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from pnvlad_service.extras import pyplot
 
-    return plt
+    return pyplot("synth previews")
 
 
 def _save_png(plt, fig, out_png: str | Path, dpi: int) -> Path:
