@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -25,6 +26,7 @@ from pnvlad_service.data import preprocess as g
 from pnvlad_service.data import voxel
 from pnvlad_service.io.readers import read_points
 
+REPO = Path(__file__).resolve().parents[1]
 SCANS = [
     ("kitti00_000000.bin", "kitti", 1.0),
     ("kitti00_000005.bin", "kitti", 1.0),
@@ -43,30 +45,13 @@ def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
     return statistics.median(times) * 1e3, min(times) * 1e3
 
 
-def _near_road_share(scan: np.ndarray, points: np.ndarray, cell: float = 2.0) -> float:
-    keys = np.floor(scan[:, :2] / cell).astype(np.int64)
-    uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    order = np.argsort(inverse, kind="stable")
-    bounds = np.searchsorted(inverse[order], np.arange(len(uniq) + 1))
-    low = {}
-    for k, (i, j) in enumerate(uniq.tolist()):
-        zs = scan[order[bounds[k] : bounds[k + 1]], 2]
-        if len(zs) >= 3:
-            low[(i, j)] = float(np.percentile(zs, 5))
-    c = np.array([((i + 0.5) * cell, (j + 0.5) * cell, z) for (i, j), z in low.items()])
-    r = np.hypot(c[:, 0], c[:, 1])
-    c = c[(r > 3) & (r < 20)]
-    a = np.c_[c[:, :2], np.ones(len(c))]
-    keep = np.ones(len(c), bool)
-    for _ in range(5):
-        coef = np.linalg.lstsq(a[keep], c[keep, 2], rcond=None)[0]
-        keep = np.abs(a @ coef - c[:, 2]) < 0.3
-    plane = points[:, 0] * coef[0] + points[:, 1] * coef[1] + coef[2]
-    cells = np.floor(points[:, :2] / cell).astype(np.int64).tolist()
-    local = np.array([low.get((i, j), np.nan) for i, j in cells])
-    surface = np.where(np.isfinite(local) & (np.abs(local - plane) < 0.75), local, plane)
-    return float(np.mean(np.abs(points[:, 2] - surface) < 0.2))
+def _near_road_share(scan: np.ndarray, points: np.ndarray) -> float:
+    """Share of ``points`` within 0.2 m of the road surface estimated from ``scan``."""
+    sys.path.insert(0, str(REPO))
+    from tests.data.helpers import road_surface  # the G tests' estimate
+
+    surface = road_surface(scan)
+    return float(np.mean(np.abs(points[:, 2] - surface(points)) < 0.2))
 
 
 def _bench_scan(

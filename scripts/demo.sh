@@ -21,16 +21,8 @@ start=$(date +%s)
 step() { printf '\n\033[1m== %s\033[0m  (%ds)\n' "$*" "$(( $(date +%s) - start ))"; }
 
 step "1/5 set up $VENV"
-if [ ! -x "$VENV/bin/python" ]; then
-    python3 -m venv "$VENV"
-fi
-# Installer chatter goes to a log, shown only if the install fails.
-if ! { "$VENV/bin/python" -m pip install -q --upgrade pip &&
-       "$VENV/bin/python" -m pip install -q -e '.[plot]'; } > "$VENV/install.log" 2>&1; then
-    cat "$VENV/install.log" >&2
-    echo "pip install failed (log: $VENV/install.log)" >&2
-    exit 1
-fi
+. scripts/venv.sh
+ensure_venv plot
 export PATH="$PWD/$VENV/bin:$PATH"
 pnvlad --version
 

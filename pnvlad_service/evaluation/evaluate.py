@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.data.dataset import EvalRun, load_clouds
-from pnvlad_service.errors import InputError, MissingDependencyError
+from pnvlad_service.errors import InputError
 from pnvlad_service.evaluation import metrics
 from pnvlad_service.fileio import atomic_open, atomic_write_text
 from pnvlad_service.io.submap import SUBMAP_POINTS
@@ -365,14 +365,9 @@ def read_report(path: str | Path) -> dict[str, Any]:
 
 
 def _pyplot() -> Any:
-    try:
-        import matplotlib
-    except ImportError:
-        raise MissingDependencyError("matplotlib", "plot", "Evaluation figures") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from pnvlad_service.extras import pyplot
 
-    return plt
+    return pyplot("Evaluation figures")
 
 
 def plot_recall_curves(

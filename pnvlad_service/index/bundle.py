@@ -28,7 +28,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pnvlad_service.errors import InputError, PnvladError
-from pnvlad_service.fileio import atomic_directory, atomic_write_bytes, atomic_write_text
+from pnvlad_service.fileio import (
+    atomic_directory,
+    atomic_write_bytes,
+    atomic_write_text,
+    sha256_file,
+)
 from pnvlad_service.index.keys import apply_search_params, import_faiss
 from pnvlad_service.index.manifest import (
     FORMAT,
@@ -38,7 +43,6 @@ from pnvlad_service.index.manifest import (
     VERSION,
     Manifest,
     ModelRecord,
-    sha256_file,
 )
 
 if TYPE_CHECKING:

@@ -12,7 +12,6 @@ lists tuples; :meth:`Manifest.to_json` gives back plain JSON values, exactly the
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -21,6 +20,7 @@ from types import MappingProxyType
 from typing import Any
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.fileio import sha256_file
 from pnvlad_service.models.store import WEIGHTS_FILE, ModelIdentity
 
 FORMAT = "pnvlad-index"
@@ -50,15 +50,6 @@ KEYS = (
 #: Keys a manifest may have: how the bundle was built (processes, embedding seconds).
 OPTIONAL_KEYS = ("build",)
 _MODEL_KEYS = ("checkpoint", "weights_sha256", "config_sha256", "config")
-
-
-def sha256_file(path: str | Path, chunk: int = 1 << 22) -> str:
-    """Hex sha256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _freeze(value: Any) -> Any:

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from pnvlad_service.errors import InputError, MissingDependencyError
+from pnvlad_service.extras import require
 from pnvlad_service.io.points import validate_points
 from pnvlad_service.io.submap import (
     SUBMAP_BOUND,
@@ -143,12 +144,9 @@ def _stack_fields(columns: list[np.ndarray]) -> np.ndarray:
 
 
 def _read_pcd(path: Path) -> np.ndarray:
+    pypcd4 = require("pypcd4", "pypcd4", "io", "reading .pcd files")
     try:
-        from pypcd4 import PointCloud
-    except ImportError:
-        raise MissingDependencyError("pypcd4", "io", "reading .pcd files") from None
-    try:
-        cloud = PointCloud.from_path(path)
+        cloud = pypcd4.PointCloud.from_path(path)
     except (ValueError, KeyError, IndexError, TypeError) as exc:
         raise InputError(f"cannot parse PCD file ({_first_line(exc)})", source=path) from None
     missing = [f for f in "xyz" if f not in cloud.fields]
@@ -161,13 +159,10 @@ def _read_pcd(path: Path) -> np.ndarray:
 
 
 def _read_ply(path: Path) -> np.ndarray:
+    plyfile = require("plyfile", "plyfile", "io", "reading .ply files")
     try:
-        from plyfile import PlyData, PlyParseError
-    except ImportError:
-        raise MissingDependencyError("plyfile", "io", "reading .ply files") from None
-    try:
-        ply = PlyData.read(str(path))
-    except (PlyParseError, ValueError, EOFError) as exc:
+        ply = plyfile.PlyData.read(str(path))
+    except (plyfile.PlyParseError, ValueError, EOFError) as exc:
         raise InputError(f"cannot parse PLY file ({_first_line(exc)})", source=path) from None
     if "vertex" not in ply:
         raise InputError("PLY file has no 'vertex' element", source=path)
@@ -179,10 +174,7 @@ def _read_ply(path: Path) -> np.ndarray:
 
 
 def _read_las(path: Path) -> np.ndarray:
-    try:
-        import laspy
-    except ImportError:
-        raise MissingDependencyError("laspy", "io", "reading .las/.laz files") from None
+    laspy = require("laspy", "laspy", "io", "reading .las/.laz files")
     try:
         las = laspy.read(path)
     except laspy.errors.LaspyException as exc:

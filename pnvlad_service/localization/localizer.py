@@ -23,7 +23,7 @@ import math
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -70,18 +70,17 @@ class Timings:
     total: float = 0.0
 
     def seconds(self) -> dict[str, float]:
-        return {
-            "parse": self.parse,
-            "preprocess": self.preprocess,
-            "queue": self.queue,
-            "embed": self.embed,
-            "search": self.search,
-            "total": self.total,
-        }
+        """Stage name -> seconds, in the order of the fields."""
+        return asdict(self)
 
     def to_json(self) -> dict[str, float]:
-        """Milliseconds, rounded to the microsecond."""
-        return {k: round(v * 1000.0, 3) for k, v in self.seconds().items()}
+        """Milliseconds, rounded to the microsecond (:func:`milliseconds`)."""
+        return {k: milliseconds(v) for k, v in self.seconds().items()}
+
+
+def milliseconds(seconds: float) -> float:
+    """``seconds`` in milliseconds, rounded to the microsecond, as the answers report times."""
+    return round(seconds * 1000.0, 3)
 
 
 def match_json(m: Match) -> dict[str, Any]:
@@ -143,7 +142,7 @@ class LocalizerInfo:
     index: IndexInfo
 
     def to_json(self) -> dict[str, Any]:
-        return {"model": vars(self.model).copy(), "index": vars(self.index).copy()}
+        return {"model": asdict(self.model), "index": asdict(self.index)}
 
 
 # --------------------------------------------------------------------------------------------

@@ -27,7 +27,6 @@ Name mapping (port -> ours); 1x1 convolutions [out, in, 1, k] become Linear weig
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import pickle
 import re
@@ -36,6 +35,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.fileio import sha256_file
 from pnvlad_service.models.config import ModelConfig
 
 if TYPE_CHECKING:
@@ -200,16 +200,12 @@ def convert_port_state(
             continue
         out[ok] = t.to(ours[ok].dtype).contiguous()
     if missing or unexpected or shapes:
-        parts = []
-        if missing:
-            parts.append(f"missing {len(missing)}: {', '.join(missing)}")
-        if unexpected:
-            parts.append(f"unexpected {len(unexpected)}: {', '.join(sorted(unexpected))}")
-        if shapes:
-            parts.append(f"shape mismatch {len(shapes)}: {'; '.join(shapes)}")
+        from pnvlad_service.models.store import state_mismatch
+
         raise InputError(
             "not a PointNetVlad-Pytorch PointNetVlad(feature_transform="
-            f"{cfg.feature_transform}, max_pool=False) state dict: " + " | ".join(parts),
+            f"{cfg.feature_transform}, max_pool=False) state dict: "
+            + state_mismatch(missing, sorted(unexpected), shapes),
             source,
         )
     return out
@@ -237,7 +233,7 @@ def import_port(
     model = build_model(cfg)
     model.load_state_dict(converted, strict=True)
     model.eval()
-    sha = hashlib.sha256(path.read_bytes()).hexdigest()
+    sha = sha256_file(path)
     meta = {"source": {"kind": "PointNetVlad-Pytorch", "file": path.name, "sha256": sha, **info}}
     save_model(out_dir, model, cfg, meta, overwrite=overwrite)
     log.info("imported %s (%d tensors) into %s", path.name, len(converted), out_dir)

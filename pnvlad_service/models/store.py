@@ -11,17 +11,16 @@ by the trainer). Weights are never pickled: safetensors only.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.fileio import atomic_directory
+from pnvlad_service.fileio import atomic_directory, sha256_file
 from pnvlad_service.models.config import ModelConfig, config_sha256
 
 if TYPE_CHECKING:
@@ -83,12 +82,8 @@ class ModelIdentity:
     config: dict[str, Any]
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "checkpoint": self.checkpoint,
-            "weights_sha256": self.weights_sha256,
-            "config_sha256": self.config_sha256,
-            "config": self.config,
-        }
+        """The four fields as a JSON object (``config`` copied)."""
+        return asdict(self)
 
 
 def model_identity(directory: str | Path) -> ModelIdentity:
@@ -104,20 +99,12 @@ def model_identity(directory: str | Path) -> ModelIdentity:
     )
 
 
-def _sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def weights_sha256(directory: str | Path) -> str:
     """SHA-256 (hex) of the checkpoint's ``model.safetensors`` file bytes."""
     path = Path(directory) / WEIGHTS_FILE
     if not path.is_file():
         raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
-    return _sha256_file(path)
+    return sha256_file(path)
 
 
 def write_model_files(
@@ -139,7 +126,7 @@ def write_model_files(
             "format": FORMAT,
             "version": VERSION,
             "model": cfg.model_dump(mode="json"),
-            "weights_sha256": _sha256_file(directory / WEIGHTS_FILE),
+            "weights_sha256": sha256_file(directory / WEIGHTS_FILE),
             "config_sha256": config_sha256(cfg),
         }
     )
@@ -215,7 +202,7 @@ def load_model(
     if not wpath.is_file():
         raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
     recorded = doc.get("weights_sha256")
-    if recorded is not None and recorded != _sha256_file(wpath):
+    if recorded is not None and recorded != sha256_file(wpath):
         raise InputError(
             "weights do not match the SHA-256 recorded in model.json (file changed or corrupt)",
             wpath,
@@ -245,11 +232,19 @@ def check_state_dict(model: torch.nn.Module, state: dict[str, Any], source: str 
         if tuple(state[k].shape) != tuple(expected[k].shape)
     )
     if missing or unexpected or shapes:
-        parts = []
-        if missing:
-            parts.append(f"missing {len(missing)}: {', '.join(missing)}")
-        if unexpected:
-            parts.append(f"unexpected {len(unexpected)}: {', '.join(unexpected)}")
-        if shapes:
-            parts.append(f"shape mismatch {len(shapes)}: {'; '.join(shapes)}")
-        raise InputError("weights do not fit the model: " + " | ".join(parts), source)
+        raise InputError(
+            "weights do not fit the model: " + state_mismatch(missing, unexpected, shapes), source
+        )
+
+
+def state_mismatch(missing: list[str], unexpected: list[str], shapes: list[str]) -> str:
+    """One line for a state dict that does not fit: the missing, unexpected and mis-shaped
+    tensors, each group with its count, the groups that are empty left out."""
+    parts = []
+    if missing:
+        parts.append(f"missing {len(missing)}: {', '.join(missing)}")
+    if unexpected:
+        parts.append(f"unexpected {len(unexpected)}: {', '.join(unexpected)}")
+    if shapes:
+        parts.append(f"shape mismatch {len(shapes)}: {'; '.join(shapes)}")
+    return " | ".join(parts)

@@ -1,14 +1,32 @@
 """Response schemas, for the OpenAPI document and for clients.
 
 The routes write the answers themselves (``Answer.to_json``); these models document them.
-The request models live in :mod:`pnvlad_service.server.contract`, where they validate.
+``Timings``, ``ModelOut`` and ``IndexOut`` are made from the localiser's dataclasses
+(:mod:`pnvlad_service.localization.localizer`), so the answer and its schema have one list of
+fields. The request models live in :mod:`pnvlad_service.server.contract`, where they validate.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, create_model
+
+from pnvlad_service.localization import localizer
+
+
+def _json_model(dc: type, name: str, doc: str | None = None, **defaults: Any) -> type[BaseModel]:
+    """A response model named ``name`` with the fields of the dataclass ``dc`` as its JSON has
+    them: the same names in the same order, the same types and defaults (``defaults``: a
+    default the JSON form has and the dataclass does not)."""
+    hints = typing.get_type_hints(dc)
+    fields: dict[str, Any] = {}
+    for f in dataclasses.fields(dc):
+        default = f.default if f.default is not dataclasses.MISSING else ...
+        fields[f.name] = (hints[f.name], defaults.get(f.name, default))
+    return create_model(name, __doc__=doc, __module__=__name__, **fields)
 
 
 class MatchOut(BaseModel):
@@ -25,28 +43,10 @@ class MatchOut(BaseModel):
     distance: float | None
 
 
-class Timings(BaseModel):
-    """Milliseconds spent per stage."""
-
-    parse: float = 0.0
-    preprocess: float = 0.0
-    queue: float = 0.0
-    embed: float = 0.0
-    search: float = 0.0
-    total: float = 0.0
-
-
-class ModelOut(BaseModel):
-    weights_sha256: str
-    config_sha256: str
-    arch: str | None = None
-    dim: int
-
-
-class IndexOut(BaseModel):
-    id: str
-    key: str
-    count: int
+#: ``Timings.to_json``: milliseconds per stage.
+Timings = _json_model(localizer.Timings, "Timings", "Milliseconds spent per stage.")
+ModelOut = _json_model(localizer.ModelInfo, "ModelOut", arch=None)
+IndexOut = _json_model(localizer.IndexInfo, "IndexOut")
 
 
 class LocalizeResponse(BaseModel):

@@ -12,20 +12,27 @@ from pathlib import Path
 
 import numpy as np
 
-from pnvlad_service.errors import InputError, MissingDependencyError
+from pnvlad_service.errors import InputError
 
 log = logging.getLogger(__name__)
 
 
 def _plt():
-    try:
-        import matplotlib
-    except ImportError:
-        raise MissingDependencyError("matplotlib", "plot", "synth previews") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from pnvlad_service.extras import pyplot
 
-    return plt
+    return pyplot("synth previews")
+
+
+def _save_png(plt, fig, out_png: str | Path, dpi: int) -> Path:
+    """Lay ``fig`` out, write it to ``out_png`` atomically at ``dpi`` and close it."""
+    from pnvlad_service.fileio import atomic_open
+
+    fig.tight_layout()
+    out_png = Path(out_png)
+    with atomic_open(out_png, "wb") as fh:
+        fig.savefig(fh, format="png", dpi=dpi)
+    plt.close(fig)
+    return out_png
 
 
 def _summary(root: Path) -> dict:
@@ -42,7 +49,6 @@ def render_map(root: str | Path, out_png: str | Path, *, seed: int | None = None
 
     from pnvlad_service.data.splits import resolve_regions
     from pnvlad_service.data.tree import BenchmarkTree
-    from pnvlad_service.fileio import atomic_open
     from pnvlad_service.synth.generate import SynthPreset, _world
     from pnvlad_service.synth.world import KIND_BUILDING
 
@@ -90,12 +96,7 @@ def render_map(root: str | Path, out_png: str | Path, *, seed: int | None = None
         ax.set_ylabel("northing (m, UTM)")
         ax.ticklabel_format(useOffset=False, style="plain")
         ax.legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
-    out_png = Path(out_png)
-    with atomic_open(out_png, "wb") as fh:
-        fig.savefig(fh, format="png", dpi=110)
-    plt.close(fig)
-    return out_png
+    return _save_png(plt, fig, out_png, dpi=110)
 
 
 def render_submap(
@@ -111,7 +112,6 @@ def render_submap(
     window before G (ground included), and the 4096-point submap after G (top and side)."""
     from pnvlad_service.data.prepare import accumulate
     from pnvlad_service.data.tree import BenchmarkTree
-    from pnvlad_service.fileio import atomic_open
     from pnvlad_service.io.readers import read_points
     from pnvlad_service.synth.generate import SynthPreset, simulated_drive
 
@@ -154,12 +154,7 @@ def render_submap(
     fig.suptitle(
         f"{area} / {drive.name} / {sub.timestamp}: N {sub.northing:.1f}, E {sub.easting:.1f}"
     )
-    fig.tight_layout()
-    out_png = Path(out_png)
-    with atomic_open(out_png, "wb") as fh:
-        fig.savefig(fh, format="png", dpi=100)
-    plt.close(fig)
-    return out_png
+    return _save_png(plt, fig, out_png, dpi=100)
 
 
 def render_previews(

@@ -199,25 +199,6 @@ def _smooth_walk(rng: np.random.Generator, s: np.ndarray, std: float, corr: floa
     return out
 
 
-def _concat_boxes(*parts: Boxes) -> Boxes:
-    return Boxes(
-        np.concatenate([p.center for p in parts]),
-        np.concatenate([p.half for p in parts]),
-        np.concatenate([p.z for p in parts]),
-        np.concatenate([p.yaw for p in parts]),
-        np.concatenate([p.kind for p in parts]),
-    )
-
-
-def _concat_cylinders(*parts: Cylinders) -> Cylinders:
-    return Cylinders(
-        np.concatenate([p.center for p in parts]),
-        np.concatenate([p.radius for p in parts]),
-        np.concatenate([p.z for p in parts]),
-        np.concatenate([p.kind for p in parts]),
-    )
-
-
 @dataclass
 class _Movers:
     """Objects moving along the streets: road index, start distance, speed (m/s, signed),
@@ -293,24 +274,16 @@ class RunScene:
                 add_b.append((c[0], c[1], 3.0, 1.2, z, z + 2.6, yaw, KIND_BARRIER))
         ab = np.asarray(add_b, dtype=np.float64).reshape(-1, 8)
         ac = np.asarray(add_c, dtype=np.float64).reshape(-1, 6)
-        self.boxes = _concat_boxes(
-            Boxes(
-                boxes.center[keep_b],
-                boxes.half[keep_b],
-                boxes.z[keep_b],
-                boxes.yaw[keep_b],
-                boxes.kind[keep_b],
-            ),
+        self.boxes = Boxes.concat(
+            boxes.take(keep_b),
             parked,
             Boxes(ab[:, 0:2], ab[:, 2:4], ab[:, 4:6], ab[:, 6], ab[:, 7].astype(np.int8)),
         )
-        self.cylinders = _concat_cylinders(
-            Cylinders(cyl.center[keep_c], cyl.radius[keep_c], cyl.z[keep_c], cyl.kind[keep_c]),
+        self.cylinders = Cylinders.concat(
+            cyl.take(keep_c),
             Cylinders(ac[:, 0:2], ac[:, 2], ac[:, 3:5], ac[:, 5].astype(np.int8)),
         )
-        self.crowns = Ellipsoids(
-            crowns.center[keep_e], crowns.radii[keep_e], crowns.density[keep_e], crowns.kind[keep_e]
-        )
+        self.crowns = crowns.take(keep_e)
         self.removed = int((~keep_b).sum() + (~keep_c).sum() + (~keep_e).sum())
         self.roadworks = route.at(site_s)[0]
         # Traffic and pedestrians on every street, moving with time.
@@ -370,37 +343,27 @@ class RunScene:
     def scene_at(self, t: float, near: np.ndarray, radius: float) -> Scene:
         """The scene at time ``t`` (s), with movers limited to those within ``radius`` of
         ``near`` (local metres [2]) to keep ray casting cheap."""
-        g = self.world.ground
         boxes = self.boxes
         cyl = self.cylinders
         if len(self.cars.road):
-            c, yaw = self._place(self.cars, t)
-            sel = np.linalg.norm(c - near, axis=1) < radius
-            z = g.height(c[sel, 0], c[sel, 1])
-            boxes = _concat_boxes(
-                boxes,
-                Boxes(
-                    c[sel],
-                    self.cars.half[sel],
-                    np.stack([z, z + self.cars.height[sel]], 1),
-                    yaw[sel],
-                    np.full(int(sel.sum()), KIND_CAR, np.int8),
-                ),
-            )
+            sel, c, yaw, z = self._near(self.cars, t, near, radius)
+            kind = np.full(len(c), KIND_CAR, np.int8)
+            boxes = Boxes.concat(boxes, Boxes(c, self.cars.half[sel], z, yaw, kind))
         if len(self.people.road):
-            c, _ = self._place(self.people, t)
-            sel = np.linalg.norm(c - near, axis=1) < radius
-            z = g.height(c[sel, 0], c[sel, 1])
-            cyl = _concat_cylinders(
-                cyl,
-                Cylinders(
-                    c[sel],
-                    self.people.half[sel, 0],
-                    np.stack([z, z + self.people.height[sel]], 1),
-                    np.full(int(sel.sum()), KIND_PEDESTRIAN, np.int8),
-                ),
-            )
+            sel, c, _, z = self._near(self.people, t, near, radius)
+            kind = np.full(len(c), KIND_PEDESTRIAN, np.int8)
+            cyl = Cylinders.concat(cyl, Cylinders(c, self.people.half[sel, 0], z, kind))
         return Scene(boxes, cyl, self.crowns)
+
+    def _near(
+        self, m: _Movers, t: float, near: np.ndarray, radius: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The movers of ``m`` within ``radius`` of ``near`` at time ``t``: their mask [M],
+        centres [K, 2], yaw [K] and bottom/top z [K, 2] (standing on the ground)."""
+        c, yaw = self._place(m, t)
+        sel = np.linalg.norm(c - near, axis=1) < radius
+        z = self.world.ground.height(c[sel, 0], c[sel, 1])
+        return sel, c[sel], yaw[sel], np.stack([z, z + m.height[sel]], 1)
 
 
 class SimulatedDrive:

@@ -22,7 +22,8 @@ same arrays.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import TypeVar
 
 import numpy as np
 from pydantic import BaseModel, Field
@@ -130,8 +131,29 @@ class WorldConfig(BaseModel):
     ground_relief: float = Field(2.5, description="amplitude of ground undulation, metres")
 
 
+_P = TypeVar("_P", bound="_Primitives")
+
+
+class _Primitives:
+    """A set of N primitives as parallel arrays, one a field, the primitive on the first axis."""
+
+    kind: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.kind)
+
+    def take(self: _P, keep: np.ndarray) -> _P:
+        """The primitives selected by ``keep`` (a mask or indices), every field alike."""
+        return type(self)(*(getattr(self, f.name)[keep] for f in fields(self)))
+
+    @classmethod
+    def concat(cls: type[_P], *parts: _P) -> _P:
+        """One set of all ``parts``, in order, every field concatenated."""
+        return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)))
+
+
 @dataclass
-class Boxes:
+class Boxes(_Primitives):
     """Oriented boxes. center [N,2], half [N,2] (half length, half width), z [N,2] bottom/top,
     yaw [N] radians (rotation of the box's x axis from east), kind int8 [N]. Metres, local."""
 
@@ -141,12 +163,9 @@ class Boxes:
     yaw: np.ndarray
     kind: np.ndarray
 
-    def __len__(self) -> int:
-        return len(self.kind)
-
 
 @dataclass
-class Cylinders:
+class Cylinders(_Primitives):
     """Vertical cylinders. center [N,2], radius [N], z [N,2], kind int8 [N]. Metres, local."""
 
     center: np.ndarray
@@ -154,12 +173,9 @@ class Cylinders:
     z: np.ndarray
     kind: np.ndarray
 
-    def __len__(self) -> int:
-        return len(self.kind)
-
 
 @dataclass
-class Ellipsoids:
+class Ellipsoids(_Primitives):
     """Axis-aligned ellipsoids. center [N,3], radii [N,3], density [N] in (0, 1] (share of
     rays that return from the crown), kind int8 [N]. Metres, local."""
 
@@ -167,9 +183,6 @@ class Ellipsoids:
     radii: np.ndarray
     density: np.ndarray
     kind: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.kind)
 
 
 @dataclass

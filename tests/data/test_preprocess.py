@@ -22,6 +22,7 @@ from pnvlad_service.data.preprocess import (
 )
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.readers import read_points
+from tests.data.helpers import road_surface
 
 # --- crop ------------------------------------------------------------------------------------
 
@@ -275,43 +276,6 @@ REAL = [
 ]
 
 
-def _road_surface(points: np.ndarray, cell: float = 2.0):
-    """An estimate of the road surface independent of preprocess.py.
-
-    Per 2 m cell (with 3 or more points) the 5th percentile of z; a least-squares plane through
-    those cell values 3-20 m from the sensor, refitted five times without cells more than
-    0.3 m off it. Returns f(points) -> surface z under each point: the cell's value where it
-    is within 0.75 m of the plane (the cell looks like ground), else the plane.
-    """
-    keys = np.floor(points[:, :2] / cell).astype(np.int64)
-    low: dict[tuple[int, int], float] = {}
-    uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    order = np.argsort(inverse, kind="stable")
-    bounds = np.searchsorted(inverse[order], np.arange(len(uniq) + 1))
-    for k, (i, j) in enumerate(uniq.tolist()):
-        zs = points[order[bounds[k] : bounds[k + 1]], 2]
-        if len(zs) >= 3:
-            low[(i, j)] = float(np.percentile(zs, 5))
-    centres = np.array([((i + 0.5) * cell, (j + 0.5) * cell, z) for (i, j), z in low.items()])
-    r = np.hypot(centres[:, 0], centres[:, 1])
-    near = centres[(r > 3) & (r < 20)]
-    a = np.c_[near[:, :2], np.ones(len(near))]
-    keep = np.ones(len(near), bool)
-    for _ in range(5):
-        coef = np.linalg.lstsq(a[keep], near[keep, 2], rcond=None)[0]
-        keep = np.abs(a @ coef - near[:, 2]) < 0.3
-
-    def surface(q: np.ndarray) -> np.ndarray:
-        plane = q[:, 0] * coef[0] + q[:, 1] * coef[1] + coef[2]
-        cells = np.floor(q[:, :2] / cell).astype(np.int64).tolist()
-        local = np.array([low.get((i, j), np.nan) for i, j in cells])
-        use = np.isfinite(local) & (np.abs(local - plane) < 0.75)
-        return np.where(use, local, plane)
-
-    return surface
-
-
 @pytest.mark.real_scans
 @pytest.mark.parametrize(("name", "reader", "up"), REAL)
 def test_real_scan_ground_is_removed(real_scans: Path, name: str, reader: str, up: float) -> None:
@@ -319,7 +283,7 @@ def test_real_scan_ground_is_removed(real_scans: Path, name: str, reader: str, u
     res = apply_g(raw, GConfig(normalize=False))
     assert res.up is not None and res.up[2] * up > 0.99
     flip = np.array([1.0, up, up])
-    surface = _road_surface(raw * flip)
+    surface = road_surface(raw * flip)
     raw_near = np.mean(np.abs((raw * flip)[:, 2] - surface(raw * flip)) < 0.2)
     kept = res.points * flip
     kept_near = np.mean(np.abs(kept[:, 2] - surface(kept)) < 0.2)

@@ -7,18 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from pnvlad_service.index.build import build_bundle, load_encoder
-from tests.index.helpers import make_checkpoint, make_tree
+from pnvlad_service.index.build import load_encoder
+from tests.index.helpers import make_world
 
 
 @pytest.fixture(scope="package")
 def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    base = tmp_path_factory.mktemp("index")
-    tree = make_tree(base / "tree")
-    ckpt = make_checkpoint(base / "ckpt")
-    bundle = base / "flat.index"
-    build_bundle(bundle, ckpt, tree, progress=False)
-    return {"base": base, "tree": tree, "ckpt": ckpt, "bundle": bundle}
+    return make_world(tmp_path_factory.mktemp("index"), "flat.index")
 
 
 @pytest.fixture(scope="package")

@@ -1,5 +1,5 @@
 """Test helpers shared by the index, server and localisation tests: a tiny benchmark tree, a
-small random model, a free TCP port and a submap reader."""
+small random model, the two with their bundle, a free TCP port and a submap reader."""
 
 from __future__ import annotations
 
@@ -55,6 +55,18 @@ def make_checkpoint(path: Path, seed: int = 0) -> Path:
                 m.running_mean.uniform_(-0.1, 0.1)
                 m.running_var.uniform_(0.5, 1.5)
     return save_model(path, model, cfg)
+
+
+def make_world(base: Path, bundle_name: str = "map.index") -> dict[str, Path]:
+    """Under ``base``: ``tree`` (:func:`make_tree`), ``ckpt`` (:func:`make_checkpoint`) and
+    ``bundle``, a Flat bundle of the tree built with that model; the paths, and ``base``."""
+    from pnvlad_service.index.build import build_bundle
+
+    tree = make_tree(base / "tree")
+    ckpt = make_checkpoint(base / "ckpt")
+    bundle = base / bundle_name
+    build_bundle(bundle, ckpt, tree, progress=False)
+    return {"base": base, "tree": tree, "ckpt": ckpt, "bundle": bundle}
 
 
 def free_port() -> int:

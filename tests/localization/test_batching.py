@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+from contextlib import closing
 
 import numpy as np
 import pytest
@@ -26,8 +27,7 @@ def echo(sizes: list[int], delay: float = 0.0):
 
 def test_each_request_gets_its_own_answer_and_batches_form() -> None:
     sizes: list[int] = []
-    b = MicroBatcher(echo(sizes, delay=0.05), max_size=8, wait_ms=1.0)
-    try:
+    with closing(MicroBatcher(echo(sizes, delay=0.05), max_size=8, wait_ms=1.0)) as b:
         first = b.submit(np.full((4, 3), 1000.0, np.float32), 2)  # occupies the worker
         futures = {i: b.submit(np.full((4, 3), float(i), np.float32), 1 + i % 3) for i in range(20)}
         assert first.result(10).ids.tolist() == [1000, 1001]
@@ -35,25 +35,19 @@ def test_each_request_gets_its_own_answer_and_batches_form() -> None:
             r = f.result(10)
             assert r.ids.tolist() == list(range(i, i + 1 + i % 3))  # own cloud, own top_n
         assert max(sizes) == 8 and sum(sizes) == 21 and len(sizes) >= 3
-    finally:
-        b.close()
 
 
 def test_a_lone_request_does_not_wait() -> None:
     sizes: list[int] = []
-    b = MicroBatcher(echo(sizes), max_size=32, wait_ms=50.0)
-    try:
+    with closing(MicroBatcher(echo(sizes), max_size=32, wait_ms=50.0)) as b:
         t0 = time.perf_counter()
         b.submit(np.zeros((4, 3), np.float32), 1).result(5)
         assert time.perf_counter() - t0 < 0.04  # no announced request: no 50 ms wait
-    finally:
-        b.close()
 
 
 def test_announced_requests_are_waited_for() -> None:
     sizes: list[int] = []
-    b = MicroBatcher(echo(sizes), max_size=32, wait_ms=300.0)
-    try:
+    with closing(MicroBatcher(echo(sizes), max_size=32, wait_ms=300.0)) as b:
         with b.announce():
             late: list = []
 
@@ -67,8 +61,6 @@ def test_announced_requests_are_waited_for() -> None:
             t.join()
         assert early.result(5).batch_size == 2 and late[0].result(5).batch_size == 2
         assert sizes == [2]
-    finally:
-        b.close()
 
 
 def test_two_lanes_start_the_next_batch_while_one_is_busy() -> None:
@@ -76,8 +68,8 @@ def test_two_lanes_start_the_next_batch_while_one_is_busy() -> None:
     one lane the second request waits for the first batch to finish."""
     for lanes, ends_after in ((2, 0.15), (1, 0.3)):
         sizes: list[int] = []
-        b = MicroBatcher(echo(sizes, delay=0.15), max_size=8, wait_ms=0.0, lanes=lanes)
-        try:
+        batcher = MicroBatcher(echo(sizes, delay=0.15), max_size=8, wait_ms=0.0, lanes=lanes)
+        with closing(batcher) as b:
             t0 = time.perf_counter()
             a = b.submit(np.zeros((4, 3), np.float32), 1)
             time.sleep(0.02)
@@ -86,8 +78,6 @@ def test_two_lanes_start_the_next_batch_while_one_is_busy() -> None:
             took = time.perf_counter() - t0
             assert sizes == [1, 1]
             assert (took < 0.27) if lanes == 2 else (took >= ends_after)
-        finally:
-            b.close()
     with pytest.raises(ValueError, match="lanes"):
         MicroBatcher(echo([]), lanes=0)
 
@@ -101,12 +91,9 @@ def test_a_failing_batch_reaches_its_callers_and_the_worker_lives_on() -> None:
             raise RuntimeError("boom")
         return np.zeros((len(clouds), k), np.float32), np.zeros((len(clouds), k), np.int64), 0, 0
 
-    b = MicroBatcher(flaky, max_size=4, wait_ms=0.0)
-    try:
+    with closing(MicroBatcher(flaky, max_size=4, wait_ms=0.0)) as b:
         with pytest.raises(RuntimeError, match="boom"):
             b.submit(np.zeros((4, 3), np.float32), 1).result(5)
         assert b.submit(np.zeros((4, 3), np.float32), 1).result(5).ids.tolist() == [0]
-    finally:
-        b.close()
     with pytest.raises(RuntimeError, match="closed"):
         b.submit(np.zeros((4, 3), np.float32), 1)

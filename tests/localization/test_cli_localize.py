@@ -16,13 +16,16 @@ from pnvlad_service.index import build as ix
 from tests.index.helpers import PER_RUN
 
 
+def local_args(world: dict[str, Path], scan: str, *more: str) -> list[str]:
+    """``pnvlad localize SCAN --reader benchmark --index BUNDLE`` and ``more``."""
+    return ["localize", scan, "--reader", "benchmark", "--index", str(world["bundle"]), *more]
+
+
 def test_table_and_json_name_the_submap_itself_first(world: dict[str, Path]) -> None:
     rec = ix.list_database_submaps(world["tree"])[PER_RUN + 4]
     scan = str(world["tree"] / rec.path)
     runner = CliRunner()
-    res = runner.invoke(
-        app, ["localize", scan, "--reader", "benchmark", "--index", str(world["bundle"]), "-n", "4"]
-    )
+    res = runner.invoke(app, local_args(world, scan, "-n", "4"))
     assert res.exit_code == 0, res.output
     lines = res.stdout.splitlines()
     assert lines[0].split() == ["rank", "submap", "run", "northing", "easting", "distance"]
@@ -31,20 +34,7 @@ def test_table_and_json_name_the_submap_itself_first(world: dict[str, Path]) -> 
     assert rank1[:3] == ["1", str(rec.timestamp), rec.run]
     assert float(rank1[3]) == pytest.approx(rec.northing, abs=0.005)
     assert float(rank1[4]) == pytest.approx(rec.easting, abs=0.005)
-    res = runner.invoke(
-        app,
-        [
-            "localize",
-            scan,
-            "--reader",
-            "benchmark",
-            "--index",
-            str(world["bundle"]),
-            "-m",
-            str(world["ckpt"]),
-            "--json",
-        ],
-    )
+    res = runner.invoke(app, local_args(world, scan, "-m", str(world["ckpt"]), "--json"))
     assert res.exit_code == 0, res.output
     body = json.loads(res.stdout)
     assert [m["rank"] for m in body["matches"]] == [1, 2, 3, 4, 5]
@@ -61,8 +51,7 @@ def test_model_is_a_model_or_a_training_run_directory(
     run = tmp_path / "run"
     shutil.copytree(world["ckpt"], run / "model")
     rec = ix.list_database_submaps(world["tree"])[3]
-    base = ["localize", str(world["tree"] / rec.path), "--reader", "benchmark", "--json"]
-    base += ["--index", str(world["bundle"])]
+    base = local_args(world, str(world["tree"] / rec.path), "--json")
     for flag, model in (("--checkpoint", run), ("--model", world["ckpt"])):
         res = CliRunner().invoke(app, [*base, flag, str(model)])
         assert res.exit_code == 0, res.output
@@ -78,19 +67,7 @@ def test_usage_errors_exit_2(world: dict[str, Path], tmp_path: Path) -> None:
     scan = str(world["tree"] / ix.list_database_submaps(world["tree"])[0].path)
     res = runner.invoke(app, ["localize", scan, "--reader", "benchmark"])
     assert res.exit_code == 2 and "--url" in res.output
-    res = runner.invoke(
-        app,
-        [
-            "localize",
-            scan,
-            "--reader",
-            "benchmark",
-            "--index",
-            str(world["bundle"]),
-            "--url",
-            "http://127.0.0.1:1",
-        ],
-    )
+    res = runner.invoke(app, local_args(world, scan, "--url", "http://127.0.0.1:1"))
     assert res.exit_code == 2
     raw = tmp_path / "raw.npy"
     np.save(raw, np.random.default_rng(0).uniform(-30, 30, (1000, 3)))
@@ -100,7 +77,5 @@ def test_usage_errors_exit_2(world: dict[str, Path], tmp_path: Path) -> None:
         app, ["localize", scan, "--reader", "benchmark", "--url", "http://127.0.0.1:9"]
     )
     assert res.exit_code == 2 and "cannot reach" in res.output
-    res = runner.invoke(
-        app, ["localize", scan, "--reader", "benchmark", "--index", str(tmp_path / "none")]
-    )
+    res = runner.invoke(app, local_args({"bundle": tmp_path / "none"}, scan))
     assert res.exit_code == 2 and "not found" in res.output

@@ -23,7 +23,7 @@ import pytest
 
 from pnvlad_service.index import build as ix
 from pnvlad_service.index.bundle import IndexBundle
-from tests.index.helpers import PER_RUN, free_port, make_checkpoint, make_tree, read_cloud
+from tests.index.helpers import PER_RUN, free_port, make_checkpoint, make_world, read_cloud
 
 MAX_BODY = 4 * 1024 * 1024
 PROBLEM = "application/problem+json"
@@ -70,11 +70,7 @@ def stop_server(proc: subprocess.Popen) -> None:
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    base = tmp_path_factory.mktemp("server")
-    tree = make_tree(base / "tree")
-    ckpt = make_checkpoint(base / "ckpt")
-    ix.build_bundle(base / "map.index", ckpt, tree, progress=False)
-    return {"base": base, "tree": tree, "ckpt": ckpt, "bundle": base / "map.index"}
+    return make_world(tmp_path_factory.mktemp("server"))
 
 
 @pytest.fixture(scope="module")

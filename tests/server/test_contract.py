@@ -21,10 +21,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.index import build as ix
 from pnvlad_service.localization.limits import Limits
 from pnvlad_service.server.contract import Contract
-from tests.index.helpers import make_checkpoint, make_tree
+from tests.index.helpers import make_world
 
 IGNORED = {"title", "description", "default", "format"}
 TYPES = {
@@ -84,12 +83,8 @@ def served(tmp_path_factory: pytest.TempPathFactory):
     from pnvlad_service.server.app import create_app
     from pnvlad_service.server.settings import ServerSettings
 
-    base = tmp_path_factory.mktemp("contract")
-    ckpt = make_checkpoint(base / "ckpt")
-    ix.build_bundle(base / "map.index", ckpt, make_tree(base / "tree"), progress=False)
-    s = ServerSettings(
-        index=base / "map.index", max_raw_points=RAW, max_top_n=TOP, max_batch_queries=QUERIES
-    )
+    bundle = make_world(tmp_path_factory.mktemp("contract"))["bundle"]
+    s = ServerSettings(index=bundle, max_raw_points=RAW, max_top_n=TOP, max_batch_queries=QUERIES)
     with TestClient(create_app(s)) as c:
         paths = c.get("/openapi.json").json()["paths"]
         schemas = [

@@ -18,7 +18,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, Response
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.localizer import Localizer
+from pnvlad_service.localization.localizer import Localizer, milliseconds
 from pnvlad_service.server import problems, schemas
 from pnvlad_service.server.bodies import JSON, NPY, OCTET, read_batch, read_query
 from pnvlad_service.server.contract import Contract
@@ -42,10 +42,6 @@ def _content_type(request: Request, allowed: tuple[str, ...]) -> str:
             field="Content-Type",
         )
     return ctype
-
-
-def _ms(seconds: float) -> float:
-    return round(seconds * 1000.0, 3)
 
 
 async def _prepare(loc: Localizer, cloud: Cloud, field: str) -> np.ndarray:
@@ -113,14 +109,22 @@ async def localize_many(
         metrics.observe(a.timings.seconds())
     doc: dict[str, Any] = {
         "results": [a.to_json() for a in answers],
-        "timings_ms": {"parse": _ms(parse_s), "total": _ms(total_s)},
+        "timings_ms": {"parse": milliseconds(parse_s), "total": milliseconds(total_s)},
         **loc.info.to_json(),
     }
     return JSONResponse(doc)
 
 
-def _request_body(content: dict[str, Any]) -> dict[str, Any]:
-    return {"requestBody": {"required": True, "content": content}}
+def _post(r: APIRouter, path: str, summary: str, answer: type, content: dict[str, Any]) -> Any:
+    """``r.post`` for a localisation route: answered with ``answer`` or one of the problems
+    both routes share; its required body is one of ``content``'s media types."""
+    return r.post(
+        path,
+        summary=summary,
+        response_model=answer,
+        responses=problems.openapi_responses(400, 401, 413, 415, 422, 503),
+        openapi_extra={"requestBody": {"required": True, "content": content}},
+    )
 
 
 def router(contract: Contract) -> APIRouter:
@@ -137,18 +141,16 @@ def router(contract: Contract) -> APIRouter:
         "or the header X-Points-Dtype).",
     )
 
-    @r.post(
+    @_post(
+        r,
         "/localize",
-        summary="Localise one point cloud",
-        response_model=schemas.LocalizeResponse,
-        responses=problems.openapi_responses(400, 401, 413, 415, 422, 503),
-        openapi_extra=_request_body(
-            {
-                JSON: {"schema": contract.query_schema()},
-                OCTET: {"schema": _BINARY_SCHEMA},
-                NPY: {"schema": _BINARY_SCHEMA},
-            }
-        ),
+        "Localise one point cloud",
+        schemas.LocalizeResponse,
+        {
+            JSON: {"schema": contract.query_schema()},
+            OCTET: {"schema": _BINARY_SCHEMA},
+            NPY: {"schema": _BINARY_SCHEMA},
+        },
     )
     async def localize(
         request: Request,
@@ -167,14 +169,12 @@ def router(contract: Contract) -> APIRouter:
         """
         return await localize_one(request, contract, loc, metrics, (top_n, preprocess, dtype))
 
-    @r.post(
+    @_post(
+        r,
         "/localize/batch",
-        summary="Localise several clouds, embedded as one batch",
-        response_model=schemas.BatchResponse,
-        responses=problems.openapi_responses(400, 401, 413, 415, 422, 503),
-        openapi_extra=_request_body(
-            {JSON: {"schema": contract.batch_schema()}, NPY: {"schema": _BINARY_SCHEMA}}
-        ),
+        "Localise several clouds, embedded as one batch",
+        schemas.BatchResponse,
+        {JSON: {"schema": contract.batch_schema()}, NPY: {"schema": _BINARY_SCHEMA}},
     )
     async def localize_batch(
         request: Request,

@@ -1,8 +1,6 @@
 """data.splits.evaluation: databases, queries and ground truth by hand and by plain loops.
 
-Expected values come from hand-worked cases (points placed at exactly 10, 25, 50 and 150 m
-along one axis, where float64 arithmetic on UTM magnitudes is exact) and from plain Python
-loops over every pair of submaps.
+How the expected values are made: :mod:`tests.data.splits.helpers`.
 """
 
 from __future__ import annotations
