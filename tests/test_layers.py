@@ -7,7 +7,7 @@ from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "pnvlad_service"
 
-#: The stages each stage may import (besides errors, fileio and the package's __version__).
+#: The stages each stage may import (besides errors, fileio, extras and the package's __version__).
 ALLOWED: dict[str, set[str]] = {
     "io": set(),
     "data": {"io"},
@@ -19,7 +19,7 @@ ALLOWED: dict[str, set[str]] = {
     "localization": {"io", "data", "models", "index"},
     "server": {"io", "localization"},
 }
-SHARED = {"errors", "fileio", "configs"}
+SHARED = {"errors", "fileio", "extras", "configs"}
 WEB = ("fastapi", "starlette", "uvicorn")
 
 
