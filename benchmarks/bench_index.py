@@ -50,7 +50,7 @@ def main() -> None:
 
     import faiss
 
-    from pnvlad_service.index.bundle import (
+    from pnvlad_service.index.keys import (
         apply_search_params,
         default_search_params,
         ivf_lists,

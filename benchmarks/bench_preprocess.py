@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from pnvlad_service.data import preprocess as g
+from pnvlad_service.data import voxel
 from pnvlad_service.io.readers import read_points
 
 SCANS = [
@@ -80,17 +81,17 @@ def _bench_scan(
     xy = np.stack([pts @ rot[0], pts @ rot[1]], axis=1)
     height = pts @ normal + offset
     nonground = g.remove_ground(pts, cfg, rng=np.random.default_rng(0))
-    leaf, _ = g.find_leaf_size(nonground, cfg.target_points)
-    voxels = g.voxel_average(nonground, leaf) if len(nonground) > cfg.target_points else None
+    leaf, _ = voxel.find_leaf_size(nonground, cfg.target_points)
+    voxels = voxel.voxel_average(nonground, leaf) if len(nonground) > cfg.target_points else None
     steps: list[tuple[str, Callable[[], object]]] = [
         ("read", lambda: read_points(path, reader)),
         ("ground: RANSAC plane", lambda: g.fit_ground_plane(pts, rng=rng)),
         ("ground: height map", lambda: g.ground_surface(xy, height)),
         ("ground: whole step", lambda: g.ground_mask(pts, cfg, rng=rng)),
-        ("voxel: leaf search", lambda: g.find_leaf_size(nonground, cfg.target_points)),
+        ("voxel: leaf search", lambda: voxel.find_leaf_size(nonground, cfg.target_points)),
     ]
     if voxels is not None:
-        steps.append(("voxel: average", lambda: g.voxel_average(nonground, leaf)))
+        steps.append(("voxel: average", lambda: voxel.voxel_average(nonground, leaf)))
     out = res.points
     steps += [
         ("normalise", lambda: g.normalize(out, cfg.target_points, rng=rng)),

@@ -39,11 +39,12 @@ def load_queries(index: Path | None, count: int, seed: int = 0) -> list[np.ndarr
     """Submaps of the bundle's map (read from the indexed tree), else random clouds."""
     rng = np.random.default_rng(seed)
     if index is not None:
-        from pnvlad_service.index.bundle import Metadata, read_manifest
+        from pnvlad_service.index.bundle import Metadata
+        from pnvlad_service.index.manifest import Manifest
 
-        manifest = read_manifest(index)
+        manifest = Manifest.read(index)
         meta = Metadata.load(index / "metadata.npz")
-        root = Path(manifest["indexed"][0]["root"])
+        root = Path(manifest.indexed[0]["root"])
         picks = rng.choice(len(meta), min(count, len(meta)), replace=False)
         out = []
         for i in picks:
@@ -57,7 +58,7 @@ def load_queries(index: Path | None, count: int, seed: int = 0) -> list[np.ndarr
 
 def encoder_baseline(checkpoint: Path, clouds: list[np.ndarray], repeats: int) -> dict:
     """Batch-1 median latency (ms) and batch-32 throughput (clouds/s) of the encoder alone."""
-    from pnvlad_service.index.bundle import load_encoder
+    from pnvlad_service.index.build import load_encoder
 
     enc = load_encoder(checkpoint)
     x1 = clouds[0][None]
@@ -179,9 +180,9 @@ def main() -> None:
     clouds = load_queries(args.index, args.queries)
     checkpoint = args.checkpoint
     if checkpoint is None and args.index is not None:
-        from pnvlad_service.index.bundle import read_manifest
+        from pnvlad_service.index.manifest import Manifest
 
-        checkpoint = Path(read_manifest(args.index)["model"]["checkpoint"])
+        checkpoint = Path(Manifest.read(args.index).model.checkpoint)
     result: dict = {}
 
     def baseline(when: str) -> None:

@@ -1,21 +1,169 @@
 """`pnvlad data prepare`: a recorded drive -> one benchmark run of submaps (see cli/data.py).
 
-A thin layer over :mod:`pnvlad_service.data.prepare`; library imports happen inside the command so
-that `pnvlad --help` stays fast.
+A thin layer over :func:`pnvlad_service.data.prepare.prepare_drive`: the options are declared
+below (so the command's signature stays one screen), checked and turned into a drive from
+:mod:`pnvlad_service.data.drives`; library imports happen inside the command so that
+`pnvlad --help` stays fast.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from pnvlad_cli.common import user_errors
 
+if TYPE_CHECKING:
+    from pnvlad_service.data.drives import Drive
+    from pnvlad_service.data.prepare import PrepareResult
+
 _INPUT = "Input drive"
 _GEOMETRY = "Submaps"
 _SPEED = "Speed"
 _OUTPUT = "Output"
+
+_KITTI = typer.Option(
+    None,
+    "--kitti",
+    help="KITTI-odometry sequence folder: velodyne/*.bin, poses.txt, optional times.txt "
+    "and calib.txt.",
+    rich_help_panel=_INPUT,
+)
+_SCANS = typer.Option(
+    None,
+    "--scans",
+    help="Folder of scans named TIMESTAMP.EXT (µs), used with --poses CSV.",
+    rich_help_panel=_INPUT,
+)
+_POSES = typer.Option(
+    None,
+    "--poses",
+    help="With --scans: pose CSV (timestamp,northing,easting,yaw_deg|heading_deg[,height] or "
+    "timestamp,r00..r23). With --kitti: a poses file other than <SEQ>/poses.txt.",
+    rich_help_panel=_INPUT,
+)
+_READER = typer.Option(
+    None,
+    "--reader",
+    help="Scan format for --scans when the suffix is ambiguous (kitti, nuscenes, nclt, "
+    "benchmark, ...).",
+    rich_help_panel=_INPUT,
+)
+_SKIP_MISSING = typer.Option(
+    False,
+    "--skip-missing",
+    help="With --scans: drop CSV rows without a scan file and files without a row "
+    "(default: refuse).",
+    rich_help_panel=_INPUT,
+)
+_ORIGIN = typer.Option(
+    None,
+    "--origin",
+    help="With --kitti: UTM NORTHING,EASTING of the first scan (default 0,0: local metres).",
+    rich_help_panel=_INPUT,
+)
+_YAW = typer.Option(
+    0.0,
+    "--yaw",
+    help="With --kitti: direction the car faces at the first scan, degrees counter-clockwise "
+    "from east (0 = east, 90 = north).",
+    rich_help_panel=_INPUT,
+)
+_OUT = typer.Option(
+    ...,
+    "--out",
+    "-o",
+    help="Run folder to write, e.g. benchmark_datasets/oxford/2024-05-01-10-00-00.",
+    rich_help_panel=_OUTPUT,
+)
+_LAYOUT = typer.Option(
+    "oxford",
+    "--layout",
+    help="oxford (20 m windows; train every 10 m, test every 20 m) or inhouse (25 m boxes; "
+    "train every 10 m, test every 25 m).",
+    rich_help_panel=_GEOMETRY,
+)
+_KIND = typer.Option(
+    "both",
+    "--kind",
+    help="train, test or both (both layouts in one pass; each scan read once).",
+    rich_help_panel=_GEOMETRY,
+)
+_WINDOW = typer.Option(
+    None,
+    "--window",
+    help="Metres of trajectory accumulated per submap, centred on it (default: the "
+    "layout's, 20 oxford, 25 inhouse).",
+    rich_help_panel=_GEOMETRY,
+)
+_BOX = typer.Option(
+    None,
+    "--box",
+    help="Crop to a square box around the submap, UTM-aligned: 25 or 25x25 metres "
+    "(default: none for oxford, 25 for inhouse; 0 = no crop).",
+    rich_help_panel=_GEOMETRY,
+)
+_STRIDE = typer.Option(
+    None,
+    "--stride",
+    help="Metres travelled between submaps of the train kind, or of the only kind asked "
+    "for (default: the layout's).",
+    rich_help_panel=_GEOMETRY,
+)
+_TEST_STRIDE = typer.Option(
+    None,
+    "--test-stride",
+    help="With --kind both: metres between test submaps (default: the layout's, 20 or 25).",
+    rich_help_panel=_GEOMETRY,
+)
+_G_CONFIG = typer.Option(
+    None,
+    "--g-config",
+    help="YAML or JSON file of filter G settings (GConfig fields; default: the paper's).",
+    rich_help_panel=_GEOMETRY,
+)
+_SEED = typer.Option(
+    0,
+    "--seed",
+    help="Random seed; submap k uses seed + its centre scan index.",
+    rich_help_panel=_GEOMETRY,
+)
+_POINTS_PER_SCAN = typer.Option(
+    10_000,
+    "--points-per-scan",
+    help="Random subset of each scan accumulated (0 = every point).",
+    rich_help_panel=_SPEED,
+)
+_MAX_RANGE = typer.Option(
+    None,
+    "--max-range",
+    help="Drop points farther than this from the sensor, metres (default: keep all).",
+    rich_help_panel=_SPEED,
+)
+_SCAN_STEP = typer.Option(
+    1, "--scan-step", help="Use every k-th scan of each window.", rich_help_panel=_SPEED
+)
+_MIN_SPACING = typer.Option(
+    0.05,
+    "--min-spacing",
+    help="Skip scans less than this many metres of travel after the last one used "
+    "(a stop at a light adds one scan; 0 = use all).",
+    rich_help_panel=_SPEED,
+)
+_RESUME = typer.Option(
+    False,
+    "--resume",
+    help="Finish an interrupted run: keep submaps already written (same options needed).",
+    rich_help_panel=_OUTPUT,
+)
+_OVERWRITE = typer.Option(
+    False,
+    "--overwrite",
+    help="Delete the submaps the output folders hold and start again.",
+    rich_help_panel=_OUTPUT,
+)
 
 
 def _parse_origin(text: str) -> tuple[float, float]:
@@ -49,147 +197,109 @@ def _parse_box(text: str) -> float:
     return sides[0]
 
 
+def _kinds(kitti: Path | None, scans: Path | None, kind: str) -> tuple[str, ...]:
+    """The kinds asked for by ``--kind``, once exactly one drive source is given."""
+    from pnvlad_service.errors import InputError
+
+    if (kitti is None) == (scans is None):
+        raise InputError("give either --kitti SEQ_DIR or --scans DIR --poses CSV", "--kitti")
+    if kind not in ("train", "test", "both"):
+        raise InputError(f"expected train, test or both, got {kind!r}", "--kind")
+    return ("train", "test") if kind == "both" else (kind,)
+
+
+def _open_drive(
+    kitti: Path | None,
+    scans: Path | None,
+    poses: Path | None,
+    reader: str | None,
+    skip_missing: bool,
+    origin: str | None,
+    yaw: float,
+) -> Drive:
+    """The drive of ``--kitti`` or of ``--scans`` with ``--poses``, its options checked."""
+    from pnvlad_service.data.drives import CsvDrive, KittiSequence
+    from pnvlad_service.errors import InputError
+
+    if kitti is not None:
+        if reader is not None or skip_missing:
+            raise InputError("--reader and --skip-missing apply to --scans only", "--kitti")
+        drive = KittiSequence(
+            kitti,
+            poses=poses,
+            origin_ne=(0.0, 0.0) if origin is None else _parse_origin(origin),
+            yaw_deg=yaw,
+        )
+        if origin is None:
+            typer.secho(
+                "note: no --origin given, positions are local metres from the first scan",
+                err=True,
+                fg=typer.colors.YELLOW,
+            )
+        return drive
+    if poses is None:
+        raise InputError("--scans needs --poses CSV", "--poses")
+    if origin is not None or yaw != 0.0:
+        raise InputError("--origin and --yaw apply to --kitti only", "--origin")
+    assert scans is not None
+    return CsvDrive(scans, poses, reader=reader, skip_missing=skip_missing)
+
+
+def _strides(
+    kinds: tuple[str, ...], stride: float | None, test_stride: float | None
+) -> dict[str, float]:
+    """Kind -> stride: ``--stride`` for the first kind asked for, ``--test-stride`` for test."""
+    from pnvlad_service.errors import InputError
+
+    if test_stride is not None and len(kinds) != 2:
+        raise InputError("--test-stride goes with --kind both (else use --stride)", "--kind")
+    strides: dict[str, float] = {}
+    if stride is not None:
+        strides[kinds[0]] = stride
+    if test_stride is not None:
+        strides["test"] = test_stride
+    return strides
+
+
+def _report(result: PrepareResult, scans: int) -> None:
+    """One line per kind (submaps, written, kept, failed) and one on speed."""
+    for res in result.layouts:
+        line = f"{res.kind:5s} {res.folder}: {res.submaps - res.failed} submaps"
+        extra = [f"{res.written} written"]
+        if res.resumed:
+            extra.append(f"{res.resumed} kept")
+        if res.failed:
+            extra.append(f"{res.failed} failed (see log)")
+        typer.echo(f"{line} ({', '.join(extra)}), locations in {res.csv.name}")
+    typer.echo(
+        f"{scans} scans ({result.scans_read} read) in {result.seconds:.1f} s, "
+        f"{result.submaps_per_second():.2f} submaps/s"
+    )
+
+
 def prepare(
-    kitti: Path = typer.Option(
-        None,
-        "--kitti",
-        help="KITTI-odometry sequence folder: velodyne/*.bin, poses.txt, optional times.txt "
-        "and calib.txt.",
-        rich_help_panel=_INPUT,
-    ),
-    scans: Path = typer.Option(
-        None,
-        "--scans",
-        help="Folder of scans named TIMESTAMP.EXT (µs), used with --poses CSV.",
-        rich_help_panel=_INPUT,
-    ),
-    poses: Path = typer.Option(
-        None,
-        "--poses",
-        help="With --scans: pose CSV (timestamp,northing,easting,yaw_deg|heading_deg[,height] or "
-        "timestamp,r00..r23). With --kitti: a poses file other than <SEQ>/poses.txt.",
-        rich_help_panel=_INPUT,
-    ),
-    reader: str = typer.Option(
-        None,
-        "--reader",
-        help="Scan format for --scans when the suffix is ambiguous (kitti, nuscenes, nclt, "
-        "benchmark, ...).",
-        rich_help_panel=_INPUT,
-    ),
-    skip_missing: bool = typer.Option(
-        False,
-        "--skip-missing",
-        help="With --scans: drop CSV rows without a scan file and files without a row "
-        "(default: refuse).",
-        rich_help_panel=_INPUT,
-    ),
-    origin: str = typer.Option(
-        None,
-        "--origin",
-        help="With --kitti: UTM NORTHING,EASTING of the first scan (default 0,0: local metres).",
-        rich_help_panel=_INPUT,
-    ),
-    yaw: float = typer.Option(
-        0.0,
-        "--yaw",
-        help="With --kitti: direction the car faces at the first scan, degrees counter-clockwise "
-        "from east (0 = east, 90 = north).",
-        rich_help_panel=_INPUT,
-    ),
-    out: Path = typer.Option(
-        ...,
-        "--out",
-        "-o",
-        help="Run folder to write, e.g. benchmark_datasets/oxford/2024-05-01-10-00-00.",
-        rich_help_panel=_OUTPUT,
-    ),
-    layout: str = typer.Option(
-        "oxford",
-        "--layout",
-        help="oxford (20 m windows; train every 10 m, test every 20 m) or inhouse (25 m boxes; "
-        "train every 10 m, test every 25 m).",
-        rich_help_panel=_GEOMETRY,
-    ),
-    kind: str = typer.Option(
-        "both",
-        "--kind",
-        help="train, test or both (both layouts in one pass; each scan read once).",
-        rich_help_panel=_GEOMETRY,
-    ),
-    window: float = typer.Option(
-        None,
-        "--window",
-        help="Metres of trajectory accumulated per submap, centred on it (default: the "
-        "layout's, 20 oxford, 25 inhouse).",
-        rich_help_panel=_GEOMETRY,
-    ),
-    box: str = typer.Option(
-        None,
-        "--box",
-        help="Crop to a square box around the submap, UTM-aligned: 25 or 25x25 metres "
-        "(default: none for oxford, 25 for inhouse; 0 = no crop).",
-        rich_help_panel=_GEOMETRY,
-    ),
-    stride: float = typer.Option(
-        None,
-        "--stride",
-        help="Metres travelled between submaps of the train kind, or of the only kind asked "
-        "for (default: the layout's).",
-        rich_help_panel=_GEOMETRY,
-    ),
-    test_stride: float = typer.Option(
-        None,
-        "--test-stride",
-        help="With --kind both: metres between test submaps (default: the layout's, 20 or 25).",
-        rich_help_panel=_GEOMETRY,
-    ),
-    g_config: Path = typer.Option(
-        None,
-        "--g-config",
-        help="YAML or JSON file of filter G settings (GConfig fields; default: the paper's).",
-        rich_help_panel=_GEOMETRY,
-    ),
-    seed: int = typer.Option(
-        0,
-        "--seed",
-        help="Random seed; submap k uses seed + its centre scan index.",
-        rich_help_panel=_GEOMETRY,
-    ),
-    points_per_scan: int = typer.Option(
-        10_000,
-        "--points-per-scan",
-        help="Random subset of each scan accumulated (0 = every point).",
-        rich_help_panel=_SPEED,
-    ),
-    max_range: float = typer.Option(
-        None,
-        "--max-range",
-        help="Drop points farther than this from the sensor, metres (default: keep all).",
-        rich_help_panel=_SPEED,
-    ),
-    scan_step: int = typer.Option(
-        1, "--scan-step", help="Use every k-th scan of each window.", rich_help_panel=_SPEED
-    ),
-    min_spacing: float = typer.Option(
-        0.05,
-        "--min-spacing",
-        help="Skip scans less than this many metres of travel after the last one used "
-        "(a stop at a light adds one scan; 0 = use all).",
-        rich_help_panel=_SPEED,
-    ),
-    resume: bool = typer.Option(
-        False,
-        "--resume",
-        help="Finish an interrupted run: keep submaps already written (same options needed).",
-        rich_help_panel=_OUTPUT,
-    ),
-    overwrite: bool = typer.Option(
-        False,
-        "--overwrite",
-        help="Delete the submaps the output folders hold and start again.",
-        rich_help_panel=_OUTPUT,
-    ),
+    kitti: Path = _KITTI,
+    scans: Path = _SCANS,
+    poses: Path = _POSES,
+    reader: str = _READER,
+    skip_missing: bool = _SKIP_MISSING,
+    origin: str = _ORIGIN,
+    yaw: float = _YAW,
+    out: Path = _OUT,
+    layout: str = _LAYOUT,
+    kind: str = _KIND,
+    window: float = _WINDOW,
+    box: str = _BOX,
+    stride: float = _STRIDE,
+    test_stride: float = _TEST_STRIDE,
+    g_config: Path = _G_CONFIG,
+    seed: int = _SEED,
+    points_per_scan: int = _POINTS_PER_SCAN,
+    max_range: float = _MAX_RANGE,
+    scan_step: int = _SCAN_STEP,
+    min_spacing: float = _MIN_SPACING,
+    resume: bool = _RESUME,
+    overwrite: bool = _OVERWRITE,
 ) -> None:
     """Cut a recorded drive into benchmark submaps (filter G) with their locations CSV.
 
@@ -208,47 +318,16 @@ def prepare(
       --out bench/campus/run1
     """
     with user_errors():
-        from pnvlad_service.data.prepare import CsvDrive, KittiSequence, prepare_drive
+        from pnvlad_service.data.prepare import prepare_drive
+        from pnvlad_service.data.preprocess import GConfig
         from pnvlad_service.errors import InputError
 
-        if (kitti is None) == (scans is None):
-            raise InputError("give either --kitti SEQ_DIR or --scans DIR --poses CSV", "--kitti")
-        if kind not in ("train", "test", "both"):
-            raise InputError(f"expected train, test or both, got {kind!r}", "--kind")
-        if kitti is not None:
-            if reader is not None or skip_missing:
-                raise InputError("--reader and --skip-missing apply to --scans only", "--kitti")
-            drive = KittiSequence(
-                kitti,
-                poses=poses,
-                origin_ne=(0.0, 0.0) if origin is None else _parse_origin(origin),
-                yaw_deg=yaw,
-            )
-            if origin is None:
-                typer.secho(
-                    "note: no --origin given, positions are local metres from the first scan",
-                    err=True,
-                    fg=typer.colors.YELLOW,
-                )
-        else:
-            if poses is None:
-                raise InputError("--scans needs --poses CSV", "--poses")
-            if origin is not None or yaw != 0.0:
-                raise InputError("--origin and --yaw apply to --kitti only", "--origin")
-            drive = CsvDrive(scans, poses, reader=reader, skip_missing=skip_missing)
-        config = None
-        if g_config is not None:
-            config = _load_g_config(g_config)
-        if test_stride is not None and kind != "both":
-            raise InputError("--test-stride goes with --kind both (else use --stride)", "--kind")
+        kinds = _kinds(kitti, scans, kind)
+        drive = _open_drive(kitti, scans, poses, reader, skip_missing, origin, yaw)
+        config = None if g_config is None else GConfig.from_file(g_config)
+        strides = _strides(kinds, stride, test_stride)
         if resume and overwrite:
             raise InputError("--resume and --overwrite exclude each other", "--resume")
-        kinds = ("train", "test") if kind == "both" else (kind,)
-        strides: dict[str, float] = {}
-        if stride is not None:
-            strides[kinds[0]] = stride
-        if test_stride is not None:
-            strides["test"] = test_stride
         result = prepare_drive(
             drive,
             out,
@@ -266,36 +345,7 @@ def prepare(
             resume=resume,
             overwrite=overwrite,
         )
-    for res in result.layouts:
-        line = f"{res.kind:5s} {res.folder}: {res.submaps - res.failed} submaps"
-        extra = [f"{res.written} written"]
-        if res.resumed:
-            extra.append(f"{res.resumed} kept")
-        if res.failed:
-            extra.append(f"{res.failed} failed (see log)")
-        typer.echo(f"{line} ({', '.join(extra)}), locations in {res.csv.name}")
-    typer.echo(
-        f"{len(drive)} scans ({result.scans_read} read) in {result.seconds:.1f} s, "
-        f"{result.submaps_per_second():.2f} submaps/s"
-    )
-
-
-def _load_g_config(path: Path):  # -> GConfig
-    """GConfig from a YAML or JSON file of its fields."""
-    import yaml
-    from pydantic import ValidationError
-
-    from pnvlad_service.data.preprocess import GConfig
-    from pnvlad_service.errors import InputError
-
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise InputError(f"not valid YAML/JSON: {exc}", path) from None
-    try:
-        return GConfig.model_validate(data or {})
-    except ValidationError as exc:
-        raise InputError(f"bad filter G settings: {exc}", path) from None
+    _report(result, len(drive))
 
 
 def register(app: typer.Typer) -> None:

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import typer
 
 from pnvlad_cli.common import user_errors
+
+if TYPE_CHECKING:
+    from pnvlad_service.data.preprocess import GConfig
 
 _READER_NAMES = "benchmark, kitti, nuscenes, nclt, npy, pcd, ply, las"
 _OPTION_OF = {
@@ -35,6 +39,21 @@ def _parse_box(text: str | None) -> tuple[float, ...] | None:
             source="--box",
         )
     return values
+
+
+def _g_config(fields: dict[str, Any], **flags: bool) -> GConfig:
+    """``GConfig`` of the options given; a refused value is reported under its option name."""
+    from pydantic import ValidationError
+
+    from pnvlad_service.data.preprocess import GConfig
+    from pnvlad_service.errors import InputError
+
+    try:
+        return GConfig(**fields, **flags)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        name = str(err["loc"][0]) if err["loc"] else ""
+        raise InputError(err["msg"], source=_OPTION_OF.get(name, "options")) from None
 
 
 def preprocess(
@@ -104,11 +123,10 @@ def preprocess(
         pnvlad data preprocess kitti/velodyne/000000.bin --reader kitti --out 000000.bin
     """
     with user_errors():
-        from pydantic import ValidationError
-
-        from pnvlad_service.data.preprocess import GConfig, apply_g
+        from pnvlad_service.data.preprocess import apply_g
         from pnvlad_service.errors import InputError
-        from pnvlad_service.io.readers import read_points, write_submap
+        from pnvlad_service.io.readers import read_points
+        from pnvlad_service.io.submap import write_submap
 
         if out.suffix.lower() not in (".bin", ".npy"):
             raise InputError("the submap is written as .bin or .npy", source=out)
@@ -122,14 +140,9 @@ def preprocess(
             "box": _parse_box(box),
         }
         fields = {k: v for k, v in options.items() if v is not None}
-        try:
-            config = GConfig(
-                **fields, normalize=not no_normalize, negate=negate, remove_ground=not no_ground
-            )
-        except ValidationError as exc:
-            err = exc.errors()[0]
-            name = str(err["loc"][0]) if err["loc"] else ""
-            raise InputError(err["msg"], source=_OPTION_OF.get(name, "options")) from None
+        config = _g_config(
+            fields, normalize=not no_normalize, negate=negate, remove_ground=not no_ground
+        )
         cloud = read_points(scan, reader)
         result = apply_g(cloud, config, seed=seed)
         write_submap(out, result.points)

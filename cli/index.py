@@ -8,10 +8,14 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
-from pnvlad_cli.common import user_errors
+from pnvlad_cli.common import model_option, root_option, user_errors
+
+if TYPE_CHECKING:
+    from pnvlad_service.index.manifest import Manifest
 
 app = typer.Typer(
     rich_markup_mode="markdown",
@@ -36,10 +40,8 @@ def parse_size(text: str) -> int:
         raise typer.BadParameter(f"not a size: {text!r} (e.g. 8GB, 512MiB)") from None
 
 
-_CHECKPOINT = typer.Option(
-    ..., "--checkpoint", "-c", help="Model checkpoint directory (model.json + model.safetensors)."
-)
-_ROOT = typer.Option(..., "--root", "-r", help="Benchmark tree root (holds oxford/ etc.).")
+_MODEL = model_option(..., help="The model to embed with.")
+_ROOT = root_option(...)
 _DATASET = typer.Option(
     None, "--dataset", "-d", help="Dataset folder to index (repeatable; default: all)."
 )
@@ -55,7 +57,7 @@ _BATCH = typer.Option(32, "--batch-size", "-b", help="Clouds embedded per forwar
 
 @app.command()
 def build(
-    checkpoint: Path = _CHECKPOINT,
+    model: Path = _MODEL,
     root: Path = _ROOT,
     out: Path = typer.Option(..., "--out", "-o", help="Bundle directory to write."),
     dataset: list[str] = _DATASET,
@@ -86,15 +88,15 @@ def build(
     Sharded: run under torchrun (e.g. torchrun --nproc-per-node 2 -m pnvlad_cli.main index
     build ...); each rank embeds a contiguous shard, rank 0 writes the same bundle.
 
-    Example: pnvlad index build -c runs/model -r benchmark_datasets -d oxford -o map.index
+    Example: pnvlad index build -m runs/model -r benchmark_datasets -d oxford -o map.index
     """
-    from pnvlad_service.index.bundle import build_bundle
+    from pnvlad_service.index.build import build_bundle
 
     budget = parse_size(memory_budget)
     with user_errors():
         rep = build_bundle(
             out,
-            checkpoint,
+            model,
             root,
             datasets=dataset or None,
             runs=run or None,
@@ -120,7 +122,7 @@ def build(
 @app.command()
 def add(
     bundle: Path = typer.Argument(..., help="Existing bundle directory (rewritten atomically)."),
-    checkpoint: Path = _CHECKPOINT,
+    model: Path = _MODEL,
     root: Path = _ROOT,
     dataset: list[str] = _DATASET,
     run: list[str] = _RUNS,
@@ -129,27 +131,28 @@ def add(
 ) -> None:
     """Append new runs to a bundle.
 
-    The checkpoint must be the one the bundle was built with (same weights sha256); submaps
+    The model must be the one the bundle was built with (same weights sha256); submaps
     already in the bundle are refused.
 
-    Example: pnvlad index add map.index -c runs/model -r benchmark_datasets \
+    Example: pnvlad index add map.index -m runs/model -r benchmark_datasets \
       --run 2015-02-03-08-45-10
     """
-    from pnvlad_service.index.bundle import add_to_bundle
+    from pnvlad_service.index.build import add_to_bundle
 
     with user_errors():
         rep = add_to_bundle(
             bundle,
-            checkpoint,
+            model,
             root,
             datasets=dataset or None,
             runs=run or None,
             layout=layout,
             batch_size=batch_size,
         )
+    assert rep.manifest is not None
     typer.echo(
         f"added {rep.count} submaps ({rep.clouds_per_second:.1f} clouds/s); "
-        f"{rep.manifest['count']} vectors in {rep.path}"
+        f"{rep.manifest.count} vectors in {rep.path}"
     )
 
 
@@ -164,53 +167,69 @@ def info(
 
     Example: pnvlad index info map.index
     """
-    from pnvlad_service.index.bundle import read_manifest, verify_bundle
+    from pnvlad_service.index.manifest import Manifest
 
     with user_errors():
-        manifest = read_manifest(bundle)
-        checks = verify_bundle(bundle, manifest)
-    model = manifest.get("model", {})
-    ckpt = model.get("checkpoint")
-    ckpt_state = "not recorded"
-    if ckpt:
-        wfile = Path(ckpt) / "model.safetensors"
-        if wfile.is_file():
-            from pnvlad_service.index.bundle import sha256_file
-
-            same = sha256_file(wfile) == model.get("weights_sha256")
-            ckpt_state = "OK (same weights)" if same else "DIFFERENT weights"
-        else:
-            ckpt_state = "missing"
+        manifest = Manifest.read(bundle)
+        checks = manifest.verify_files(bundle)
     if as_json:
-        typer.echo(json.dumps({"manifest": manifest, "files_ok": checks}, indent=2))
+        typer.echo(json.dumps({"manifest": manifest.to_json(), "files_ok": checks}, indent=2))
     else:
-        rows = [
-            ("bundle", str(bundle)),
-            ("format", f"{manifest['format']} v{manifest['version']}"),
-            ("index", f"{manifest['index_key']} ({manifest['metric']}, d={manifest['dim']})"),
-            ("vectors", str(manifest["count"])),
-            ("search params", json.dumps(manifest.get("search_params", {}))),
-            ("recall@1 vs exact", str(manifest.get("recall_at_1_vs_exact"))),
-            ("model weights", model.get("weights_sha256", "?")),
-            ("model config", model.get("config_sha256", "?")),
-            ("checkpoint", f"{ckpt} [{ckpt_state}]"),
-            ("created", manifest.get("created", "?")),
-            ("modified", manifest.get("modified", "?")),
-        ]
-        for entry in manifest.get("indexed", []):
-            rows.append(
-                (
-                    "indexed",
-                    f"{entry['count']} {entry['layout']} submaps of "
-                    f"{', '.join(entry['datasets'])}: {len(entry['runs'])} runs from "
-                    f"{entry['root']}",
-                )
-            )
-        for name, ok in checks.items():
-            rows.append((name, "sha256 OK" if ok else "sha256 MISMATCH"))
+        rows = _info_rows(bundle, manifest, checks)
         width = max(len(k) for k, _ in rows)
         for k, v in rows:
             typer.echo(f"{k:<{width}}  {v}")
     if not all(checks.values()):
         typer.secho("error: some files do not match the manifest", err=True, fg="red")
         raise typer.Exit(code=1)
+
+
+def _checkpoint_state(manifest: Manifest) -> str:
+    """Whether the model the bundle records is still there with the same weights."""
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.models.store import WEIGHTS_FILE, model_identity
+
+    ckpt = manifest.model.checkpoint
+    if not ckpt:
+        return "not recorded"
+    if not (Path(ckpt) / WEIGHTS_FILE).is_file():
+        return "missing"
+    try:
+        identity = model_identity(ckpt)
+    except InputError as exc:
+        return f"unreadable ({exc.detail})"
+    try:
+        manifest.check_model(identity)
+    except InputError:
+        return "DIFFERENT weights"
+    return "OK (same weights)"
+
+
+def _info_rows(bundle: Path, manifest: Manifest, checks: dict[str, bool]) -> list[tuple[str, str]]:
+    """The (label, value) lines of ``pnvlad index info``."""
+    m = manifest
+    rows = [
+        ("bundle", str(bundle)),
+        ("format", f"{m.format} v{m.version}"),
+        ("index", f"{m.index_key} ({m.metric}, d={m.dim})"),
+        ("vectors", str(m.count)),
+        ("search params", json.dumps(dict(m.search_params))),
+        ("recall@1 vs exact", str(m.recall_at_1_vs_exact)),
+        ("model weights", m.model.weights_sha256),
+        ("model config", m.model.config_sha256),
+        ("checkpoint", f"{m.model.checkpoint} [{_checkpoint_state(m)}]"),
+        ("created", m.created),
+        ("modified", m.modified),
+    ]
+    for entry in m.indexed:
+        rows.append(
+            (
+                "indexed",
+                f"{entry['count']} {entry['layout']} submaps of "
+                f"{', '.join(entry['datasets'])}: {len(entry['runs'])} runs from "
+                f"{entry['root']}",
+            )
+        )
+    for name, ok in checks.items():
+        rows.append((name, "sha256 OK" if ok else "sha256 MISMATCH"))
+    return rows

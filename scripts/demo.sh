@@ -65,7 +65,7 @@ step "4/5 index bundle of $DATASET without $HELD -> $BUNDLE"
 run_args=()
 IFS=',' read -ra runs <<< "$INDEXED"
 for r in "${runs[@]}"; do run_args+=(--run "$r"); done
-pnvlad index build -c "$MODEL/model" -r "$CITY" -d "$DATASET" "${run_args[@]}" -o "$BUNDLE" --overwrite
+pnvlad index build -m "$MODEL/model" -r "$CITY" -d "$DATASET" "${run_args[@]}" -o "$BUNDLE" --overwrite
 
 step "5/5 serve on 127.0.0.1:$PORT and localise held-out queries"
 pnvlad serve --index "$BUNDLE" --checkpoint "$MODEL/model" --host 127.0.0.1 --port "$PORT" \

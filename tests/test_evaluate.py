@@ -199,10 +199,10 @@ def test_real_model_path_on_tiny_model(tmp_path: Path) -> None:
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
     """A tiny tree with splits and a 2-step training run through `pnvlad train`."""
     pytest.importorskip("torch")
-    from test_train import make_tiny_tree, tiny_config
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
+    from tests.test_train import make_tiny_tree, tiny_config
 
     root = tmp_path_factory.mktemp("evaltree")
     splits = make_tiny_tree(root, runs=3, train_step=10.0)

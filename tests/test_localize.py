@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_index import PER_RUN, make_checkpoint, make_tree
 from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
-from pnvlad_service.index import bundle as ix
+from pnvlad_service.index import build as ix
+from tests.index.helpers import PER_RUN, make_checkpoint, make_tree
 
 
 @pytest.fixture(scope="module")

@@ -20,9 +20,10 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from test_index import PER_RUN, free_port, make_checkpoint, make_tree, read_cloud
 
-from pnvlad_service.index import bundle as ix
+from pnvlad_service.index import build as ix
+from pnvlad_service.index.bundle import IndexBundle
+from tests.index.helpers import PER_RUN, free_port, make_checkpoint, make_tree, read_cloud
 
 MAX_BODY = 4 * 1024 * 1024
 PROBLEM = "application/problem+json"
@@ -95,7 +96,7 @@ def client(server: str) -> Iterator[httpx.Client]:
 @pytest.fixture(scope="module")
 def local(world: dict[str, Path]):
     """(encoder, bundle) in this process, for expected answers."""
-    return ix.load_encoder(world["ckpt"]), ix.IndexBundle.load(world["bundle"])
+    return ix.load_encoder(world["ckpt"]), IndexBundle.load(world["bundle"])
 
 
 def cloud(world: dict[str, Path], i: int) -> np.ndarray:
@@ -134,7 +135,7 @@ def test_json_query_matches_a_local_search(world, client, local) -> None:
     assert first["easting"] == meta.easting[PER_RUN + 3]
     assert first["distance"] == pytest.approx(0.0, abs=1e-5)
     manifest = local[1].manifest
-    assert body["model"]["weights_sha256"] == manifest["model"]["weights_sha256"]
+    assert body["model"]["weights_sha256"] == manifest.model.weights_sha256
     assert body["index"] == {"id": local[1].bundle_id, "key": "Flat", "count": 2 * PER_RUN}
     t = body["timings_ms"]
     assert set(t) >= {"parse", "preprocess", "queue", "embed", "search", "total"}
@@ -471,7 +472,7 @@ def test_ops_endpoints(client, local) -> None:
     assert client.get("/healthz").json() == {"status": "ok"}
     assert client.get("/readyz").json() == {"status": "ready"}
     info = client.get("/info").json()
-    assert info["manifest"]["files"] == local[1].manifest["files"]
+    assert info["manifest"]["files"] == local[1].manifest.files
     assert info["limits"]["max_body_bytes"] == MAX_BODY
     doc = client.get("/openapi.json").json()
     assert {"/localize", "/localize/batch", "/healthz", "/readyz", "/info", "/metrics"} <= set(
@@ -494,7 +495,7 @@ def test_raw_scan_with_preprocess_equals_local_filter_g(client, local, real_scan
         headers={"content-type": "application/octet-stream"},
     )
     assert r.status_code == 200, r.text
-    cfg = preprocess.GConfig.model_validate(local[1].manifest["preprocess"])
+    cfg = preprocess.GConfig.model_validate(local[1].manifest.preprocess)
     pts = preprocess.filter_g(raw.astype("<f4").astype(np.float64), cfg, seed=0)
     ids, _ = expected_ids(local, pts, 4)
     assert [m["submap_id"] for m in r.json()["matches"]] == [

@@ -23,10 +23,9 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.io.submap import read_bin_points
 
 log = logging.getLogger(__name__)
-
-SUBMAP_POINTS = 4096
 
 
 @dataclass
@@ -111,15 +110,14 @@ class EvalRun:
 
 
 def read_submap(path: str | Path) -> np.ndarray:
-    """One submap as float32 [P, 3]: ``.bin`` (float64 x, y, z interleaved), ``.npy`` or any
-    format :func:`pnvlad_service.io.readers.read_points` knows."""
+    """One submap as float32 [P, 3]: ``.bin`` (float64 x, y, z interleaved, any number of
+    points: :func:`pnvlad_service.io.submap.read_bin_points`), ``.npy`` or any format
+    :func:`pnvlad_service.io.readers.read_points` knows. :func:`fit_points` then brings it to
+    the model's point count."""
     path = Path(path)
     try:
         if path.suffix == ".bin":
-            raw = np.fromfile(path, dtype=np.float64)
-            if raw.size % 3:
-                raise InputError(f"{raw.size} float64 values, not a multiple of 3", path)
-            return raw.reshape(-1, 3).astype(np.float32)
+            return read_bin_points(path).astype(np.float32)
         if path.suffix == ".npy":
             arr = np.load(path, allow_pickle=False)
             return np.asarray(arr, dtype=np.float32).reshape(-1, 3)

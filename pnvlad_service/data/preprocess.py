@@ -1,6 +1,7 @@
 """The filter G: one raw point cloud (metres) to one benchmark submap (4096 points in [-1, 1]).
 
-The steps, in order, each a public function (see docs/PREPROCESS.md for figures on real scans):
+The steps, in order, each a public function of this module or of :mod:`~.voxel` (see
+docs/PREPROCESS.md for figures on real scans):
 
 1. :func:`crop_mask` / :func:`crop`: optional range (3-D distance from the origin, i.e. the
    sensor) and axis-aligned box.
@@ -11,10 +12,10 @@ The steps, in order, each a public function (see docs/PREPROCESS.md for figures 
    ``ground_window`` metres) follows slopes and kerbs, and every point less than
    ``ground_threshold`` above that surface (or below it) is ground. ``"plane"`` mode is the
    paper's: points within ``ground_threshold`` of the single plane.
-3. :func:`voxel_average` with the leaf size found by :func:`find_leaf_size` (a bracketed
-   secant/bisection search until the voxel count is closest to the target), then
-   :func:`resample_to` duplicates or drops seeded random points to hit the target exactly
-   (:func:`adaptive_voxel_downsample` does both).
+3. :mod:`pnvlad_service.data.voxel`: ``voxel_average`` with the leaf size found by
+   ``find_leaf_size`` (a bracketed secant/bisection search until the voxel count is closest to
+   the target), then ``resample_to`` duplicates or drops seeded random points to hit the
+   target exactly (``adaptive_voxel_downsample`` does both).
 4. :func:`normalize`: centre on the centroid, scale to a mean distance of 0.5 from it, drop
    points outside [-1, 1]^3, refill to the target; optional negation afterwards.
 
@@ -26,11 +27,13 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from pnvlad_service.data.voxel import adaptive_voxel_downsample, column_max, column_min, resample_to
 from pnvlad_service.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -116,6 +119,26 @@ class GConfig(BaseModel):
             raise ValueError("min_range must be smaller than max_range")
         return self
 
+    @classmethod
+    def from_file(cls, path: str | Path) -> GConfig:
+        """The settings in a YAML or JSON file of ``GConfig`` fields (missing ones default;
+        an empty file gives the defaults).
+
+        Raises ``FileNotFoundError`` for a missing file and :class:`InputError` naming the file
+        for text that is not YAML/JSON or settings G does not accept.
+        """
+        import yaml
+
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except yaml.YAMLError as exc:
+            raise InputError(f"not valid YAML/JSON: {exc}", path) from None
+        try:
+            return cls.model_validate(data or {})
+        except ValidationError as exc:
+            raise InputError(f"bad filter G settings: {exc}", path) from None
+
 
 @dataclass(frozen=True)
 class GResult:
@@ -135,16 +158,8 @@ class GResult:
     up: np.ndarray | None
 
 
-# numpy reduces [N, 3] arrays along axis 0 or 1 several times slower than column by column.
-def _col_min(a: np.ndarray) -> np.ndarray:
-    return np.array([a[:, k].min() for k in range(a.shape[1])])
-
-
-def _col_max(a: np.ndarray) -> np.ndarray:
-    return np.array([a[:, k].max() for k in range(a.shape[1])])
-
-
 def _col_mean(a: np.ndarray) -> np.ndarray:
+    """Column means of [N, K] (column by column: see :func:`~.voxel.column_min`)."""
     return np.array([a[:, k].mean() for k in range(a.shape[1])])
 
 
@@ -282,7 +297,7 @@ def fit_ground_plane(
         if close.shape[0] >= 3:
             mean, normal = _fit_plane(close, fallback, max_tilt_deg)
     else:
-        normal, mean = np.array([0.0, 0.0, 1.0]), _col_min(sub)
+        normal, mean = np.array([0.0, 0.0, 1.0]), column_min(sub)
     offset = -float(normal @ mean)
     if up == "auto":
         height = sub @ normal + offset
@@ -337,8 +352,8 @@ def ground_surface(
     """
     from scipy import ndimage
 
-    lo = _col_min(xy)
-    span = _col_max(xy) - lo
+    lo = column_min(xy)
+    span = column_max(xy) - lo
     cells_needed = float(np.prod(span / cell + 1))
     if cells_needed > _MAX_GRID_CELLS:
         cell = cell * math.sqrt(cells_needed / _MAX_GRID_CELLS) * 1.01
@@ -423,120 +438,6 @@ def remove_ground(
 ) -> np.ndarray:
     """The non-ground points float64 [M, 3] (see :func:`ground_mask`)."""
     return points[~ground_mask(points, config, rng=rng)[0]]
-
-
-# --- 3. voxel grid ---------------------------------------------------------------------------
-
-
-def _voxel_keys(points: np.ndarray, leaf: float, shifted: np.ndarray | None = None) -> np.ndarray:
-    """int64 [N] voxel index of each point; ``shifted`` = points - min(points) if known."""
-    if shifted is None:
-        shifted = points - _col_min(points)
-    dims = (_col_max(shifted) / leaf).astype(np.int64) + 1
-    keys = (shifted[:, 0] / leaf).astype(np.int64)  # shifted >= 0: truncation is floor
-    for k in (1, 2):
-        keys = keys * dims[k] + (shifted[:, k] / leaf).astype(np.int64)
-    return keys
-
-
-def voxel_count(points: np.ndarray, leaf: float, *, shifted: np.ndarray | None = None) -> int:
-    """Number of occupied ``leaf``-metre voxels (grid anchored at the cloud's minimum corner)."""
-    keys = np.sort(_voxel_keys(points, leaf, shifted))
-    return int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
-
-
-def voxel_average(points: np.ndarray, leaf: float) -> np.ndarray:
-    """The mean of the points in each occupied voxel: float64 [V, 3], ordered by voxel index.
-
-    Voxels are cubes of ``leaf`` metres, ``floor((p - min(points)) / leaf)``.
-    """
-    keys = _voxel_keys(points, leaf)
-    order = np.argsort(keys, kind="stable")
-    sk = keys[order]
-    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
-    counts = np.diff(np.r_[starts, sk.shape[0]]).astype(np.float64)
-    out = np.empty((starts.shape[0], 3))
-    for k in range(3):
-        out[:, k] = np.add.reduceat(points[order, k], starts) / counts
-    return out
-
-
-def find_leaf_size(points: np.ndarray, target: int, *, iterations: int = 30) -> tuple[float, int]:
-    """Leaf size (m) whose voxel count is closest to ``target`` and that count.
-
-    A bracketed search on the leaf size: the bracket [leaf with count >= target, leaf with
-    count < target] shrinks at every step. The next leaf is the secant through the last two
-    tries in log-log space (count ~ leaf^-d; the first guess assumes a surface, d = 2), or the
-    bracket's geometric middle (bisection) where the secant falls outside it. Ties prefer the
-    larger count (dropping points beats duplicating them).
-    """
-    shifted = points - _col_min(points)
-    extent = max(float(_col_max(shifted).max()), 1e-9)
-
-    def count(leaf: float) -> int:
-        return voxel_count(points, leaf, shifted=shifted)
-
-    def better(a: tuple[float, int], b: tuple[float, int]) -> bool:
-        return (abs(a[1] - target), -a[1]) < (abs(b[1] - target), -b[1])
-
-    # 2e5 cells a side keeps the int64 voxel key far from overflow (8e15 < 9.2e18).
-    lo, hi = extent / 2e5, extent * 1.01
-    c_lo = count(lo)
-    if c_lo <= target:  # even the finest grid gives too few voxels (duplicate points)
-        return lo, c_lo
-    guess = extent / math.sqrt(target)
-    tries = [(guess, count(guess))]
-    best = tries[0]
-    for _ in range(iterations):
-        leaf, c = tries[-1]
-        if c >= target:
-            lo = max(lo, leaf)
-        else:
-            hi = min(hi, leaf)
-        if best[1] == target or hi / lo < 1.0 + 1e-6:
-            break
-        if len(tries) == 1:
-            nxt = leaf * math.sqrt(max(c, 1) / target)
-        else:
-            (l0, c0), (l1, c1) = tries[-2], tries[-1]
-            slope = (math.log(max(c1, 1)) - math.log(max(c0, 1))) / (math.log(l1) - math.log(l0))
-            if slope < 0:
-                nxt = math.exp(math.log(l1) + (math.log(target) - math.log(max(c1, 1))) / slope)
-            else:
-                nxt = 0.0
-        if not lo < nxt < hi:
-            nxt = math.sqrt(lo * hi)
-        tries.append((nxt, count(nxt)))
-        if better(tries[-1], best):
-            best = tries[-1]
-    return best
-
-
-def resample_to(points: np.ndarray, n: int, *, rng: np.random.Generator) -> np.ndarray:
-    """Exactly ``n`` points: drop randomly chosen ones (order kept) or append duplicates of
-    randomly chosen ones. ``points`` [M, 3] with M >= 1; returns [n, 3], same dtype."""
-    m = points.shape[0]
-    if m == n:
-        return points
-    if m > n:
-        return points[np.sort(rng.choice(m, n, replace=False))]
-    extra = rng.choice(m, n - m, replace=n - m > m)
-    return np.concatenate([points, points[extra]], axis=0)
-
-
-def adaptive_voxel_downsample(
-    points: np.ndarray, target: int, *, rng: np.random.Generator, iterations: int = 30
-) -> tuple[np.ndarray, float, int]:
-    """Voxel-average to about ``target`` points, then resample to exactly ``target``.
-
-    ``points`` float64 [M, 3] metres. Returns (float64 [target, 3], leaf size in m, voxel
-    count). A cloud of at most ``target`` points is not voxelised (leaf 0) and only refilled.
-    """
-    if points.shape[0] <= target:
-        return resample_to(points, target, rng=rng), 0.0, points.shape[0]
-    leaf, count = find_leaf_size(points, target, iterations=iterations)
-    voxels = voxel_average(points, leaf)
-    return resample_to(voxels, target, rng=rng), leaf, count
 
 
 # --- 4. normalisation ------------------------------------------------------------------------

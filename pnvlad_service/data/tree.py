@@ -21,7 +21,7 @@ import csv
 import logging
 import math
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -30,15 +30,12 @@ import numpy as np
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_write_text
+from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_BYTES, SUBMAP_POINTS, read_submap
 
 log = logging.getLogger(__name__)
 
 Kind = Literal["train", "test"]
 KINDS: tuple[Kind, Kind] = ("train", "test")
-
-#: Points per submap and bytes per ``.bin`` file (float64 × 3 × 4096).
-SUBMAP_POINTS = 4096
-SUBMAP_BYTES = SUBMAP_POINTS * 3 * 8
 
 CSV_COLUMNS = ("timestamp", "northing", "easting")
 
@@ -114,7 +111,8 @@ class Submap:
     ``path`` is relative to the tree root, with ``/`` separators, as the published pickles
     write it: ``oxford/<run>/pointcloud_20m/<timestamp>.bin``. ``timestamp`` is integer
     microseconds; ``northing``/``easting`` are float64 UTM metres of the submap's centroid;
-    ``kind`` is the layout role, ``"train"`` or ``"test"``; ``row`` its row in the CSV.
+    ``kind`` is the layout role, ``"train"`` or ``"test"``; ``row`` its row in the CSV;
+    ``utm_zone`` the UTM zone of the coordinates (``""`` when unknown).
     """
 
     dataset: str
@@ -125,6 +123,12 @@ class Submap:
     path: str
     kind: Kind
     row: int
+    utm_zone: str = ""
+
+    @property
+    def submap_id(self) -> str:
+        """``dataset/run/timestamp``: unique within a benchmark tree."""
+        return f"{self.dataset}/{self.run}/{self.timestamp}"
 
 
 def read_locations_csv(path: str | Path) -> Locations:
@@ -297,26 +301,13 @@ class BenchmarkTree:
             for k, (t, n, e) in enumerate(loc.rows())
         ]
 
-    def all_submaps(self, dataset: str, kind: Kind) -> list[Submap]:
-        """The submaps of every run of ``dataset`` that has ``kind``: runs sorted, CSV order."""
-        out: list[Submap] = []
-        for run in self.runs(dataset):
-            if self.has(dataset, run, kind):
-                out.extend(self.submaps(dataset, run, kind))
-        return out
-
-    def abspath(self, submap: Submap | str) -> Path:
-        """Absolute path of a submap (a ``Submap`` or a relative path)."""
-        rel = submap.path if isinstance(submap, Submap) else submap
-        return self.root.joinpath(*rel.split("/"))
-
 
 # --------------------------------------------------------------------------------------------
 # check_tree
 
 
 @dataclass
-class Problem:
+class TreeProblem:
     """One thing wrong in a tree: the file or folder and what is wrong with it."""
 
     path: str
@@ -355,7 +346,7 @@ class CheckReport:
 
     root: str
     datasets: list[DatasetSummary]
-    problems: list[Problem]
+    problems: list[TreeProblem]
 
     @property
     def ok(self) -> bool:
@@ -363,17 +354,89 @@ class CheckReport:
 
 
 def _check_bin(path: Path, deep: bool) -> str | None:
+    """What is wrong with one submap file (its size; with ``deep`` its values), or ``None``."""
     size = path.stat().st_size
     if size != SUBMAP_BYTES:
         what = "truncated" if size < SUBMAP_BYTES else "oversized"
-        return f"{what}: {size} bytes, expected {SUBMAP_BYTES} (4096 points × 3 float64)"
+        return f"{what}: {size} bytes, expected {SUBMAP_BYTES} ({SUBMAP_POINTS} points × 3 float64)"
     if deep:
-        pts = np.fromfile(path, dtype="<f8")
+        pts = read_submap(path)
         if not np.isfinite(pts).all():
             return "holds NaN or infinite coordinates"
-        if np.abs(pts).max() > 1.0:
+        if np.abs(pts).max() > SUBMAP_BOUND:
             return f"coordinates outside [-1, 1] (max |value| {np.abs(pts).max():.3g})"
     return None
+
+
+class _TreeChecker:
+    """The problems of one tree, found level by level: a run, one role of it, its files."""
+
+    def __init__(self, tree: BenchmarkTree, deep: bool) -> None:
+        self.tree = tree
+        self.deep = deep
+        self.problems: list[TreeProblem] = []
+
+    def add(self, path: Path, message: str) -> None:
+        """Record a problem with ``path`` (named relative to the tree root)."""
+        self.problems.append(TreeProblem(path.relative_to(self.tree.root).as_posix(), message))
+
+    def run(self, dataset: str, run: str, summary: DatasetSummary) -> None:
+        """Check one run folder: a known layout, then each role it holds."""
+        summary.runs += 1
+        run_dir = self.tree.root / dataset / run
+        layout = detect_layout(run_dir)
+        if layout is None:
+            self.add(run_dir, "empty run: no submap folder or CSV")
+            return
+        summary.layouts.add(layout.name)
+        for kind in KINDS:
+            self.role(run_dir, layout, kind, summary)
+
+    def role(self, run_dir: Path, layout: Layout, kind: Kind, summary: DatasetSummary) -> None:
+        """Check one role of a run: its CSV reads, has rows and unique timestamps, has its
+        folder; then the folder's files."""
+        folder, csv_path = run_dir / layout.folder(kind), run_dir / layout.csv(kind)
+        if not folder.exists() and not csv_path.exists():
+            return
+        if not csv_path.is_file():
+            self.add(folder, f"submap folder without {layout.csv(kind)}")
+            return
+        try:
+            loc = read_locations_csv(csv_path)
+        except InputError as exc:
+            self.add(csv_path, exc.detail)
+            return
+        if len(loc) == 0:
+            self.add(csv_path, "no rows")
+        summary.submaps[kind] += len(loc)
+        summary.extend(loc)
+        uniq, counts = np.unique(loc.timestamp, return_counts=True)
+        for t in uniq[counts > 1][:10]:
+            self.add(csv_path, f"duplicate timestamp {int(t)}")
+        if not folder.is_dir():
+            self.add(csv_path, f"CSV without folder {layout.folder(kind)}")
+            return
+        self.files(folder, csv_path, loc)
+
+    def files(self, folder: Path, csv_path: Path, loc: Locations) -> None:
+        """Every CSV row has its ``.bin`` and every ``.bin`` its row (ten of each listed, the
+        rest counted); every matched ``.bin`` is a whole submap."""
+        files = {e.name for e in os.scandir(folder) if not e.name.startswith(".")}
+        wanted = {f"{int(t)}.bin" for t in loc.timestamp}
+        missing = [f"{int(t)}.bin" for t in loc.timestamp if f"{int(t)}.bin" not in files]
+        for name in missing[:10]:
+            self.add(folder / name, "CSV row without a file")
+        if len(missing) > 10:
+            self.add(folder, f"{len(missing) - 10} more rows without file")
+        extra = sorted(files - wanted)
+        for name in extra[:10]:
+            self.add(folder / name, f"file without a row in {csv_path.name}")
+        if len(extra) > 10:
+            self.add(folder, f"{len(extra) - 10} more files without row")
+        for name in sorted(files & wanted):
+            msg = _check_bin(folder / name, self.deep)
+            if msg:
+                self.add(folder / name, msg)
 
 
 def check_tree(root: str | Path, *, deep: bool = False, progress: bool = False) -> CheckReport:
@@ -387,77 +450,25 @@ def check_tree(root: str | Path, *, deep: bool = False, progress: bool = False) 
     ``root`` is not a directory): everything found is in ``report.problems``.
     """
     tree = BenchmarkTree(root)
-    problems: list[Problem] = []
-    summaries: list[DatasetSummary] = []
-
-    def rel(p: Path) -> str:
-        return p.relative_to(tree.root).as_posix()
-
+    checker = _TreeChecker(tree, deep)
     datasets = tree.datasets
     if not datasets:
-        problems.append(Problem(str(tree.root), "no dataset folders"))
-    jobs = [(d, r) for d in datasets for r in tree.runs(d)]
-    iterator: Iterable[tuple[str, str]] = jobs
+        checker.problems.append(TreeProblem(str(tree.root), "no dataset folders"))
+    summaries = {d: DatasetSummary(d) for d in datasets}
+    for d in datasets:
+        if not tree.runs(d):
+            checker.add(tree.root / d, "empty dataset: no run folders")
+    jobs: Iterable[tuple[str, str]] = [(d, r) for d in datasets for r in tree.runs(d)]
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(jobs, desc="check", unit="run")
-    for d in datasets:
-        summaries.append(DatasetSummary(d))
-        if not tree.runs(d):
-            problems.append(Problem(d, "empty dataset: no run folders"))
-    by_name = {s.name: s for s in summaries}
-    for d, r in iterator:
-        summary = by_name[d]
-        summary.runs += 1
-        run_dir = tree.root / d / r
-        layout = detect_layout(run_dir)
-        if layout is None:
-            problems.append(Problem(rel(run_dir), "empty run: no submap folder or CSV"))
-            continue
-        summary.layouts.add(layout.name)
-        for kind in KINDS:
-            folder, csv_path = run_dir / layout.folder(kind), run_dir / layout.csv(kind)
-            if not folder.exists() and not csv_path.exists():
-                continue
-            if not csv_path.is_file():
-                problems.append(Problem(rel(folder), f"submap folder without {layout.csv(kind)}"))
-                continue
-            try:
-                loc = read_locations_csv(csv_path)
-            except InputError as exc:
-                problems.append(Problem(rel(csv_path), exc.detail))
-                continue
-            if len(loc) == 0:
-                problems.append(Problem(rel(csv_path), "no rows"))
-            summary.submaps[kind] += len(loc)
-            summary.extend(loc)
-            uniq, counts = np.unique(loc.timestamp, return_counts=True)
-            for t in uniq[counts > 1][:10]:
-                problems.append(Problem(rel(csv_path), f"duplicate timestamp {int(t)}"))
-            if not folder.is_dir():
-                problems.append(Problem(rel(csv_path), f"CSV without folder {layout.folder(kind)}"))
-                continue
-            files = {e.name for e in os.scandir(folder) if not e.name.startswith(".")}
-            wanted = {f"{int(t)}.bin" for t in loc.timestamp}
-            missing = [f"{int(t)}.bin" for t in loc.timestamp if f"{int(t)}.bin" not in files]
-            for name in missing[:10]:
-                problems.append(Problem(rel(folder / name), "CSV row without a file"))
-            if len(missing) > 10:
-                problems.append(Problem(rel(folder), f"{len(missing) - 10} more rows without file"))
-            extra = sorted(files - wanted)
-            for name in extra[:10]:
-                problems.append(
-                    Problem(rel(folder / name), f"file without a row in {csv_path.name}")
-                )
-            if len(extra) > 10:
-                problems.append(Problem(rel(folder), f"{len(extra) - 10} more files without row"))
-            for name in sorted(files & wanted):
-                msg = _check_bin(folder / name, deep)
-                if msg:
-                    problems.append(Problem(rel(folder / name), msg))
-    report = CheckReport(str(tree.root), summaries, problems)
-    log.info("checked %s: %d dataset(s), %d problem(s)", tree.root, len(summaries), len(problems))
+        jobs = tqdm(jobs, desc="check", unit="run")
+    for d, r in jobs:
+        checker.run(d, r, summaries[d])
+    report = CheckReport(str(tree.root), list(summaries.values()), checker.problems)
+    log.info(
+        "checked %s: %d dataset(s), %d problem(s)", tree.root, len(summaries), len(checker.problems)
+    )
     return report
 
 
@@ -486,8 +497,3 @@ def format_report(report: CheckReport, max_problems: int = 50) -> str:
         lines.append("")
         lines.append("no problems found")
     return "\n".join(lines)
-
-
-def paths_of(submaps: Sequence[Submap]) -> list[str]:
-    """The relative paths of ``submaps``."""
-    return [s.path for s in submaps]

@@ -1,1 +1,10 @@
-"""FAISS index bundles of a map: key choice, the bundle on disk, building, adding (stage: index)."""
+"""FAISS index bundles of a map (stage: index).
+
+- :mod:`~pnvlad_service.index.keys`: the FAISS key by size and memory budget, search
+  parameters, recall@1 against exact search;
+- :mod:`~pnvlad_service.index.manifest`: the typed, frozen ``manifest.json``, which owns the
+  model-compatibility check;
+- :mod:`~pnvlad_service.index.bundle`: the bundle on disk, loaded (search, matches) and written;
+- :mod:`~pnvlad_service.index.build`: listing and embedding a tree's submaps, building, adding,
+  sharded building under torchrun.
+"""

@@ -36,12 +36,16 @@ from pathlib import Path
 import numpy as np
 
 from pnvlad_service.errors import InputError, MissingDependencyError
-from pnvlad_service.fileio import atomic_open
+from pnvlad_service.io.points import validate_points
+from pnvlad_service.io.submap import (
+    SUBMAP_BOUND,
+    SUBMAP_BYTES,
+    SUBMAP_POINTS,
+    read_bin_points,
+    read_submap,
+)
 
 log = logging.getLogger(__name__)
-
-BENCHMARK_POINTS = 4096
-BENCHMARK_BYTES = BENCHMARK_POINTS * 3 * 8  # 98,304
 
 NCLT_SCALE = 0.005
 NCLT_OFFSET = -100.0
@@ -72,17 +76,6 @@ def _check_record_size(path: Path, record: int, what: str) -> int:
             source=path,
         )
     return size // record
-
-
-def _read_benchmark(path: Path) -> np.ndarray:
-    size = path.stat().st_size
-    if size != BENCHMARK_BYTES:
-        raise InputError(
-            f"a benchmark submap holds exactly {BENCHMARK_POINTS} float64 points "
-            f"({BENCHMARK_BYTES:,} bytes); this file has {size:,} bytes",
-            source=path,
-        )
-    return np.fromfile(path, dtype="<f8").reshape(-1, 3).astype(np.float64, copy=False)
 
 
 def _read_float32_records(path: Path, columns: int, what: str) -> np.ndarray:
@@ -208,8 +201,8 @@ READERS: dict[str, Reader] = {
         Reader(
             "benchmark",
             (".bin",),
-            "PointNetVLAD submap: float64 x, y, z, exactly 4096 points",
-            _read_benchmark,
+            f"PointNetVLAD submap: float64 x, y, z, exactly {SUBMAP_POINTS} points",
+            read_submap,
             24,
         ),
         Reader("kitti", (".bin",), "KITTI / SemanticKITTI: float32 x, y, z, r", _read_kitti, 16),
@@ -232,8 +225,8 @@ _BIN_READERS = ("kitti", "nuscenes", "nclt", "benchmark")
 
 
 def _looks_like_benchmark(path: Path) -> bool:
-    values = np.fromfile(path, dtype="<f8").reshape(-1, 3)
-    if not np.isfinite(values).all() or np.abs(values).max() > 1.0:
+    values = read_bin_points(path)
+    if not np.isfinite(values).all() or np.abs(values).max() > SUBMAP_BOUND:
         return False
     centroid = values.mean(axis=0)
     spread = float(np.linalg.norm(values - centroid, axis=1).mean())
@@ -242,15 +235,18 @@ def _looks_like_benchmark(path: Path) -> bool:
 
 def _choose_bin_reader(path: Path) -> str:
     size = path.stat().st_size
-    if size == BENCHMARK_BYTES and _looks_like_benchmark(path):
+    if size == SUBMAP_BYTES and _looks_like_benchmark(path):
         return "benchmark"
     fits = [
         f"{name} ({size // READERS[name].record_bytes:,} points)"  # type: ignore[operator]
         for name in _BIN_READERS
         if name != "benchmark" and size and size % READERS[name].record_bytes == 0  # type: ignore[operator]
     ]
-    if size == BENCHMARK_BYTES:
-        fits.append("benchmark (4,096 points, but the values do not look like a normalised submap)")
+    if size == SUBMAP_BYTES:
+        fits.append(
+            f"benchmark ({SUBMAP_POINTS:,} points, but the values do not look like a normalised "
+            "submap)"
+        )
     hint = f"its size, {size:,} bytes, fits " + (", ".join(fits) if fits else "none of them")
     raise InputError(
         "a raw .bin has no header, so its format cannot be told safely; pass "
@@ -282,21 +278,6 @@ def reader_for(path: str | Path, reader: str | None = None) -> Reader:
     )
 
 
-def validate_points(points: np.ndarray, source: str | Path | None) -> np.ndarray:
-    """Check a cloud is a non-empty, finite ``[N, 3]`` float array; return it unchanged."""
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise InputError(f"expected points of shape [N, 3], got {tuple(points.shape)}", source)
-    if points.shape[0] == 0:
-        raise InputError("the point cloud is empty", source)
-    if not np.isfinite(points).all():
-        bad = ~np.isfinite(points).all(axis=1)
-        raise InputError(
-            f"{int(bad.sum()):,} of {points.shape[0]:,} points have NaN or infinite coordinates",
-            source,
-        )
-    return points
-
-
 def read_points(path: str | Path, reader: str | None = None) -> np.ndarray:
     """Read a point-cloud file into ``[N, 3]`` coordinates in metres.
 
@@ -321,21 +302,3 @@ def read_points(path: str | Path, reader: str | None = None) -> np.ndarray:
     points = entry.read(path)
     log.debug("read %d points from %s with reader %s", points.shape[0], path, entry.name)
     return validate_points(points, path)
-
-
-def write_submap(path: str | Path, points: np.ndarray) -> None:
-    """Write ``points [N, 3]`` atomically: ``.bin`` as little-endian float64 x, y, z with no
-    header (98,304 bytes for a 4096-point benchmark submap), or ``.npy`` (float64).
-    """
-    path = Path(path)
-    points = validate_points(np.asarray(points), "points")
-    data = np.ascontiguousarray(points, dtype="<f8")
-    suffix = path.suffix.lower()
-    if suffix == ".bin":
-        with atomic_open(path, "wb") as fh:
-            fh.write(data.tobytes())
-    elif suffix == ".npy":
-        with atomic_open(path, "wb") as fh:
-            np.save(fh, data, allow_pickle=False)
-    else:
-        raise InputError(f"a submap is written as .bin or .npy, not {suffix!r}", source=path)

@@ -339,7 +339,7 @@ def create_app(
         """The bundle's manifest, the model and the request limits."""
         loc = get_localizer()
         return {
-            "manifest": loc.bundle.manifest,
+            "manifest": loc.bundle.manifest.to_json(),
             "model": loc.model,
             "limits": {
                 "max_body_bytes": settings.max_body_bytes,

@@ -20,7 +20,10 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.index.bundle import SUBMAP_POINTS, IndexBundle, load_encoder, read_manifest
+from pnvlad_service.index.build import load_encoder
+from pnvlad_service.index.bundle import IndexBundle
+from pnvlad_service.index.manifest import Manifest
+from pnvlad_service.io.submap import SUBMAP_POINTS
 from pnvlad_service.localization.batching import BatchResult, MicroBatcher
 from pnvlad_service.server.settings import ServerSettings
 
@@ -226,8 +229,7 @@ def resolve_checkpoint(settings: ServerSettings) -> Path:
         raise InputError("no index bundle given (--index or PNVLAD_INDEX)", "index")
     if settings.checkpoint is not None:
         return Path(settings.checkpoint)
-    manifest = read_manifest(settings.index)
-    recorded = manifest.get("model", {}).get("checkpoint")
+    recorded = Manifest.read(settings.index).model.checkpoint
     if not recorded:
         raise InputError("the bundle records no checkpoint; pass --checkpoint", settings.index)
     return Path(recorded)
@@ -235,20 +237,11 @@ def resolve_checkpoint(settings: ServerSettings) -> Path:
 
 def check_compatible(index_dir: Path, checkpoint: Path) -> dict[str, Any]:
     """Raise :class:`InputError` naming both when the bundle was built with other weights."""
-    from pnvlad_service.index.bundle import model_identity
+    from pnvlad_service.models.store import model_identity
 
-    manifest = read_manifest(index_dir)
     ident = model_identity(checkpoint)
-    built = manifest["model"]["weights_sha256"]
-    if ident["weights_sha256"] != built:
-        raise InputError(
-            f"the index {index_dir / 'manifest.json'} was built with other weights "
-            f"(sha256 {built[:16]}…) than the checkpoint {checkpoint / 'model.safetensors'} "
-            f"(sha256 {ident['weights_sha256'][:16]}…); rebuild the index or pass the "
-            "checkpoint it was built with",
-            source=checkpoint,
-        )
-    return ident
+    Manifest.read(index_dir).check_model(ident)
+    return ident.to_json()
 
 
 class Localizer:
@@ -337,7 +330,7 @@ class Localizer:
 
             raise Problem("unavailable", f"preprocessing is not available: {exc}") from None
         if self._gconfig is None:
-            recorded = self.bundle.manifest.get("preprocess")
+            recorded = self.bundle.manifest.preprocess
             self._gconfig = GConfig.model_validate(recorded) if recorded else GConfig()
         out = filter_g(points, self._gconfig, seed=0)
         return np.ascontiguousarray(out, dtype=np.float32)

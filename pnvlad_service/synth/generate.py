@@ -32,9 +32,10 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.synth.city import generate_world
 from pnvlad_service.synth.lidar import LidarConfig
 from pnvlad_service.synth.runs import Route, RunConditions, SimulatedDrive, make_route
-from pnvlad_service.synth.world import DISTRICTS, World, WorldConfig, generate_world
+from pnvlad_service.synth.world import DISTRICTS, World, WorldConfig
 
 log = logging.getLogger(__name__)
 
@@ -282,6 +283,106 @@ def _run_job(job: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _trajectory_files(
+    spec: SynthPreset, trajectories: str | Path | None
+) -> dict[tuple[str, int], Path]:
+    """(area, run) -> the user's trajectory CSV (``<area>_<k>.csv`` or ``<k>.csv``); empty
+    without ``trajectories``. ``InputError`` where a run has none."""
+    files: dict[tuple[str, int], Path] = {}
+    if trajectories is None:
+        return files
+    tdir = Path(trajectories)
+    if not tdir.is_dir():
+        raise InputError("not a folder of trajectory CSVs", tdir)
+    for area in spec.areas:
+        for k in range(spec.runs):
+            for cand in (tdir / f"{area.name}_{k}.csv", tdir / f"{k}.csv"):
+                if cand.is_file():
+                    files[(area.name, k)] = cand
+                    break
+            else:
+                raise InputError(f"no trajectory {area.name}_{k}.csv or {k}.csv", tdir)
+    return files
+
+
+def _area_jobs(
+    tmp: Path,
+    area_index: int,
+    area: AreaSpec,
+    spec: SynthPreset,
+    seed: int,
+    traj_files: dict[tuple[str, int], Path],
+) -> list[dict[str, Any]]:
+    """Write the area's test regions (chosen on its first route) and return one job per run."""
+    from pnvlad_service.data.splits import TestRegions, save_regions
+
+    world = _world(area, seed)
+    route = (
+        route_from_csv(world, traj_files[(area.name, 0)])
+        if traj_files
+        else make_route(world, area.route_m, seed)
+    )
+    local = choose_test_regions(route.points, spec.test_share, spec.region_half_size)
+    centres = tuple((float(y + area.origin[1]), float(x + area.origin[0])) for x, y in local)
+    (tmp / area.name).mkdir(parents=True)
+    save_regions(tmp / area.name / "test_regions.json", TestRegions(centres, spec.region_half_size))
+    jobs = []
+    for k in range(spec.runs):
+        name, start = run_name(area_index, k, seed)
+        jobs.append(
+            {
+                "preset": spec.model_dump(),
+                "area": area.model_dump(),
+                "seed": seed,
+                "run": name,
+                "run_seed": run_seed_of(seed, area_index, k),
+                "start_us": start,
+                "out": str(tmp),
+                "trajectory": str(traj_files[(area.name, k)]) if traj_files else None,
+            }
+        )
+    return jobs
+
+
+def _run_jobs(
+    jobs: list[dict[str, Any]], workers: int | None, progress: bool, desc: str
+) -> tuple[list[dict[str, Any]], int]:
+    """Run every job (in worker processes when more than one): (results in job order, workers)."""
+    from tqdm import tqdm
+
+    n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
+    results: list[dict[str, Any]] = []
+    bar = tqdm(total=len(jobs), desc=desc, unit="run", disable=not progress)
+    if n_workers == 1:
+        for job in jobs:
+            results.append(_run_job(job))
+            bar.update()
+    else:
+        with ProcessPoolExecutor(n_workers) as pool:
+            for res in pool.map(_run_job, jobs):
+                results.append(res)
+                bar.update()
+    bar.close()
+    return results, n_workers
+
+
+def _summary(
+    spec: SynthPreset, seed: int, runs: list[dict[str, Any]], splits: Any
+) -> dict[str, Any]:
+    """What the seed determines (no timings), as written to synth.json: equal seeds give
+    equal bytes."""
+    return {
+        "format": "pnvlad-synth",
+        "version": 1,
+        "preset": spec.model_dump(),
+        "seed": seed,
+        "runs": [{k: v for k, v in r.items() if k != "seconds"} for r in runs],
+        "submaps": sum(sum(r["submaps"].values()) for r in runs),
+        "training_anchors": {g: len(t.anchors(2)) for g, t in splits.training.items()},
+        "queries": {name: es.n_queries() for name, es in splits.evaluation.items()},
+    }
+
+
 def generate(
     preset: str | SynthPreset,
     out: str | Path,
@@ -295,93 +396,31 @@ def generate(
     """Write a synthetic benchmark tree to ``out`` and return its summary (also in synth.json).
 
     ``trajectories``: a folder of ``<area>_<k>.csv`` or ``<k>.csv`` files (northing, easting),
-    one per run, to drive routes a user supplies instead of the generated ones.
+    one per run, to drive routes a user supplies instead of the generated ones. The steps: test
+    regions and one job per run for every area, the runs (in parallel), the splits, synth.json;
+    all under a temporary name renamed when complete.
     """
-    from tqdm import tqdm
-
-    from pnvlad_service.data.splits import TestRegions, build_splits, save_regions, save_splits
+    from pnvlad_service.data.splits import build_splits, save_splits
     from pnvlad_service.fileio import atomic_directory, atomic_write_text
 
     spec = get_preset(preset) if isinstance(preset, str) else preset
     out = Path(out)
     started = time.perf_counter()
-    traj_files: dict[tuple[str, int], Path] = {}
-    if trajectories is not None:
-        tdir = Path(trajectories)
-        if not tdir.is_dir():
-            raise InputError("not a folder of trajectory CSVs", tdir)
-        for area in spec.areas:
-            for k in range(spec.runs):
-                for cand in (tdir / f"{area.name}_{k}.csv", tdir / f"{k}.csv"):
-                    if cand.is_file():
-                        traj_files[(area.name, k)] = cand
-                        break
-                else:
-                    raise InputError(f"no trajectory {area.name}_{k}.csv or {k}.csv", tdir)
-
+    traj_files = _trajectory_files(spec, trajectories)
     with atomic_directory(out, overwrite=overwrite) as tmp:
-        jobs = []
-        for ai, area in enumerate(spec.areas):
-            world = _world(area, seed)
-            route = (
-                route_from_csv(world, traj_files[(area.name, 0)])
-                if traj_files
-                else make_route(world, area.route_m, seed)
-            )
-            local = choose_test_regions(route.points, spec.test_share, spec.region_half_size)
-            centres = tuple(
-                (float(y + area.origin[1]), float(x + area.origin[0])) for x, y in local
-            )
-            (tmp / area.name).mkdir(parents=True)
-            save_regions(
-                tmp / area.name / "test_regions.json", TestRegions(centres, spec.region_half_size)
-            )
-            for k in range(spec.runs):
-                name, start = run_name(ai, k, seed)
-                run_seed = run_seed_of(seed, ai, k)
-                jobs.append(
-                    {
-                        "preset": spec.model_dump(),
-                        "area": area.model_dump(),
-                        "seed": seed,
-                        "run": name,
-                        "run_seed": run_seed,
-                        "start_us": start,
-                        "out": str(tmp),
-                        "trajectory": str(traj_files[(area.name, k)]) if traj_files else None,
-                    }
-                )
-        n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
-        results: list[dict[str, Any]] = []
-        bar = tqdm(total=len(jobs), desc=f"synth {spec.name}", unit="run", disable=not progress)
-        if n_workers == 1:
-            for job in jobs:
-                results.append(_run_job(job))
-                bar.update()
-        else:
-            with ProcessPoolExecutor(n_workers) as pool:
-                for res in pool.map(_run_job, jobs):
-                    results.append(res)
-                    bar.update()
-        bar.close()
+        jobs = [
+            job
+            for ai, area in enumerate(spec.areas)
+            for job in _area_jobs(tmp, ai, area, spec, seed, traj_files)
+        ]
+        results, n_workers = _run_jobs(jobs, workers, progress, f"synth {spec.name}")
         t_splits = time.perf_counter()
         splits = build_splits(tmp)
         save_splits(tmp / "splits.json", splits)
         elapsed = time.perf_counter() - started
-        n_sub = sum(sum(r["submaps"].values()) for r in results)
-        queries = {name: es.n_queries() for name, es in splits.evaluation.items()}
         runs = sorted(results, key=lambda r: (r["area"], r["run"]))
-        # synth.json holds what the seed determines (no timings), so equal seeds give equal bytes.
-        summary = {
-            "format": "pnvlad-synth",
-            "version": 1,
-            "preset": spec.model_dump(),
-            "seed": seed,
-            "runs": [{k: v for k, v in r.items() if k != "seconds"} for r in runs],
-            "submaps": n_sub,
-            "training_anchors": {g: len(t.anchors(2)) for g, t in splits.training.items()},
-            "queries": queries,
-        }
+        summary = _summary(spec, seed, runs, splits)
+        n_sub = summary["submaps"]
         atomic_write_text(tmp / "synth.json", json.dumps(summary, indent=1) + "\n")
         summary["seconds"] = round(elapsed, 1)
         summary["splits_seconds"] = round(time.perf_counter() - t_splits, 1)

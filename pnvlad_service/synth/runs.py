@@ -13,7 +13,7 @@ A run is the vehicle driving the area's route once. What differs between runs, e
 - season: tree crowns scaled (grow or shrink) and their foliage density changed;
 - roadworks: cones and barriers added in a few places, and a few street objects removed there.
 
-:class:`SimulatedDrive` implements :class:`pnvlad_service.data.prepare.Drive`, so submaps are cut by
+:class:`SimulatedDrive` implements :class:`pnvlad_service.data.drives.Drive`, so submaps are cut by
 the same ``prepare_drive`` path a user's recorded drive takes. World frame: x = easting,
 y = northing, z = up, UTM metres; scans are in the sensor frame (x forward, y left, z up).
 """
@@ -218,16 +218,6 @@ def _concat_cylinders(*parts: Cylinders) -> Cylinders:
     )
 
 
-def _empty_boxes() -> Boxes:
-    return Boxes(
-        np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int8)
-    )
-
-
-def _empty_cylinders() -> Cylinders:
-    return Cylinders(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.int8))
-
-
 @dataclass
 class _Movers:
     """Objects moving along the streets: road index, start distance, speed (m/s, signed),
@@ -414,7 +404,7 @@ class RunScene:
 
 
 class SimulatedDrive:
-    """One run of the vehicle along ``route``: a :class:`pnvlad_service.data.prepare.Drive`.
+    """One run of the vehicle along ``route``: a :class:`pnvlad_service.data.drives.Drive`.
 
     ``timestamps`` int64 [T] µs from ``start_us``; ``poses`` float64 [T, 4, 4] sensor→UTM world
     *with* the run's GNSS/INS error; :meth:`scan` ray-casts the LiDAR from the *true* pose

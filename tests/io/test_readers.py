@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pnvlad_service.errors import InputError, MissingDependencyError
-from pnvlad_service.io.readers import READERS, read_points, reader_for, write_submap
+from pnvlad_service.io.readers import READERS, read_points, reader_for
 
 # A few points with values that are exact in float32 and not symmetric in x, y, z.
 XYZ = [(1.5, -2.25, 0.125), (-10.0, 3.75, -1.5), (0.0, 0.5, 7.0), (100.25, -0.75, 2.0)]
@@ -272,40 +272,6 @@ def test_missing_io_package_names_the_extra(
     with pytest.raises(MissingDependencyError, match=r"pip install 'pnvlad\[io\]'") as exc:
         read_points(path)
     assert module in str(exc.value)
-
-
-# --- write_submap ----------------------------------------------------------------------------
-
-
-def test_write_submap_bin_bytes_and_round_trip(tmp_path: Path) -> None:
-    rows = _benchmark_values()
-    path = tmp_path / "out" / "submap.bin"
-    write_submap(path, np.array(rows, dtype=np.float32).astype(np.float64))
-    expected = b"".join(struct.pack("<3d", *r) for r in np.array(rows, np.float32).tolist())
-    assert path.read_bytes() == expected
-    assert len(expected) == 98_304
-    assert read_points(path).tolist() == np.array(rows, np.float32).astype(float).tolist()
-    assert [p.name for p in path.parent.iterdir()] == ["submap.bin"]  # no temporary left
-
-
-def test_write_submap_npy_round_trip(tmp_path: Path) -> None:
-    pts = np.array(XYZ, dtype=np.float32)
-    write_submap(tmp_path / "s.npy", pts)
-    back = np.load(tmp_path / "s.npy")
-    assert back.dtype == np.float64 and back.tolist() == [list(p) for p in XYZ]
-
-
-def test_write_submap_refuses_bad_input_and_leaves_old_file(tmp_path: Path) -> None:
-    path = tmp_path / "s.bin"
-    path.write_bytes(b"old")
-    with pytest.raises(InputError, match="NaN"):
-        write_submap(path, np.array([[0.0, np.nan, 0.0]]))
-    with pytest.raises(InputError, match=r"shape \[N, 3\]"):
-        write_submap(path, np.zeros((4, 2)))
-    with pytest.raises(InputError, match=r"\.bin or \.npy"):
-        write_submap(tmp_path / "s.txt", np.zeros((4, 3)))
-    assert path.read_bytes() == b"old"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.bin"]
 
 
 # --- real scans ------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""The filter G, step by step, against expectations computed independently."""
+"""data.preprocess: the filter G, step by step, against expectations computed independently."""
 
 from __future__ import annotations
 
@@ -16,13 +16,9 @@ from pnvlad_service.data.preprocess import (
     apply_g,
     crop_mask,
     filter_g,
-    find_leaf_size,
     fit_ground_plane,
     ground_mask,
     normalize,
-    resample_to,
-    voxel_average,
-    voxel_count,
 )
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.readers import read_points
@@ -44,50 +40,7 @@ def test_crop_mask_matches_a_plain_loop() -> None:
     assert crop_mask(pts).all()
 
 
-# --- voxel grid ------------------------------------------------------------------------------
-
-
-def _voxel_loop(points: np.ndarray, leaf: float) -> list[list[float]]:
-    lo = [min(p[k] for p in points.tolist()) for k in range(3)]
-    cells: dict[tuple[int, int, int], list[list[float]]] = {}
-    for p in points.tolist():
-        key = tuple(math.floor((p[k] - lo[k]) / leaf) for k in range(3))
-        cells.setdefault(key, []).append(p)  # type: ignore[arg-type]
-    means = [[sum(p[k] for p in ps) / len(ps) for k in range(3)] for ps in cells.values()]
-    return sorted(means)
-
-
-@pytest.mark.parametrize("leaf", [0.35, 0.7, 2.0])
-def test_voxel_average_matches_a_plain_loop(leaf: float) -> None:
-    pts = np.random.default_rng(2).uniform(-2.5, 2.5, size=(300, 3))
-    got = voxel_average(pts, leaf)
-    expected = _voxel_loop(pts, leaf)
-    assert got.shape == (len(expected), 3)
-    assert voxel_count(pts, leaf) == len(expected)
-    np.testing.assert_allclose(sorted(got.tolist()), expected, rtol=0, atol=1e-12)
-
-
-def test_find_leaf_size_hits_the_target_on_a_surface() -> None:
-    rng = np.random.default_rng(3)
-    xy = rng.uniform(0, 50, size=(40_000, 2))
-    pts = np.c_[xy, np.sin(xy[:, 0] / 5.0)]
-    leaf, count = find_leaf_size(pts, 4096)
-    assert count == voxel_count(pts, leaf)
-    assert abs(count - 4096) <= 10
-    assert 0.3 < leaf < 2.0  # ~ sqrt(50 * 50 / 4096) = 0.78 for a surface
-
-
-def test_resample_to_drops_in_order_and_duplicates_existing_points() -> None:
-    pts = np.arange(30, dtype=np.float64).reshape(10, 3)
-    rng = np.random.default_rng(0)
-    fewer = resample_to(pts, 4, rng=rng)
-    rows = [tuple(r) for r in pts.tolist()]
-    kept = [rows.index(tuple(r)) for r in fewer.tolist()]
-    assert len(set(kept)) == 4 and kept == sorted(kept)
-    more = resample_to(pts, 25, rng=rng)
-    assert more.shape == (25, 3)
-    assert more[:10].tolist() == pts.tolist()
-    assert all(tuple(r) in rows for r in more[10:].tolist())
+# --- exact count ------------------------------------------------------------------------------
 
 
 @settings(max_examples=25, deadline=None)
@@ -285,6 +238,31 @@ def test_defaults_are_the_papers() -> None:
     cfg = GConfig()
     assert cfg.target_points == 4096 and cfg.ground_threshold == 0.5
     assert cfg.mean_distance == 0.5 and cfg.normalize and not cfg.negate
+
+
+def test_g_config_from_file_yaml_json_and_empty(tmp_path: Path) -> None:
+    (tmp_path / "g.yaml").write_text("target_points: 1024\nground_mode: plane\n")
+    (tmp_path / "g.json").write_text('{"target_points": 1024, "ground_mode": "plane"}')
+    (tmp_path / "empty.yaml").write_text("")
+    expected = GConfig(target_points=1024, ground_mode="plane")
+    assert GConfig.from_file(tmp_path / "g.yaml") == expected
+    assert GConfig.from_file(str(tmp_path / "g.json")) == expected
+    assert GConfig.from_file(tmp_path / "empty.yaml") == GConfig()
+
+
+def test_g_config_from_file_errors_name_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "g.yaml"
+    path.write_text("target_points: [1\n")
+    with pytest.raises(InputError, match="not valid YAML/JSON") as exc:
+        GConfig.from_file(path)
+    assert exc.value.source == str(path)
+    for text in ("target_points: -5\n", "no_such_setting: 1\n"):
+        path.write_text(text)
+        with pytest.raises(InputError, match="bad filter G settings") as exc:
+            GConfig.from_file(path)
+        assert exc.value.source == str(path)
+    with pytest.raises(FileNotFoundError):
+        GConfig.from_file(tmp_path / "missing.yaml")
 
 
 # --- real scans ------------------------------------------------------------------------------

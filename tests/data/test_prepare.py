@@ -2,15 +2,13 @@
 
 Drives are built in tmp_path from the real KITTI scans (symlinked, never copied into the repo)
 with poses along a straight line, so several submaps are cut; expectations are computed
-independently (hand-worked pose conversions, a plain loop over travelled distance).
+independently (a plain loop over travelled distance).
 """
 
 from __future__ import annotations
 
-import csv
 import itertools
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,85 +16,20 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service.data.prepare import (
-    SUBMAP_BYTES,
-    CsvDrive,
-    Drive,
-    KittiSequence,
-    kitti_poses_to_world,
-    prepare_drive,
-    prepare_run,
-    submap_cuts,
-    travelled_distance,
-)
+from pnvlad_service.data.drives import CsvDrive, Drive, KittiSequence
+from pnvlad_service.data.prepare import prepare_drive, submap_cuts, travelled_distance
 from pnvlad_service.errors import InputError
-
-FRAMES = 40  # scans in the synthetic KITTI sequence
-STEP_M = 1.5  # metres between consecutive scans (camera z, i.e. forward)
-FAST = {"max_points_per_scan": 2000, "progress": False}  # small windows keep G quick
-
-
-def make_kitti_sequence(
-    root: Path,
-    real_scans: Path,
-    frames: int = FRAMES,
-    step: float = STEP_M,
-    forward: list[float] | None = None,
-) -> Path:
-    """A KITTI-style sequence: the two real scans alternating, camera moving along z.
-
-    ``forward``: the camera's z position of each frame (default ``step * i``).
-    """
-    seq = root / "seq"
-    (seq / "velodyne").mkdir(parents=True)
-    names = ["kitti00_000000.bin", "kitti00_000005.bin"]
-    if forward is None:
-        forward = [step * i for i in range(frames)]
-    frames = len(forward)
-    lines = []
-    for i, z in enumerate(forward):
-        os.symlink(real_scans / names[i % 2], seq / "velodyne" / f"{i:06d}.bin")
-        lines.append(f"1 0 0 0 0 1 0 0 0 0 1 {z!r}")
-    (seq / "poses.txt").write_text("\n".join(lines) + "\n")
-    (seq / "times.txt").write_text("".join(f"{0.1 * i:.6f}\n" for i in range(frames)))
-    return seq
-
-
-class CountingDrive:
-    """A drive that counts scan reads and can fail at one scan (to interrupt a run)."""
-
-    def __init__(self, inner: Drive, fail_at: int | None = None) -> None:
-        self.inner = inner
-        self.name = inner.name
-        self.timestamps = inner.timestamps
-        self.poses = inner.poses
-        self.fail_at = fail_at
-        self.reads: list[int] = []
-
-    def __len__(self) -> int:
-        return len(self.inner)
-
-    def scan(self, i: int) -> np.ndarray:
-        if i == self.fail_at:
-            raise RuntimeError(f"simulated crash reading scan {i}")
-        self.reads.append(i)
-        return self.inner.scan(i)
-
-
-def read_csv_rows(path: Path) -> list[tuple[int, float, float]]:
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
-    assert rows[0] == ["timestamp", "northing", "easting"]
-    return [(int(t), float(n), float(e)) for t, n, e in rows[1:]]
-
-
-def tree_bytes(run: Path) -> dict[str, bytes]:
-    """Every submap and CSV of a run folder, by relative path."""
-    return {
-        str(p.relative_to(run)): p.read_bytes()
-        for p in sorted(run.rglob("*"))
-        if p.is_file() and not p.name.startswith(".")
-    }
+from pnvlad_service.io.submap import SUBMAP_BYTES
+from tests.data.helpers import (
+    FAST,
+    FRAMES,
+    STEP_M,
+    CountingDrive,
+    make_kitti_sequence,
+    read_csv_rows,
+    tree_bytes,
+    write_street,
+)
 
 
 def plain_cuts(d: list[float], window: float, stride: float) -> list[tuple[int, list[int]]]:
@@ -115,107 +48,6 @@ def plain_cuts(d: list[float], window: float, stride: float) -> list[tuple[int, 
             continue
         out.append((best, [i for i in range(len(d)) if s - half <= d[i] <= s + half]))
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# Pose conversion
-
-
-def test_kitti_forward_motion_becomes_velodyne_x_and_east() -> None:
-    cam = np.zeros((2, 3, 4))
-    cam[:, :, :3] = np.eye(3)
-    cam[1, 2, 3] = 4.3  # 4.3 m forward along the camera's z
-    world = kitti_poses_to_world(cam)
-    np.testing.assert_allclose(world[1, :3, 3], [4.3, 0.0, 0.0], atol=1e-9)
-    np.testing.assert_allclose(world[1, :3, :3], np.eye(3), atol=1e-12)
-    # Facing north (yaw 90 deg) and placed in UTM: forward is +northing.
-    world = kitti_poses_to_world(cam, origin_ne=(5_700_000.0, 620_000.0), yaw_deg=90.0)
-    np.testing.assert_allclose(world[0, :3, 3], [620_000.0, 5_700_000.0, 0.0], atol=1e-6)
-    np.testing.assert_allclose(world[1, :3, 3], [620_000.0, 5_700_004.3, 0.0], atol=1e-6)
-    # Camera moving right (+x) and down (+y) = velodyne right (-y) and down (-z).
-    cam[1, :, 3] = [1.0, 2.0, 0.0]
-    np.testing.assert_allclose(kitti_poses_to_world(cam)[1, :3, 3], [0.0, -1.0, -2.0], atol=1e-9)
-
-
-def test_kitti_left_turn_becomes_counter_clockwise_yaw() -> None:
-    # Camera turned 90 deg to the left: its forward axis z points along camera-0's -x.
-    turn = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
-    assert np.allclose(turn @ [0, 0, 1], [-1, 0, 0])
-    cam = np.zeros((1, 3, 4))
-    cam[0, :, :3] = turn
-    world = kitti_poses_to_world(cam)
-    rz90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    np.testing.assert_allclose(world[0, :3, :3], rz90, atol=1e-12)
-
-
-def test_real_kitti_poses_register_the_real_scans(real_scans: Path) -> None:
-    from scipy.spatial import cKDTree
-
-    cam = np.loadtxt(real_scans / "kitti00_poses_0-5.txt").reshape(-1, 3, 4)
-    world = kitti_poses_to_world(cam[[0, 5]])
-    # Hand-worked: velodyne (x, y, z) = camera (z, -x, -y) for the frame-5 translation.
-    t = cam[5, :, 3]
-    np.testing.assert_allclose(world[1, :3, 3], [t[2], -t[0], -t[1]], atol=1e-6)
-    assert world[1, 0, 3] == pytest.approx(4.291335, abs=1e-6)
-
-    def load(name: str) -> np.ndarray:
-        """Points within 40 m and above the road (z > -1.2 m: the sensor is 1.73 m up)."""
-        pts = np.fromfile(real_scans / name, dtype=np.float32).reshape(-1, 4)[:, :3]
-        pts = pts.astype(np.float64)
-        pts = pts[np.linalg.norm(pts, axis=1) < 40.0]
-        return pts[pts[:, 2] > -1.2][::4]
-
-    a, b = load("kitti00_000000.bin"), load("kitti00_000005.bin")
-    tree = cKDTree(a @ world[0, :3, :3].T + world[0, :3, 3])
-
-    def misfit(points: np.ndarray) -> float:
-        """Mean distance to the nearest point of scan 0, each capped at 0.5 m."""
-        return float(np.mean(np.minimum(tree.query(points)[0], 0.5)))
-
-    aligned = misfit(b @ world[1, :3, :3].T + world[1, :3, 3])
-    # Every sign or axis mistake in the conversion moves scan 5 the wrong way; the converted
-    # pose must fit clearly better than each (and than no motion at all). (The fit is best
-    # near 3.6 m rather than 4.3 m: the scans are not motion-compensated.)
-    wrong = {
-        "no motion": b,
-        "backwards": b - np.array([4.29, 0.0, 0.0]),
-        "sideways": b + np.array([0.0, 4.29, 0.0]),
-        "camera z read as up": b + np.array([0.0, 0.0, 4.29]),
-        "camera axes unconverted": b + cam[5, :, 3],
-    }
-    for name, points in wrong.items():
-        assert aligned < 0.8 * misfit(points), (name, aligned, misfit(points))
-
-
-def test_kitti_calib_file_is_used(tmp_path: Path, real_scans: Path) -> None:
-    seq = make_kitti_sequence(tmp_path, real_scans, frames=2)
-    # A Tr equal to the nominal rotation plus an offset: pure translations are unaffected.
-    (seq / "calib.txt").write_text(
-        "P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 0 -1 0 0.1 0 0 -1 0.2 1 0 0 -0.3\n"
-    )
-    drive = KittiSequence(seq)
-    np.testing.assert_allclose(drive.poses[1, :3, 3], [STEP_M, 0.0, 0.0], atol=1e-9)
-    (seq / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
-    with pytest.raises(InputError, match="Tr"):
-        KittiSequence(seq)
-
-
-def test_kitti_sequence_reads_times_and_rejects_mismatches(
-    tmp_path: Path, real_scans: Path
-) -> None:
-    seq = make_kitti_sequence(tmp_path, real_scans, frames=3)
-    drive = KittiSequence(seq, time_offset_us=1_000_000)
-    assert drive.timestamps.dtype == np.int64
-    assert drive.timestamps.tolist() == [1_000_000, 1_100_000, 1_200_000]
-    pts = drive.scan(0)
-    assert pts.shape == (124_668, 3)
-    (seq / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
-    with pytest.raises(InputError, match="1 poses for 3 scans") as exc:
-        KittiSequence(seq)
-    assert exc.value.source == str(seq / "poses.txt")
-    (seq / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1\n" * 3)
-    with pytest.raises(InputError, match="expected 12 numbers"):
-        KittiSequence(seq)
 
 
 # --------------------------------------------------------------------------------------------
@@ -311,7 +143,7 @@ def test_a_stop_adds_one_scan_not_all(tmp_path: Path, real_scans: Path) -> None:
     forward += [10.0 + 1.0 * i for i in range(1, 21)]
     seq = make_kitti_sequence(tmp_path, real_scans, forward=forward)
     drive = CountingDrive(KittiSequence(seq))
-    prepare_run(drive, tmp_path / "run", kind="test", **FAST)
+    prepare_drive(drive, tmp_path / "run", kinds=("test",), **FAST)
     # Reference: plain loop keeping scans at least 0.05 m of travel after the last kept one.
     d = [0.0]
     for a, b in itertools.pairwise(forward):
@@ -337,7 +169,7 @@ def test_check_tree_accepts_the_run(reference_run) -> None:
 def test_single_kind_gives_the_same_bytes(reference_run, tmp_path: Path) -> None:
     seq, run, _, _ = reference_run
     out = tmp_path / "run"
-    prepare_run(KittiSequence(seq), out, kind="test", **FAST)
+    prepare_drive(KittiSequence(seq), out, kinds=("test",), **FAST)
     ref = {k: v for k, v in tree_bytes(run).items() if k.startswith("pointcloud_20m/")}
     ref["pointcloud_locations_20m.csv"] = (run / "pointcloud_locations_20m.csv").read_bytes()
     assert tree_bytes(out) == ref
@@ -349,11 +181,13 @@ def test_single_kind_gives_the_same_bytes(reference_run, tmp_path: Path) -> None
 
 def test_utm_origin_gives_the_same_bytes(reference_run, tmp_path: Path) -> None:
     seq, _, _, _ = reference_run
-    local = prepare_run(KittiSequence(seq, yaw_deg=30.0), tmp_path / "local", kind="test", **FAST)
-    utm = prepare_run(
+    local = prepare_drive(
+        KittiSequence(seq, yaw_deg=30.0), tmp_path / "local", kinds=("test",), **FAST
+    )
+    utm = prepare_drive(
         KittiSequence(seq, origin_ne=(5_735_712.768124, 620_084.402381), yaw_deg=30.0),
         tmp_path / "utm",
-        kind="test",
+        kinds=("test",),
         **FAST,
     )
     a, b = tree_bytes(local.out_run_dir), tree_bytes(utm.out_run_dir)
@@ -410,9 +244,9 @@ def test_interrupted_run_leaves_no_partial_output_and_resume_completes(
 def test_overwrite_starts_again(reference_run, tmp_path: Path) -> None:
     seq, run, _, _ = reference_run
     out = tmp_path / "run"
-    prepare_run(KittiSequence(seq), out, kind="test", stride_m=10.0, **FAST)
+    prepare_drive(KittiSequence(seq), out, kinds=("test",), strides_m={"test": 10.0}, **FAST)
     assert len(list((out / "pointcloud_20m").iterdir())) == 4
-    prepare_run(KittiSequence(seq), out, kind="test", overwrite=True, **FAST)
+    prepare_drive(KittiSequence(seq), out, kinds=("test",), overwrite=True, **FAST)
     assert sorted(p.name for p in (out / "pointcloud_20m").iterdir()) == sorted(
         p.name for p in (run / "pointcloud_20m").iterdir()
     )
@@ -535,89 +369,20 @@ def test_bad_drives_are_refused(tmp_path: Path) -> None:
             return np.zeros((10, 3))
 
     with pytest.raises(InputError, match="increase strictly"):
-        prepare_run(Bad(), tmp_path / "run", progress=False)
+        prepare_drive(Bad(), tmp_path / "run", kinds=("train",), progress=False)
     assert not (tmp_path / "run").exists()
     Bad.timestamps = np.array([5, 6], dtype=np.int64)
     with pytest.raises(InputError, match="layout"):
-        prepare_run(Bad(), tmp_path / "run", layout="nope", progress=False)  # type: ignore[arg-type]
+        prepare_drive(Bad(), tmp_path / "run", layout="nope", kinds=("train",), progress=False)  # type: ignore[arg-type]
     with pytest.raises(InputError, match="stride_m"):
-        prepare_run(Bad(), tmp_path / "run", stride_m=-1.0, progress=False)
+        prepare_drive(
+            Bad(), tmp_path / "run", kinds=("train",), strides_m={"train": -1.0}, progress=False
+        )
     assert not (tmp_path / "run").exists()
 
 
 # --------------------------------------------------------------------------------------------
 # CsvDrive
-
-
-def write_street(scans: Path, stamps: list[int], rng: np.random.Generator) -> None:
-    """Scans of a street (ground + two walls), sensor frame, as .npy files."""
-    scans.mkdir(parents=True, exist_ok=True)
-    for ts in stamps:
-        x = rng.uniform(-15, 15, 3000)
-        ground = np.c_[x[:1000], rng.uniform(-8, 8, 1000), np.full(1000, -1.7)]
-        walls = np.c_[x[1000:], np.repeat([-8.0, 8.0], 1000), rng.uniform(-1.7, 6, 2000)]
-        np.save(scans / f"{ts}.npy", np.vstack([ground, walls]))
-
-
-def test_csv_drive_headings_and_matrices_agree(tmp_path: Path) -> None:
-    stamps = [1_000_000 + 100_000 * i for i in range(3)]
-    write_street(tmp_path / "scans", stamps, np.random.default_rng(0))
-    base = [(ts, 5_735_000.0 + i, 620_000.0 + 2 * i) for i, ts in enumerate(stamps)]
-    (tmp_path / "yaw.csv").write_text(
-        "timestamp,northing,easting,yaw_deg,height\n"
-        + "".join(f"{t},{n},{e},30,1.5\n" for t, n, e in base)
-    )
-    (tmp_path / "heading.csv").write_text(
-        "timestamp,northing,easting,heading_rad\n"
-        + "".join(f"{t},{n},{e},{math.radians(60)!r}\n" for t, n, e in base)
-    )
-    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
-    (tmp_path / "matrix.csv").write_text(
-        "timestamp,"
-        + ",".join(f"r{r}{k}" for r in range(3) for k in range(4))
-        + "\n"
-        + "".join(
-            f"{t},{c!r},{-s!r},0,{e},{s!r},{c!r},0,{n},0,0,1,0\n" for t, n, e in reversed(base)
-        )
-    )
-    yaw = CsvDrive(tmp_path / "scans", tmp_path / "yaw.csv")
-    heading = CsvDrive(tmp_path / "scans", tmp_path / "heading.csv")
-    matrix = CsvDrive(tmp_path / "scans", tmp_path / "matrix.csv")
-    assert yaw.timestamps.tolist() == stamps == matrix.timestamps.tolist()
-    # The sensor's x axis points 30 deg north of east.
-    np.testing.assert_allclose(yaw.poses[0, :3, 0], [c, s, 0.0], atol=1e-12)
-    np.testing.assert_allclose(yaw.poses[2, :3, 3], [620_004.0, 5_735_002.0, 1.5], atol=1e-6)
-    np.testing.assert_allclose(heading.poses[:, :3, :3], yaw.poses[:, :3, :3], atol=1e-12)
-    np.testing.assert_allclose(matrix.poses[:, :3, :3], yaw.poses[:, :3, :3], atol=1e-12)
-    np.testing.assert_allclose(matrix.poses[:, :2, 3], yaw.poses[:, :2, 3], atol=1e-6)
-    assert yaw.scan(1).shape == (3000, 3)
-
-
-def test_csv_drive_missing_files_and_rows(tmp_path: Path) -> None:
-    stamps = [1_000_000, 1_100_000, 1_200_000]
-    write_street(tmp_path / "scans", stamps, np.random.default_rng(1))
-    poses = tmp_path / "poses.csv"
-    rows = "".join(f"{t},{5_735_000 + i},620000,0\n" for i, t in enumerate([*stamps, 1_300_000]))
-    poses.write_text("timestamp,northing,easting,yaw_rad\n" + rows)
-    with pytest.raises(InputError, match="1300000") as exc:
-        CsvDrive(tmp_path / "scans", poses)
-    assert exc.value.source == str(poses)
-    assert len(CsvDrive(tmp_path / "scans", poses, skip_missing=True)) == 3
-
-    poses.write_text("timestamp,northing,easting,yaw_rad\n" + rows.split("\n", 1)[1])
-    (tmp_path / "scans" / "1300000.npy").write_bytes(
-        (tmp_path / "scans" / "1000000.npy").read_bytes()
-    )
-    with pytest.raises(InputError, match=r"1000000\.npy") as exc:
-        CsvDrive(tmp_path / "scans", poses)
-    assert exc.value.source == str(tmp_path / "scans" / "1000000.npy")
-
-    poses.write_text("timestamp,northing,easting\n1000000,1,2\n")
-    with pytest.raises(InputError, match="heading"):
-        CsvDrive(tmp_path / "scans", poses)
-    poses.write_text("timestamp,northing,easting,yaw_deg\n1000000,nan,2,0\n")
-    with pytest.raises(InputError, match="row 2, column northing"):
-        CsvDrive(tmp_path / "scans", poses)
 
 
 def test_csv_drive_prepares_a_run(tmp_path: Path) -> None:
@@ -628,7 +393,7 @@ def test_csv_drive_prepares_a_run(tmp_path: Path) -> None:
         + "".join(f"{t},{5_735_000 + 1.0 * i},620000,0\n" for i, t in enumerate(stamps))
     )
     drive = CsvDrive(tmp_path / "scans", tmp_path / "poses.csv")
-    result = prepare_run(drive, tmp_path / "run", kind="train", progress=False)
+    result = prepare_drive(drive, tmp_path / "run", kinds=("train",), progress=False)
     rows = read_csv_rows(tmp_path / "run" / "pointcloud_locations_20m_10overlap.csv")
     # 31 m travelled northwards: centres at 10 and 20 m, scans 10 and 20.
     assert rows == [(3_000_000, 5_735_010.0, 620_000.0), (4_000_000, 5_735_020.0, 620_000.0)]

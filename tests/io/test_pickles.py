@@ -1,4 +1,4 @@
-"""safe_pickle: plain data loads, anything naming a class is refused before it runs."""
+"""io.pickles: plain data loads, anything naming a class is refused before it runs."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""benchmark.py: layouts, location CSVs, BenchmarkTree, check_tree and `pnvlad data check`."""
+"""data.tree: layouts, location CSVs, BenchmarkTree, check_tree and `pnvlad data check`."""
 
 from __future__ import annotations
 
@@ -12,13 +12,13 @@ from typer.testing import CliRunner
 
 from pnvlad_service.data.tree import (
     LAYOUTS,
-    SUBMAP_BYTES,
     BenchmarkTree,
     check_tree,
     read_locations_csv,
     write_locations_csv,
 )
 from pnvlad_service.errors import InputError
+from pnvlad_service.io.submap import SUBMAP_BYTES
 
 
 def make_run(
@@ -143,14 +143,12 @@ def test_tree_lists_datasets_runs_and_submaps_in_csv_order(tmp_path: Path) -> No
     assert [s.row for s in subs] == [0, 1, 2]
     assert subs[0].path == "oxford/2014-05-19-13-20-57/pointcloud_20m_10overlap/30.bin"
     assert (subs[0].northing, subs[0].easting, subs[0].kind) == (5735000.0, 620000.0, "train")
-    assert tree.abspath(subs[0]).stat().st_size == SUBMAP_BYTES
+    assert (root / subs[0].path).stat().st_size == SUBMAP_BYTES
     test = tree.submaps("oxford", "2014-05-19-13-20-57", "test")
     assert test[1].path == "oxford/2014-05-19-13-20-57/pointcloud_20m/25.bin"
     inh = tree.submaps("inhouse_datasets", "business_run1", "test")
     assert inh[0].path == "inhouse_datasets/business_run1/pointcloud_25m_25/2.bin"
     assert tree.layout("inhouse_datasets", "business_run1").name == "inhouse"
-    pooled = tree.all_submaps("oxford", "train")
-    assert [s.timestamp for s in pooled] == [110, 30, 10, 20]  # runs sorted, then CSV order
 
 
 def test_tree_root_must_hold_datasets(tmp_path: Path) -> None:
@@ -240,6 +238,41 @@ def test_check_folder_without_csv_and_empty_dataset(tmp_path: Path) -> None:
     (root / "empty_area").mkdir()
     assert "without pointcloud_locations_20m.csv" in _one_problem(root, "folder without")
     assert _one_problem(root, "empty dataset").startswith("empty_area")
+
+
+def test_check_lists_ten_of_each_and_counts_the_rest(tmp_path: Path) -> None:
+    root = good_tree(tmp_path)
+    run = root / RUN
+    rows = "".join(f"{1000 + k},5735000.0,620000.0\n" for k in range(13))
+    (run / "pointcloud_locations_20m.csv").write_text("timestamp,northing,easting\n" + rows)
+    for k in range(12):
+        np.zeros((4096, 3)).tofile(run / "pointcloud_20m" / f"{5000 + k}.bin")
+    report = check_tree(root)
+    messages = [(p.path, p.message) for p in report.problems]
+    folder = f"{RUN}/pointcloud_20m"
+    no_file = [p for p, m in messages if m == "CSV row without a file"]
+    assert no_file == [f"{folder}/{1000 + k}.bin" for k in range(10)]
+    assert (folder, "3 more rows without file") in messages
+    extra = sorted(f"{t}.bin" for t in [15, 25, *range(5000, 5012)])[:10]
+    no_row = [p for p, m in messages if m.startswith("file without a row")]
+    assert no_row == [f"{folder}/{name}" for name in extra]
+    assert (folder, "4 more files without row") in messages
+    assert len(messages) == 10 + 1 + 10 + 1
+
+
+def test_check_csv_without_folder_and_a_root_without_datasets(tmp_path: Path) -> None:
+    root = good_tree(tmp_path / "a")
+    for f in (root / RUN / "pointcloud_20m").iterdir():
+        f.unlink()
+    (root / RUN / "pointcloud_20m").rmdir()
+    assert _one_problem(root, "CSV without folder") == (
+        f"{RUN}/pointcloud_locations_20m.csv: CSV without folder pointcloud_20m"
+    )
+    (tmp_path / "b").mkdir()
+    report = check_tree(tmp_path / "b")
+    assert [(p.path, p.message) for p in report.problems] == [
+        (str(tmp_path / "b"), "no dataset folders")
+    ]
 
 
 def test_check_deep_reads_values(tmp_path: Path) -> None:

@@ -1,0 +1,101 @@
+"""The folders a prepare call writes: claimed before the first submap, resumable after a crash.
+
+Each layout folder of a run (``pointcloud_20m_10overlap/`` ...) has its parameters recorded in
+``<run>/.prepare-<folder>.json``. Claiming a folder either refuses (it already holds submaps
+and neither resume nor overwrite is asked for; resume with other parameters), or makes it
+ready: the old submaps removed (overwrite), the locations CSV removed (it is rewritten last, so
+a CSV on disk always describes a finished run) and the parameters recorded.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.fileio import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+
+def manifest_path(out: Path, folder: Path) -> Path:
+    """Where the parameters of ``folder`` (a layout folder of run ``out``) are recorded."""
+    return out / f".prepare-{folder.name}.json"
+
+
+def claim_folders(
+    targets: Sequence[tuple[Path, Path]],
+    manifests: Sequence[dict[str, Any]],
+    out: Path,
+    *,
+    resume: bool,
+    overwrite: bool,
+) -> None:
+    """Claim every ``(folder, csv)`` of ``targets`` with its manifest: all are checked before
+    any is touched, so nothing changes on disk when one of them refuses."""
+    for check_only in (True, False):
+        for (folder, csv), manifest in zip(targets, manifests, strict=True):
+            claim_folder(
+                folder,
+                csv,
+                manifest,
+                out,
+                resume=resume,
+                overwrite=overwrite,
+                check_only=check_only,
+            )
+
+
+def claim_folder(
+    folder: Path,
+    csv: Path,
+    manifest: dict[str, Any],
+    out: Path,
+    *,
+    resume: bool,
+    overwrite: bool,
+    check_only: bool = False,
+) -> None:
+    """Check (resume) or reset (overwrite) a layout folder and record the run's parameters.
+
+    The parameters go to ``<out>/.prepare-<folder>.json``; ``resume`` refuses to continue a
+    folder made with other parameters (:class:`InputError`), and without ``resume`` or
+    ``overwrite`` a folder that holds submaps or a CSV is refused (``FileExistsError``).
+    ``check_only`` refuses the same way but changes nothing.
+    """
+    record = manifest_path(out, folder)
+    existing = sorted(folder.glob("*.bin")) if folder.is_dir() else []
+    if resume:
+        if record.is_file():
+            try:
+                old = json.loads(record.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                old = None
+            if isinstance(old, dict) and old != manifest:
+                diff = sorted(
+                    k for k in manifest.keys() | old.keys() if old.get(k) != manifest.get(k)
+                )
+                raise InputError(
+                    f"cannot resume: {folder} was prepared with other parameters "
+                    f"({', '.join(diff)}); pass the same options or --overwrite",
+                    record,
+                )
+        elif existing and not check_only:
+            log.warning("%s: no record of the previous parameters; resuming anyway", folder)
+    elif (existing or csv.exists()) and not overwrite:
+        raise FileExistsError(
+            f"{folder}: already holds {len(existing)} submaps or {csv.name} exists (pass "
+            "--resume to finish an interrupted run or --overwrite to start again)"
+        )
+    if check_only:
+        return
+    if not resume:
+        for f in existing:
+            f.unlink()
+    if csv.exists():  # rewritten at the end; until then no CSV describes the folder
+        csv.unlink()
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(record, json.dumps(manifest, indent=2, sort_keys=True) + "\n")

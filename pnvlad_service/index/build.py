@@ -1,0 +1,353 @@
+"""Building bundles: list a tree's database submaps, embed them, write or extend a bundle.
+
+:func:`build_bundle` embeds every submap of one layout of a benchmark tree and writes a new
+bundle; under ``torchrun`` each rank embeds a contiguous shard and rank 0 gathers them (gloo).
+:func:`add_to_bundle` appends new runs to a bundle built with the same weights.
+
+``torch`` is imported inside the functions that need it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.index.bundle import IndexBundle, Metadata, now, write_bundle
+from pnvlad_service.index.keys import (
+    DEFAULT_MEMORY_BUDGET,
+    apply_search_params,
+    choose_index_key,
+    default_search_params,
+    is_exact,
+    make_index,
+    recall_at_1,
+)
+from pnvlad_service.index.manifest import Manifest, ModelRecord
+from pnvlad_service.models.embedding import Embedder, embed_in_chunks
+from pnvlad_service.models.store import model_identity, resolve_model_dir
+
+if TYPE_CHECKING:
+    from pnvlad_service.data.tree import Submap
+    from pnvlad_service.models.inference import Encoder
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------------
+# Submaps: which go into the database, reading and embedding them
+# --------------------------------------------------------------------------------------------
+
+
+def list_database_submaps(
+    root: str | Path,
+    datasets: Sequence[str] | None = None,
+    runs: Sequence[str] | None = None,
+    layout: str = "test",
+) -> list[Submap]:
+    """Every submap of role ``layout`` ("test": ``pointcloud_20m`` / ``pointcloud_25m_25``;
+    "train": the 10 m ones) of the benchmark tree at ``root``.
+
+    ``datasets`` and ``runs`` restrict by folder name. Order: datasets and runs sorted, CSV
+    rows in file order (:class:`pnvlad_service.data.tree.BenchmarkTree`'s order). Raises
+    :class:`InputError` when nothing matches or a named run is missing.
+    """
+    from pnvlad_service.data.tree import BenchmarkTree
+
+    if layout not in ("test", "train"):
+        raise InputError(f"layout must be 'test' or 'train', got {layout!r}", "layout")
+    tree = BenchmarkTree(root)
+    wanted_runs = set(runs) if runs else None
+    seen_runs: set[str] = set()
+    records: list[Submap] = []
+    for dataset in tree.datasets:
+        if datasets and dataset not in datasets:
+            continue
+        for run in tree.runs(dataset):
+            if wanted_runs is not None and run not in wanted_runs:
+                continue
+            if not tree.has(dataset, run, layout):  # type: ignore[arg-type]
+                continue
+            seen_runs.add(run)
+            records.extend(tree.submaps(dataset, run, layout))  # type: ignore[arg-type]
+    if wanted_runs is not None and wanted_runs - seen_runs:
+        raise InputError(f"runs not found: {sorted(wanted_runs - seen_runs)}", source=root)
+    if not records:
+        raise InputError(f"no {layout}-layout submaps found", source=root)
+    return records
+
+
+def read_submap(path: str | Path) -> np.ndarray:
+    """A benchmark submap file: float64 [4096, 3] (``.bin``: no header, 98,304 bytes)."""
+    from pnvlad_service.io.readers import read_points
+
+    return read_points(path, "benchmark")
+
+
+def embed_submaps(
+    encoder: Embedder,
+    root: str | Path,
+    records: Sequence[Submap],
+    batch_size: int = 32,
+    progress: bool = True,
+) -> np.ndarray:
+    """Descriptors of ``records`` in order: float32 [len(records), encoder.dim], embedded
+    ``batch_size`` submaps (read from ``root / record.path``) at a time."""
+    root = Path(root)
+    if not records:
+        return np.empty((0, encoder.dim), dtype=np.float32)
+
+    def load(start: int, stop: int) -> np.ndarray:
+        clouds = [read_submap(root / r.path) for r in records[start:stop]]
+        return np.stack(clouds).astype(np.float32)
+
+    return embed_in_chunks(
+        encoder.embed, len(records), load, chunk=batch_size, progress=progress, desc="embedding"
+    )
+
+
+def load_encoder(model: str | Path, device: str | None = None) -> Encoder:
+    """The encoder of a model directory or of the training run that made it."""
+    from pnvlad_service.models.inference import Encoder
+
+    return Encoder.from_checkpoint(resolve_model_dir(model), device=device)
+
+
+def default_preprocess_config() -> dict[str, Any]:
+    """The default filter G configuration as JSON (what raw scans go through)."""
+    from pnvlad_service.data.preprocess import GConfig
+
+    return GConfig().model_dump(mode="json")
+
+
+# --------------------------------------------------------------------------------------------
+# Sharded embedding under torchrun
+# --------------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def _maybe_distributed() -> Iterator[tuple[int, int]]:
+    """(rank, world size) under ``torchrun`` (gloo process group), else (0, 1)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        yield 0, 1
+        return
+    import torch.distributed as dist
+
+    created = False
+    if not dist.is_initialized():
+        dist.init_process_group("gloo")
+        created = True
+    try:
+        yield dist.get_rank(), dist.get_world_size()
+    finally:
+        if created:
+            dist.barrier()
+            dist.destroy_process_group()
+
+
+def _embed_sharded(
+    encoder: Embedder,
+    root: Path,
+    records: Sequence[Submap],
+    batch_size: int,
+    progress: bool,
+    rank: int,
+    world: int,
+) -> np.ndarray | None:
+    """Rank ``rank`` embeds its contiguous shard; rank 0 gets all descriptors in order
+    (float32 [len(records), dim]), the other ranks ``None``."""
+    if world == 1:
+        return embed_submaps(encoder, root, records, batch_size, progress)
+    import torch
+    import torch.distributed as dist
+
+    n = len(records)
+    bounds = [n * r // world for r in range(world + 1)]
+    mine = embed_submaps(
+        encoder, root, records[bounds[rank] : bounds[rank + 1]], batch_size, progress and rank == 0
+    )
+    width = max(bounds[r + 1] - bounds[r] for r in range(world))
+    padded = torch.zeros((width, encoder.dim), dtype=torch.float32)
+    padded[: len(mine)] = torch.from_numpy(mine)
+    gathered = [torch.zeros_like(padded) for _ in range(world)] if rank == 0 else None
+    dist.gather(padded, gathered, dst=0)
+    if rank != 0:
+        return None
+    assert gathered is not None
+    return np.concatenate(
+        [gathered[r][: bounds[r + 1] - bounds[r]].numpy() for r in range(world)]
+    ).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Build and add
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class BuildReport:
+    """What a build did: counts, timings (seconds), throughput (clouds/s), recall@1 and the
+    manifest written (``path`` and ``manifest`` are ``None`` on a non-zero torchrun rank)."""
+
+    path: Path | None
+    count: int
+    index_key: str
+    embed_seconds: float
+    index_seconds: float
+    clouds_per_second: float
+    recall_at_1: float | None
+    manifest: Manifest | None = None
+
+
+def build_bundle(
+    out: str | Path,
+    model: str | Path,
+    root: str | Path,
+    *,
+    datasets: Sequence[str] | None = None,
+    runs: Sequence[str] | None = None,
+    layout: str = "test",
+    index_key: str = "Flat",
+    memory_budget: int = DEFAULT_MEMORY_BUDGET,
+    batch_size: int = 32,
+    recall_sample: int = 1000,
+    overwrite: bool = False,
+    progress: bool = True,
+    encoder: Embedder | None = None,
+    preprocess: dict[str, Any] | None = None,
+) -> BuildReport:
+    """Embed every ``layout`` submap of the tree at ``root`` and write a bundle to ``out``.
+
+    ``model`` is a model directory or the training run that made it. ``index_key`` is a FAISS
+    factory string or ``"auto"`` (:func:`~pnvlad_service.index.keys.choose_index_key`, within
+    ``memory_budget`` bytes). Under ``torchrun`` (``WORLD_SIZE`` > 1) each rank embeds a
+    contiguous shard, rank 0 gathers them (gloo) and writes the same bundle a single process
+    would; other ranks return a report with ``path=None``. ``encoder`` defaults to the
+    model's, ``preprocess`` to the default filter G config.
+    """
+    out = Path(out)
+    root = Path(root)
+    if out.exists() and not overwrite:
+        raise InputError("bundle already exists (use --overwrite to replace it)", source=out)
+    records = list_database_submaps(root, datasets, runs, layout)
+    record = ModelRecord.from_identity(model_identity(model))
+    enc = encoder if encoder is not None else load_encoder(model)
+    with _maybe_distributed() as (rank, world):
+        t0 = time.perf_counter()
+        desc = _embed_sharded(enc, root, records, batch_size, progress, rank, world)
+        t_embed = time.perf_counter() - t0
+        if desc is None:
+            return BuildReport(None, len(records), index_key, t_embed, 0.0, 0.0, None)
+        t1 = time.perf_counter()
+        index, index_key, params = _index_of(desc, index_key, memory_budget)
+        t_index = time.perf_counter() - t1
+        recall = None if is_exact(index_key) else recall_at_1(index, desc, recall_sample)
+        if recall is not None:
+            log.info("recall@1 of %s against exact search: %.4f", index_key, recall)
+        manifest = write_bundle(
+            out,
+            index,
+            Metadata.from_records(records),
+            index_key=index_key,
+            model=record,
+            indexed=[_indexed_entry(root, layout, records)],
+            preprocess=preprocess if preprocess is not None else default_preprocess_config(),
+            search_params=params,
+            recall=recall,
+            overwrite=overwrite,
+            build={"processes": world, "embed_seconds": round(t_embed, 3)},
+        )
+    rate = len(desc) / t_embed if t_embed > 0 else float("inf")
+    return BuildReport(out, len(desc), index_key, t_embed, t_index, rate, recall, manifest)
+
+
+def _index_of(
+    desc: np.ndarray, index_key: str, memory_budget: int
+) -> tuple[Any, str, dict[str, int]]:
+    """(FAISS index of ``desc`` float32 [N, D] with its search parameters set, the key,
+    the parameters); ``index_key`` ``"auto"`` is chosen within ``memory_budget`` bytes."""
+    if index_key == "auto":
+        index_key = choose_index_key(len(desc), desc.shape[1], memory_budget)
+        log.info("index key auto -> %s (%d vectors, d=%d)", index_key, *desc.shape)
+    index = make_index(desc, index_key)
+    params = default_search_params(index_key)
+    apply_search_params(index, params)
+    return index, index_key, params
+
+
+def _indexed_entry(root: Path, layout: str, records: Sequence[Submap]) -> dict[str, Any]:
+    """The manifest's ``indexed`` entry of one build or add."""
+    return {
+        "root": str(root.resolve()),
+        "layout": layout,
+        "datasets": sorted({r.dataset for r in records}),
+        "runs": sorted({r.run for r in records}),
+        "count": len(records),
+        "added": now(),
+    }
+
+
+def add_to_bundle(
+    bundle_dir: str | Path,
+    model: str | Path,
+    root: str | Path,
+    *,
+    datasets: Sequence[str] | None = None,
+    runs: Sequence[str] | None = None,
+    layout: str = "test",
+    batch_size: int = 32,
+    progress: bool = True,
+    encoder: Embedder | None = None,
+) -> BuildReport:
+    """Append the submaps of new runs to an existing bundle (rewritten atomically).
+
+    Refuses a model whose weights differ from the bundle's
+    (:meth:`~pnvlad_service.index.manifest.Manifest.check_model`) and submaps already in it.
+    """
+    bundle_dir = Path(bundle_dir)
+    root = Path(root)
+    bundle = IndexBundle.load(bundle_dir)
+    bundle.manifest.check_model(model_identity(model))
+    records = list_database_submaps(root, datasets, runs, layout)
+    present = set(bundle.metadata.submap_id.tolist())
+    dup = [r.submap_id for r in records if r.submap_id in present]
+    if dup:
+        raise InputError(
+            f"{len(dup)} submaps are already in the bundle, e.g. {dup[0]}", source=bundle_dir
+        )
+    enc = encoder if encoder is not None else load_encoder(model)
+    t0 = time.perf_counter()
+    desc = embed_submaps(enc, root, records, batch_size, progress)
+    t_embed = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    bundle.index.add(np.ascontiguousarray(desc, dtype=np.float32))
+    t_index = time.perf_counter() - t1
+    m = bundle.manifest
+    manifest = write_bundle(
+        bundle_dir,
+        bundle.index,
+        bundle.metadata.concat(Metadata.from_records(records)),
+        index_key=m.index_key,
+        model=m.model,
+        indexed=[*m.indexed, _indexed_entry(root, layout, records)],
+        preprocess=m.preprocess,
+        search_params=m.search_params,
+        recall=m.recall_at_1_vs_exact,
+        created=m.created,
+        overwrite=True,
+        build=m.build,
+        extra=m.extra,
+    )
+    rate = len(desc) / t_embed if t_embed > 0 else float("inf")
+    return BuildReport(
+        bundle_dir, len(records), m.index_key, t_embed, t_index, rate, None, manifest
+    )

@@ -1,0 +1,47 @@
+"""data.dataset: submaps of any point count read for training, fitted to the model's count."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pnvlad_service.data.dataset import fit_points, load_clouds, read_submap
+from pnvlad_service.errors import InputError
+
+
+def test_read_submap_bin_of_any_count_and_npy(tmp_path: Path) -> None:
+    rows = [(0.5, -0.25, 0.125), (-1.0, 0.75, 0.0), (0.0, 0.5, -0.5)]
+    (tmp_path / "a.bin").write_bytes(b"".join(struct.pack("<3d", *r) for r in rows))
+    np.save(tmp_path / "b.npy", np.array(rows))
+    for name in ("a.bin", "b.npy"):
+        pts = read_submap(tmp_path / name)
+        assert pts.dtype == np.float32 and pts.tolist() == [list(r) for r in rows]
+
+
+def test_read_submap_refuses_a_partial_triple_and_a_missing_file(tmp_path: Path) -> None:
+    (tmp_path / "odd.bin").write_bytes(struct.pack("<4d", 0, 0, 0, 0))
+    with pytest.raises(InputError, match="4 float64 values, not a multiple of 3"):
+        read_submap(tmp_path / "odd.bin")
+    with pytest.raises(InputError, match="submap file not found") as exc:
+        read_submap(tmp_path / "none.bin")
+    assert exc.value.source == str(tmp_path / "none.bin")
+
+
+def test_load_clouds_fits_every_submap_to_the_point_count(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    sizes = [10, 16, 40]
+    paths = []
+    for k, n in enumerate(sizes):
+        paths.append(tmp_path / f"{k}.bin")
+        paths[-1].write_bytes(rng.uniform(-1, 1, (n, 3)).astype("<f8").tobytes())
+    clouds = load_clouds(paths, 16, workers=2)
+    assert clouds.shape == (3, 16, 3) and clouds.dtype == np.float32
+    for k, path in enumerate(paths):
+        expected = fit_points(read_submap(path), 16)
+        assert np.array_equal(clouds[k], expected)
+        # every fitted row is a row of the file
+        rows = {tuple(r) for r in read_submap(path).tolist()}
+        assert all(tuple(r) in rows for r in clouds[k].tolist())

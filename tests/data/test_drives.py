@@ -1,0 +1,194 @@
+"""data.drives: KITTI sequences and CSV drives -> timestamps, UTM poses, scans.
+
+Expectations are hand-worked pose conversions and the real KITTI scans registered by them.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pnvlad_service.data.drives import CsvDrive, KittiSequence, kitti_poses_to_world
+from pnvlad_service.errors import InputError
+from tests.data.helpers import STEP_M, make_kitti_sequence, write_street
+
+# --------------------------------------------------------------------------------------------
+# Pose conversion
+
+
+def test_kitti_forward_motion_becomes_velodyne_x_and_east() -> None:
+    cam = np.zeros((2, 3, 4))
+    cam[:, :, :3] = np.eye(3)
+    cam[1, 2, 3] = 4.3  # 4.3 m forward along the camera's z
+    world = kitti_poses_to_world(cam)
+    np.testing.assert_allclose(world[1, :3, 3], [4.3, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(world[1, :3, :3], np.eye(3), atol=1e-12)
+    # Facing north (yaw 90 deg) and placed in UTM: forward is +northing.
+    world = kitti_poses_to_world(cam, origin_ne=(5_700_000.0, 620_000.0), yaw_deg=90.0)
+    np.testing.assert_allclose(world[0, :3, 3], [620_000.0, 5_700_000.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(world[1, :3, 3], [620_000.0, 5_700_004.3, 0.0], atol=1e-6)
+    # Camera moving right (+x) and down (+y) = velodyne right (-y) and down (-z).
+    cam[1, :, 3] = [1.0, 2.0, 0.0]
+    np.testing.assert_allclose(kitti_poses_to_world(cam)[1, :3, 3], [0.0, -1.0, -2.0], atol=1e-9)
+
+
+def test_kitti_left_turn_becomes_counter_clockwise_yaw() -> None:
+    # Camera turned 90 deg to the left: its forward axis z points along camera-0's -x.
+    turn = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    assert np.allclose(turn @ [0, 0, 1], [-1, 0, 0])
+    cam = np.zeros((1, 3, 4))
+    cam[0, :, :3] = turn
+    world = kitti_poses_to_world(cam)
+    rz90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(world[0, :3, :3], rz90, atol=1e-12)
+
+
+def test_real_kitti_poses_register_the_real_scans(real_scans: Path) -> None:
+    from scipy.spatial import cKDTree
+
+    cam = np.loadtxt(real_scans / "kitti00_poses_0-5.txt").reshape(-1, 3, 4)
+    world = kitti_poses_to_world(cam[[0, 5]])
+    # Hand-worked: velodyne (x, y, z) = camera (z, -x, -y) for the frame-5 translation.
+    t = cam[5, :, 3]
+    np.testing.assert_allclose(world[1, :3, 3], [t[2], -t[0], -t[1]], atol=1e-6)
+    assert world[1, 0, 3] == pytest.approx(4.291335, abs=1e-6)
+
+    def load(name: str) -> np.ndarray:
+        """Points within 40 m and above the road (z > -1.2 m: the sensor is 1.73 m up)."""
+        pts = np.fromfile(real_scans / name, dtype=np.float32).reshape(-1, 4)[:, :3]
+        pts = pts.astype(np.float64)
+        pts = pts[np.linalg.norm(pts, axis=1) < 40.0]
+        return pts[pts[:, 2] > -1.2][::4]
+
+    a, b = load("kitti00_000000.bin"), load("kitti00_000005.bin")
+    tree = cKDTree(a @ world[0, :3, :3].T + world[0, :3, 3])
+
+    def misfit(points: np.ndarray) -> float:
+        """Mean distance to the nearest point of scan 0, each capped at 0.5 m."""
+        return float(np.mean(np.minimum(tree.query(points)[0], 0.5)))
+
+    aligned = misfit(b @ world[1, :3, :3].T + world[1, :3, 3])
+    # Every sign or axis mistake in the conversion moves scan 5 the wrong way; the converted
+    # pose must fit clearly better than each (and than no motion at all). (The fit is best
+    # near 3.6 m rather than 4.3 m: the scans are not motion-compensated.)
+    wrong = {
+        "no motion": b,
+        "backwards": b - np.array([4.29, 0.0, 0.0]),
+        "sideways": b + np.array([0.0, 4.29, 0.0]),
+        "camera z read as up": b + np.array([0.0, 0.0, 4.29]),
+        "camera axes unconverted": b + cam[5, :, 3],
+    }
+    for name, points in wrong.items():
+        assert aligned < 0.8 * misfit(points), (name, aligned, misfit(points))
+
+
+def test_kitti_calib_file_is_used(tmp_path: Path, real_scans: Path) -> None:
+    seq = make_kitti_sequence(tmp_path, real_scans, frames=2)
+    # A Tr equal to the nominal rotation plus an offset: pure translations are unaffected.
+    (seq / "calib.txt").write_text(
+        "P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 0 -1 0 0.1 0 0 -1 0.2 1 0 0 -0.3\n"
+    )
+    drive = KittiSequence(seq)
+    np.testing.assert_allclose(drive.poses[1, :3, 3], [STEP_M, 0.0, 0.0], atol=1e-9)
+    (seq / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(InputError, match="Tr"):
+        KittiSequence(seq)
+
+
+def test_kitti_sequence_reads_times_and_rejects_mismatches(
+    tmp_path: Path, real_scans: Path
+) -> None:
+    seq = make_kitti_sequence(tmp_path, real_scans, frames=3)
+    drive = KittiSequence(seq, time_offset_us=1_000_000)
+    assert drive.timestamps.dtype == np.int64
+    assert drive.timestamps.tolist() == [1_000_000, 1_100_000, 1_200_000]
+    pts = drive.scan(0)
+    assert pts.shape == (124_668, 3)
+    (seq / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(InputError, match="1 poses for 3 scans") as exc:
+        KittiSequence(seq)
+    assert exc.value.source == str(seq / "poses.txt")
+    (seq / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1\n" * 3)
+    with pytest.raises(InputError, match="expected 12 numbers"):
+        KittiSequence(seq)
+
+
+def test_kitti_scans_go_through_the_kitti_reader(tmp_path: Path, real_scans: Path) -> None:
+    seq = make_kitti_sequence(tmp_path, real_scans, frames=2)
+    drive = KittiSequence(seq)
+    raw = np.fromfile(real_scans / "kitti00_000005.bin", dtype="<f4").reshape(-1, 4)
+    assert np.array_equal(drive.scan(1), raw[:, :3])
+    truncated = seq / "velodyne" / "000001.bin"
+    truncated.unlink()
+    truncated.write_bytes(raw.tobytes()[:-4])
+    with pytest.raises(InputError, match="not a multiple of 16 bytes") as exc:
+        drive.scan(1)
+    assert exc.value.source == str(truncated)
+
+
+# --------------------------------------------------------------------------------------------
+# CsvDrive
+
+
+def test_csv_drive_headings_and_matrices_agree(tmp_path: Path) -> None:
+    stamps = [1_000_000 + 100_000 * i for i in range(3)]
+    write_street(tmp_path / "scans", stamps, np.random.default_rng(0))
+    base = [(ts, 5_735_000.0 + i, 620_000.0 + 2 * i) for i, ts in enumerate(stamps)]
+    (tmp_path / "yaw.csv").write_text(
+        "timestamp,northing,easting,yaw_deg,height\n"
+        + "".join(f"{t},{n},{e},30,1.5\n" for t, n, e in base)
+    )
+    (tmp_path / "heading.csv").write_text(
+        "timestamp,northing,easting,heading_rad\n"
+        + "".join(f"{t},{n},{e},{math.radians(60)!r}\n" for t, n, e in base)
+    )
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    (tmp_path / "matrix.csv").write_text(
+        "timestamp,"
+        + ",".join(f"r{r}{k}" for r in range(3) for k in range(4))
+        + "\n"
+        + "".join(
+            f"{t},{c!r},{-s!r},0,{e},{s!r},{c!r},0,{n},0,0,1,0\n" for t, n, e in reversed(base)
+        )
+    )
+    yaw = CsvDrive(tmp_path / "scans", tmp_path / "yaw.csv")
+    heading = CsvDrive(tmp_path / "scans", tmp_path / "heading.csv")
+    matrix = CsvDrive(tmp_path / "scans", tmp_path / "matrix.csv")
+    assert yaw.timestamps.tolist() == stamps == matrix.timestamps.tolist()
+    # The sensor's x axis points 30 deg north of east.
+    np.testing.assert_allclose(yaw.poses[0, :3, 0], [c, s, 0.0], atol=1e-12)
+    np.testing.assert_allclose(yaw.poses[2, :3, 3], [620_004.0, 5_735_002.0, 1.5], atol=1e-6)
+    np.testing.assert_allclose(heading.poses[:, :3, :3], yaw.poses[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(matrix.poses[:, :3, :3], yaw.poses[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(matrix.poses[:, :2, 3], yaw.poses[:, :2, 3], atol=1e-6)
+    assert yaw.scan(1).shape == (3000, 3)
+
+
+def test_csv_drive_missing_files_and_rows(tmp_path: Path) -> None:
+    stamps = [1_000_000, 1_100_000, 1_200_000]
+    write_street(tmp_path / "scans", stamps, np.random.default_rng(1))
+    poses = tmp_path / "poses.csv"
+    rows = "".join(f"{t},{5_735_000 + i},620000,0\n" for i, t in enumerate([*stamps, 1_300_000]))
+    poses.write_text("timestamp,northing,easting,yaw_rad\n" + rows)
+    with pytest.raises(InputError, match="1300000") as exc:
+        CsvDrive(tmp_path / "scans", poses)
+    assert exc.value.source == str(poses)
+    assert len(CsvDrive(tmp_path / "scans", poses, skip_missing=True)) == 3
+
+    poses.write_text("timestamp,northing,easting,yaw_rad\n" + rows.split("\n", 1)[1])
+    (tmp_path / "scans" / "1300000.npy").write_bytes(
+        (tmp_path / "scans" / "1000000.npy").read_bytes()
+    )
+    with pytest.raises(InputError, match=r"1000000\.npy") as exc:
+        CsvDrive(tmp_path / "scans", poses)
+    assert exc.value.source == str(tmp_path / "scans" / "1000000.npy")
+
+    poses.write_text("timestamp,northing,easting\n1000000,1,2\n")
+    with pytest.raises(InputError, match="heading"):
+        CsvDrive(tmp_path / "scans", poses)
+    poses.write_text("timestamp,northing,easting,yaw_deg\n1000000,nan,2,0\n")
+    with pytest.raises(InputError, match="row 2, column northing"):
+        CsvDrive(tmp_path / "scans", poses)
