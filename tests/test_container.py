@@ -96,6 +96,18 @@ def test_torch_installed_before_the_project_files_are_copied() -> None:
     assert torch_at < sources_at
 
 
+def test_every_package_is_installed() -> None:
+    """The image (like any wheel) installs pnvlad with `pip install .`, not editable: a package
+    missing from pyproject's explicit list is missing there, while the editable install of the
+    test suite still finds it."""
+    listed = set(re.findall(r'^\s*"(pnvlad_[a-z_.]+)",$', PYPROJECT, flags=re.MULTILINE))
+    on_disk = {
+        ".".join(p.parent.relative_to(REPO).parts).replace("cli", "pnvlad_cli", 1)
+        for p in [*(REPO / "pnvlad_service").rglob("__init__.py"), REPO / "cli" / "__init__.py"]
+    }
+    assert on_disk - listed == set()
+
+
 # --- scripts/image_check.py against a stub server ---------------------------------------------
 
 DATASET, INDEXED, HELD = "area", "2026-01-01-00-00-00", "2026-02-01-00-00-00"
