@@ -65,12 +65,16 @@ pm() {
 }
 
 # ---------------------------------------------------------------------------------------------
-step "1/8 podman, runc, debootstrap"
+# Whether this machine can run it at all, before anything is printed or installed.
 [ "$(id -u)" = 0 ] || skip_or_fail "needs root (podman's storage and debootstrap); uid is $(id -u)"
 missing=()
 for tool in podman runc debootstrap; do command -v "$tool" >/dev/null || missing+=("$tool"); done
+if [ "${#missing[@]}" -gt 0 ] && ! command -v apt-get >/dev/null; then
+    skip_or_fail "no ${missing[*]} and no apt-get to install them"
+fi
+
+step "1/8 podman, runc, debootstrap"
 if [ "${#missing[@]}" -gt 0 ]; then
-    command -v apt-get >/dev/null || skip_or_fail "no ${missing[*]} and no apt-get to install them"
     echo "installing ${missing[*]} (apt-get)"
     if ! { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q \
             --no-install-recommends "${missing[@]}"; } > /tmp/pnvlad-image-apt.log 2>&1; then
@@ -181,7 +185,15 @@ if [ -f "$ca" ]; then
 fi
 version=$(sed -n 's/^__version__ = "\(.*\)"$/\1/p' pnvlad_service/__init__.py)
 revision=$(git rev-parse HEAD 2>/dev/null || echo unknown)
-build_args+=(--build-arg "VERSION=$version" --build-arg "REVISION=$revision")
+# Labels as build arguments (for the Dockerfile's LABEL) and as --label too: podman 4.3 takes a
+# LABEL step from its cache even when the build argument in it has changed.
+oci=org.opencontainers.image
+build_args+=(--build-arg "VERSION=$version" --label "$oci.version=$version"
+             --build-arg "REVISION=$revision" --label "$oci.revision=$revision")
+origin=$(git remote get-url origin 2>/dev/null || true)
+case "$origin" in  # a repository URL, not a local clone's path
+    *://*|git@*) build_args+=(--build-arg "SOURCE=$origin" --label "$oci.source=$origin") ;;
+esac
 if ! pm build --network host --format docker --layers "${volumes[@]}" "${build_args[@]}" \
         -t "$IMAGE" . > "$CACHE/build.log" 2>&1; then
     tail -40 "$CACHE/build.log" >&2
@@ -193,6 +205,15 @@ echo "built $(pm image inspect --format '{{.Id}}' "$IMAGE" | cut -c1-12): $total
 label() { pm image inspect --format "{{index .Labels \"org.opencontainers.image.$1\"}}" "$IMAGE"; }
 echo "labels: version $(label version), revision $(label revision | cut -c1-12), licenses $(label licenses)"
 [ "$(label version)" = "$version" ] || fail "label version $(label version) != pnvlad $version"
+[ "$(label revision)" = "$revision" ] || fail "label revision $(label revision) != $revision"
+user=$(pm image inspect --format '{{.Config.User}}' "$IMAGE")
+[ "$user" = 10001:10001 ] || fail "the image's user is '$user', not 10001:10001"
+# What the final stage must not hold: a compiler, an installer, a cache of either.
+found=$(pm run --rm --network none --no-healthcheck --entrypoint sh "$IMAGE" -c \
+    'for t in cc gcc g++ c++ make ld strip pip pip3 apt-get; do command -v "$t"; done
+     ls -d /root/.cache /tmp/* /opt/venv/lib/python3*/site-packages/pip 2>/dev/null' | grep -v '^/usr/bin/apt-get$' || true)
+[ -z "$found" ] || fail "the final image holds: $found"
+echo "user $user; no compiler, installer or cache in the image (apt-get is the base's)"
 
 # ---------------------------------------------------------------------------------------------
 # The demo data, made by the image's CLI and kept until the code that makes it changes.
@@ -248,7 +269,10 @@ pm run -d --name "$NAME" --network host --health-interval disable \
     -e PNVLAD_API_KEY="$token" -e PNVLAD_HOST=127.0.0.1 -e PNVLAD_PORT="$port" \
     -v "$DATA/map.index:/data/index:ro" -v "$DATA/train/model:/data/model:ro" \
     "$IMAGE" > /dev/null
-echo "container $NAME on 127.0.0.1:$port: user $(pm inspect --format '{{.Config.User}}' "$NAME"), read-only root $(pm inspect --format '{{.HostConfig.ReadonlyRootfs}}' "$NAME")"
+sleep 1
+uid=$(pm exec "$NAME" id -u 2>/dev/null) || { pm logs "$NAME" >&2; fail "the container exited at once"; }
+[ "$uid" = 10001 ] || fail "the server runs as uid $uid"
+echo "container $NAME on 127.0.0.1:$port: uid $uid, read-only root $(pm inspect --format '{{.HostConfig.ReadonlyRootfs}}' "$NAME")"
 
 # ---------------------------------------------------------------------------------------------
 step "6/8 wait for the HEALTHCHECK"
