@@ -247,7 +247,7 @@ if [ ! -f "$DATA/done" ]; then
     run_args=()
     for r in "${runs[@]:0:${#runs[@]}-1}"; do run_args+=(--run "$r"); done
     cli index build --checkpoint train/model -r city -d "$dataset" "${run_args[@]}" -o map.index \
-        --overwrite 2>&1 | tr '\r' '\n' | grep -v -E ' INFO |^embedding:' || true
+        --overwrite 2>&1 | tr '\r' '\n' | grep -v -E ' INFO |^embedding:|^$' || true
     [ -f "$DATA/map.index/manifest.json" ] || fail "index build wrote no bundle"
     touch "$DATA/done"
 fi
