@@ -172,7 +172,7 @@ def bf16_check_trained(checkpoint: Path, tree: Path, count: int) -> None:
     """bfloat16 against float32 with trained weights, on ``count`` submaps of a benchmark tree
     (every run's test-layout ``pointcloud_20m``): leave-one-out top-1 agreement, the rule
     ``Encoder(dtype="auto")`` applies (>= 99 %), and the smallest cosine between the two."""
-    from pnvlad_service.index.build import read_submap
+    from pnvlad_service.io.submap import read_submap
 
     if not bf16_supported():
         print("\nbfloat16: not supported on this CPU")

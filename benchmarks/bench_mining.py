@@ -1,6 +1,6 @@
 """Tuple training (the paper) against in-batch mining, for the same wall-clock budget.
 
-Builds a small synthetic tree (the generator of tests/test_train.py: a street of box-shaped
+Builds a small synthetic tree (the generator of tests/training/street.py: a street of box-shaped
 landmarks driven ``--runs`` times), trains the same small network for ``--minutes`` with each
 mining mode, evaluates each final model (and the untrained one) with the benchmark's recall and
 prints one line per mode. On a shared CPU the figures are noisy: compare modes of one run.
@@ -29,16 +29,17 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, default=None, help="keep the tree and runs here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    sys.path.insert(0, str(REPO / "tests"))
+    sys.path.insert(0, str(REPO))
     import torch
-    from test_train import make_tiny_tree  # the tests' synthetic street
 
     from pnvlad_service.data.dataset import load_eval_runs
-    from pnvlad_service.evaluation.evaluate import evaluate_runs, model_embedder
+    from pnvlad_service.evaluation.evaluate import evaluate_runs
+    from pnvlad_service.models.embedding import module_embedder
     from pnvlad_service.models.pointnetvlad import build_model
     from pnvlad_service.models.store import load_model
     from pnvlad_service.training.config import TrainConfig
     from pnvlad_service.training.train import train
+    from tests.training.street import make_tiny_tree  # the tests' synthetic street
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -65,7 +66,7 @@ def main() -> None:
         )
         torch.manual_seed(0)
         untrained = build_model(base.model)
-        rep = evaluate_runs(model_embedder(untrained), runs, args.num_points, progress=False)
+        rep = evaluate_runs(module_embedder(untrained), runs, args.num_points, progress=False)
         print(f"untrained: recall@1 {rep['recall_at_1']:.1f}, @1% {rep['recall_at_1pct']:.1f}")
         for mode, batch in (("tuple", 4), ("in_batch", 16)):
             cfg = base.with_overrides({"train.mining": mode, "train.batch_size": batch})
@@ -73,7 +74,7 @@ def main() -> None:
             res = train(cfg, root / f"run-{mode}", progress=False)
             secs = time.monotonic() - t0
             model, _ = load_model(res.model_dir)
-            rep = evaluate_runs(model_embedder(model), runs, args.num_points, progress=False)
+            rep = evaluate_runs(module_embedder(model), runs, args.num_points, progress=False)
             print(
                 f"{mode:9s}: {res.steps} steps in {secs:.0f} s, cache refreshes "
                 f"{res.cache_refreshes}, last loss {res.losses[res.steps]:.3f}; "

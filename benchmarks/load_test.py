@@ -17,7 +17,6 @@ Loopback only; bounded in time and count.
 from __future__ import annotations
 
 import argparse
-import http.client
 import json
 import re
 import threading
@@ -27,6 +26,8 @@ from urllib.parse import urlparse
 
 import numpy as np
 from local_server import start_server
+
+from pnvlad_service.localization.client import LocalizeClient, ServerError
 
 
 def vmhwm_mb(pid: int) -> float:
@@ -88,7 +89,6 @@ def run_phase(
     ctype: str,
     path: str,
 ) -> dict:
-    u = urlparse(url)
     lat: list[float] = []
     errors: list[str] = []
     lock = threading.Lock()
@@ -96,32 +96,27 @@ def run_phase(
     sent = [0]
 
     def client(k: int) -> None:
-        conn = http.client.HTTPConnection(u.hostname, u.port, timeout=120)
-        i = k
-        while time.monotonic() < stop:
-            with lock:
-                if sent[0] >= max_requests:
-                    break
-                sent[0] += 1
-            body = bodies[i % len(bodies)]
-            i += clients
-            t = time.perf_counter()
-            try:
-                conn.request("POST", path, body=body, headers={"Content-Type": ctype})
-                resp = conn.getresponse()
-                data = resp.read()
-                dt = time.perf_counter() - t
+        with LocalizeClient(url, timeout=120) as conn:  # one keep-alive connection per thread
+            i = k
+            while time.monotonic() < stop:
                 with lock:
-                    if resp.status == 200:
-                        lat.append(dt)
-                    else:
-                        errors.append(f"{resp.status}: {data[:200]!r}")
-            except (OSError, http.client.HTTPException) as exc:
-                with lock:
-                    errors.append(repr(exc))
-                conn.close()
-                conn = http.client.HTTPConnection(u.hostname, u.port, timeout=120)
-        conn.close()
+                    if sent[0] >= max_requests:
+                        break
+                    sent[0] += 1
+                body = bodies[i % len(bodies)]
+                i += clients
+                t = time.perf_counter()
+                try:
+                    status, data = conn.send("POST", path, body, ctype)
+                    dt = time.perf_counter() - t
+                    with lock:
+                        if status == 200:
+                            lat.append(dt)
+                        else:
+                            errors.append(f"{status}: {data[:200]!r}")
+                except ServerError as exc:
+                    with lock:
+                        errors.append(repr(exc))
 
     threads = [threading.Thread(target=client, args=(k,)) for k in range(clients)]
     t0 = time.perf_counter()
@@ -146,12 +141,10 @@ def run_phase(
 
 
 def batch_sizes(url: str) -> dict[str, float]:
-    u = urlparse(url)
-    conn = http.client.HTTPConnection(u.hostname, u.port, timeout=30)
-    conn.request("GET", "/metrics")
-    text = conn.getresponse().read().decode()
+    with LocalizeClient(url, timeout=30) as conn:
+        _, data = conn.send("GET", "/metrics")
     out = {}
-    for line in text.splitlines():
+    for line in data.decode().splitlines():
         if line.startswith("pnvlad_batch_size_count"):
             out["batches"] = float(line.split()[-1])
         if line.startswith("pnvlad_batch_size_sum"):
@@ -180,9 +173,9 @@ def main() -> None:
     clouds = load_queries(args.index, args.queries)
     checkpoint = args.checkpoint
     if checkpoint is None and args.index is not None:
-        from pnvlad_service.index.manifest import Manifest
+        from pnvlad_service.localization.localizer import checked_model
 
-        checkpoint = Path(Manifest.read(args.index).model.checkpoint)
+        checkpoint = Path(checked_model(args.index).checkpoint)  # the bundle's model
     result: dict = {}
 
     def baseline(when: str) -> None:

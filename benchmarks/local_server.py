@@ -6,7 +6,6 @@ folder on sys.path).
 
 from __future__ import annotations
 
-import http.client
 import os
 import socket
 import subprocess
@@ -24,17 +23,15 @@ def free_port() -> int:
 
 def wait_ready(port: int, proc: subprocess.Popen, timeout: float = 120.0) -> None:
     """Poll GET /readyz until it answers 200; exit if the server dies or takes too long."""
+    from pnvlad_service.localization.client import LocalizeClient
+
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             raise SystemExit("server exited during start-up")
-        try:
-            c = http.client.HTTPConnection("127.0.0.1", port, timeout=2)
-            c.request("GET", "/readyz")
-            if c.getresponse().status == 200:
+        with LocalizeClient(f"http://127.0.0.1:{port}", timeout=2) as client:
+            if client.ready():
                 return
-        except OSError:
-            pass
         time.sleep(0.3)
     raise SystemExit("server did not become ready")
 
@@ -50,7 +47,7 @@ def start_server(
     cmd = [sys.executable, "-m", "pnvlad_cli.main", "-q", "serve", "--index", str(index)]
     cmd += ["--port", str(port), "--log-level", "warning"]
     if checkpoint is not None:
-        cmd += ["--checkpoint", str(checkpoint)]
+        cmd += ["--model", str(checkpoint)]
     proc = subprocess.Popen(cmd, env={**os.environ, **(env or {})})
     wait_ready(port, proc)
     return proc, f"http://127.0.0.1:{port}"

@@ -9,10 +9,11 @@ below (so the command's signature stays one screen), checked and turned into a d
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import typer
 
+from pnvlad_cli import rosbag as bag_options
 from pnvlad_cli.common import user_errors
 
 if TYPE_CHECKING:
@@ -61,18 +62,19 @@ _SKIP_MISSING = typer.Option(
 _ORIGIN = typer.Option(
     None,
     "--origin",
-    help="With --kitti: UTM NORTHING,EASTING of the first scan (default 0,0: local metres).",
+    help="With --kitti: UTM NORTHING,EASTING of the first scan; with --rosbag: of the pose "
+    "frame's origin (default 0,0: local metres).",
     rich_help_panel=_INPUT,
 )
 _YAW = typer.Option(
     0.0,
     "--yaw",
-    help="With --kitti: direction the car faces at the first scan, degrees counter-clockwise "
-    "from east (0 = east, 90 = north).",
+    help="With --kitti: direction the car faces at the first scan; with --rosbag: direction of "
+    "the pose frame's x axis; degrees counter-clockwise from east (0 = east, 90 = north).",
     rich_help_panel=_INPUT,
 )
 _OUT = typer.Option(
-    ...,
+    None,
     "--out",
     "-o",
     help="Run folder to write, e.g. benchmark_datasets/oxford/2024-05-01-10-00-00.",
@@ -197,12 +199,16 @@ def _parse_box(text: str) -> float:
     return sides[0]
 
 
-def _kinds(kitti: Path | None, scans: Path | None, kind: str) -> tuple[str, ...]:
+def _kinds(
+    kitti: Path | None, scans: Path | None, rosbag: Path | None, kind: str
+) -> tuple[str, ...]:
     """The kinds asked for by ``--kind``, once exactly one drive source is given."""
     from pnvlad_service.errors import InputError
 
-    if (kitti is None) == (scans is None):
-        raise InputError("give either --kitti SEQ_DIR or --scans DIR --poses CSV", "--kitti")
+    if sum(x is not None for x in (kitti, scans, rosbag)) != 1:
+        raise InputError(
+            "give one of --kitti SEQ_DIR, --scans DIR --poses CSV or --rosbag BAG", "--kitti"
+        )
     if kind not in ("train", "test", "both"):
         raise InputError(f"expected train, test or both, got {kind!r}", "--kind")
     return ("train", "test") if kind == "both" else (kind,)
@@ -216,11 +222,26 @@ def _open_drive(
     skip_missing: bool,
     origin: str | None,
     yaw: float,
+    rosbag: dict[str, Any],
 ) -> Drive:
-    """The drive of ``--kitti`` or of ``--scans`` with ``--poses``, its options checked."""
+    """The drive of ``--kitti``, of ``--scans`` with ``--poses`` or of ``--rosbag`` (its
+    options in ``rosbag``), its options checked."""
     from pnvlad_service.data.drives import CsvDrive, KittiSequence
     from pnvlad_service.errors import InputError
 
+    bag = rosbag.pop("rosbag")
+    bag_options.check_unused(bag, **rosbag)
+    if bag is not None:
+        if reader is not None or skip_missing or poses is not None:
+            raise InputError(
+                "--poses, --reader and --skip-missing do not apply to --rosbag", "--rosbag"
+            )
+        return bag_options.open_drive(
+            bag,
+            origin_ne=(0.0, 0.0) if origin is None else _parse_origin(origin),
+            yaw_deg=yaw,
+            **rosbag,
+        )
     if kitti is not None:
         if reader is not None or skip_missing:
             raise InputError("--reader and --skip-missing apply to --scans only", "--kitti")
@@ -240,7 +261,7 @@ def _open_drive(
     if poses is None:
         raise InputError("--scans needs --poses CSV", "--poses")
     if origin is not None or yaw != 0.0:
-        raise InputError("--origin and --yaw apply to --kitti only", "--origin")
+        raise InputError("--origin and --yaw apply to --kitti and --rosbag only", "--origin")
     assert scans is not None
     return CsvDrive(scans, poses, reader=reader, skip_missing=skip_missing)
 
@@ -285,6 +306,12 @@ def prepare(
     skip_missing: bool = _SKIP_MISSING,
     origin: str = _ORIGIN,
     yaw: float = _YAW,
+    rosbag: Path = bag_options.ROSBAG,
+    cloud_topic: str = bag_options.CLOUD_TOPIC,
+    pose_topic: str = bag_options.POSE_TOPIC,
+    tf_frame: str = bag_options.TF_FRAME,
+    max_pose_gap: float = bag_options.MAX_POSE_GAP,
+    list_topics: bool = bag_options.LIST,
     out: Path = _OUT,
     layout: str = _LAYOUT,
     kind: str = _KIND,
@@ -316,36 +343,55 @@ def prepare(
 
       pnvlad data prepare --scans drive/scans --poses drive/poses.csv --layout inhouse
       --out bench/campus/run1
+
+      pnvlad data prepare --rosbag drive.bag --list
+
+      pnvlad data prepare --rosbag drive.bag --cloud-topic /points --pose-topic /odom
+      --origin 5735712.8,620084.4 --out bench/city/run1
     """
     with user_errors():
         from pnvlad_service.data.prepare import prepare_drive
         from pnvlad_service.data.preprocess import GConfig
         from pnvlad_service.errors import InputError
 
-        kinds = _kinds(kitti, scans, kind)
-        drive = _open_drive(kitti, scans, poses, reader, skip_missing, origin, yaw)
+        if list_topics:
+            if rosbag is None:
+                raise InputError("applies to --rosbag only", "--list")
+            bag_options.print_topics(rosbag)
+            return
+        kinds = _kinds(kitti, scans, rosbag, kind)
+        if out is None:
+            raise InputError("missing: the run folder to write", "--out")
         config = None if g_config is None else GConfig.from_file(g_config)
         strides = _strides(kinds, stride, test_stride)
         if resume and overwrite:
             raise InputError("--resume and --overwrite exclude each other", "--resume")
-        result = prepare_drive(
-            drive,
-            out,
-            layout=layout,  # type: ignore[arg-type]
-            kinds=kinds,  # type: ignore[arg-type]
-            window_m=window,
-            box_m=None if box is None else _parse_box(box),
-            strides_m=strides,
-            g_config=config,
-            seed=seed,
-            max_points_per_scan=points_per_scan or None,
-            max_range_m=max_range,
-            scan_step=scan_step,
-            min_scan_spacing_m=min_spacing,
-            resume=resume,
-            overwrite=overwrite,
-        )
+        bag = {"rosbag": rosbag, "cloud_topic": cloud_topic, "pose_topic": pose_topic}
+        bag |= {"tf_frame": tf_frame, "max_pose_gap": max_pose_gap}
+        drive = _open_drive(kitti, scans, poses, reader, skip_missing, origin, yaw, bag)
+        try:
+            result = prepare_drive(
+                drive,
+                out,
+                layout=layout,  # type: ignore[arg-type]
+                kinds=kinds,  # type: ignore[arg-type]
+                window_m=window,
+                box_m=None if box is None else _parse_box(box),
+                strides_m=strides,
+                g_config=config,
+                seed=seed,
+                max_points_per_scan=points_per_scan or None,
+                max_range_m=max_range,
+                scan_step=scan_step,
+                min_scan_spacing_m=min_spacing,
+                resume=resume,
+                overwrite=overwrite,
+            )
+        finally:
+            getattr(drive, "close", lambda: None)()
     _report(result, len(drive))
+    if rosbag is not None:
+        bag_options.report(drive)  # type: ignore[arg-type]
 
 
 def register(app: typer.Typer) -> None:

@@ -6,77 +6,76 @@ from pathlib import Path
 
 import typer
 
-from pnvlad_cli.common import user_errors
+from pnvlad_cli.common import model_option, pickles_option, root_option, splits_option, user_errors
 
 _WHAT = "What to evaluate"
 _DATA = "Data"
 _OUT = "Output"
 
+_MODEL = model_option(panel=_WHAT)
+_BASELINE = typer.Option(
+    False,
+    "--baseline",
+    help="Evaluate the training-free baseline descriptor instead.",
+    rich_help_panel=_WHAT,
+)
+_PICKLES = pickles_option(
+    "Folder (or file) of the published evaluation pickles instead of --splits.", _DATA
+)
+_SETS = typer.Option(
+    None,
+    "--set",
+    help="Only this evaluation set (repeatable; default: all).",
+    rich_help_panel=_DATA,
+)
+_JOINT = typer.Option(
+    False,
+    "--joint",
+    help="Also evaluate one database of every run and area together.",
+    rich_help_panel=_WHAT,
+)
+_OUT_OPT = typer.Option(
+    None,
+    "--out",
+    "-o",
+    help="JSON report path (default: print a summary only).",
+    rich_help_panel=_OUT,
+)
+_FIGURES = typer.Option(
+    None,
+    "--figures",
+    help="Folder for PNG figures: recall@N curves and the query map (needs the plot extra).",
+    rich_help_panel=_OUT,
+)
+_PLOT = typer.Option(
+    None,
+    "--plot",
+    help="Existing report(s) to draw on the recall@N figure (repeatable); without "
+    "--model/--baseline only plots them into --figures.",
+    rich_help_panel=_OUT,
+)
+_NUM_POINTS = typer.Option(
+    None,
+    "--num-points",
+    help="Points of each submap fed to the encoder (default: the model's num_points). "
+    "A model trained on fewer points can be evaluated on all 4096, as the index and the "
+    "server embed them.",
+    rich_help_panel=_WHAT,
+)
+
 
 def evaluate(
-    checkpoint: Path = typer.Option(
-        None,
-        "--checkpoint",
-        help="A model directory (model.json + model.safetensors), a training checkpoint, or a "
-        "training run directory (its model/ is used).",
-        rich_help_panel=_WHAT,
-    ),
-    baseline: bool = typer.Option(
-        False,
-        "--baseline",
-        help="Evaluate the training-free baseline descriptor instead.",
-        rich_help_panel=_WHAT,
-    ),
-    root: Path = typer.Option(None, "--root", help="Benchmark tree root.", rich_help_panel=_DATA),
-    splits: Path = typer.Option(
-        None, "--splits", help="Splits JSON (default: built from the tree).", rich_help_panel=_DATA
-    ),
-    pickles: Path = typer.Option(
-        None,
-        "--pickles",
-        help="Folder (or file) of the published evaluation pickles instead of --splits.",
-        rich_help_panel=_DATA,
-    ),
-    sets: list[str] = typer.Option(
-        None,
-        "--set",
-        help="Only this evaluation set (repeatable; default: all).",
-        rich_help_panel=_DATA,
-    ),
-    joint: bool = typer.Option(
-        False,
-        "--joint",
-        help="Also evaluate one database of every run and area together.",
-        rich_help_panel=_WHAT,
-    ),
-    out: Path = typer.Option(
-        None,
-        "--out",
-        "-o",
-        help="JSON report path (default: print a summary only).",
-        rich_help_panel=_OUT,
-    ),
-    figures: Path = typer.Option(
-        None,
-        "--figures",
-        help="Folder for PNG figures: recall@N curves and the query map (needs the plot extra).",
-        rich_help_panel=_OUT,
-    ),
-    plot: list[Path] = typer.Option(
-        None,
-        "--plot",
-        help="Existing report(s) to draw on the recall@N figure (repeatable); without "
-        "--checkpoint/--baseline only plots them into --figures.",
-        rich_help_panel=_OUT,
-    ),
-    num_points: int = typer.Option(
-        None,
-        "--num-points",
-        help="Points of each submap fed to the encoder (default: the model's num_points). "
-        "A model trained on fewer points can be evaluated on all 4096, as the index and the "
-        "server embed them.",
-        rich_help_panel=_WHAT,
-    ),
+    model: Path = _MODEL,
+    baseline: bool = _BASELINE,
+    root: Path = root_option(panel=_DATA),
+    splits: Path = splits_option(panel=_DATA),
+    pickles: Path = _PICKLES,
+    sets: list[str] = _SETS,
+    joint: bool = _JOINT,
+    out: Path = _OUT_OPT,
+    figures: Path = _FIGURES,
+    plot: list[Path] = _PLOT,
+    num_points: int = _NUM_POINTS,
     device: str = typer.Option(None, "--device", help="cpu | cuda (default: cpu)."),
     workers: int = typer.Option(4, "--workers", help="Threads reading submaps."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
@@ -90,7 +89,7 @@ def evaluate(
 
     Examples:
 
-      pnvlad eval --checkpoint runs/a --root city/ --splits city/splits.json -o a.json
+      pnvlad eval -m runs/a --root city/ --splits city/splits.json -o a.json
 
       pnvlad eval --baseline --root benchmark_datasets/ --pickles pickles/ -o b.json --figures f/
 
@@ -101,63 +100,34 @@ def evaluate(
         from pnvlad_service.evaluation import evaluate as ev
 
         others = [(p.stem, ev.read_report(p)) for p in (plot or [])]
-        if checkpoint is None and not baseline:
+        if model is None and not baseline:
             if not others:
-                raise InputError("give --checkpoint, --baseline or --plot REPORT", "--checkpoint")
+                raise InputError("give --model (-m), --baseline or --plot REPORT", "--model")
             if figures is None:
                 raise InputError("--plot needs --figures, the folder for the PNGs", "--figures")
-            path = ev.plot_recall_curves(others, figures / "recall_at_n.png")
-            typer.echo(f"wrote {path}")
+            typer.echo(f"wrote {ev.plot_recall_curves(others, figures / 'recall_at_n.png')}")
             return
-        if checkpoint is not None and baseline:
-            raise InputError("give --checkpoint or --baseline, not both", "--baseline")
+        if model is not None and baseline:
+            raise InputError("give --model or --baseline, not both", "--baseline")
+        if num_points is not None and num_points < 1:
+            raise InputError(f"must be >= 1, got {num_points}", "--num-points")
         from pnvlad_service.data.dataset import load_eval_runs
 
+        enc = ev.baseline_encoder() if baseline else ev.model_encoder(model, device)
         runs = load_eval_runs(root, splits, pickles, sets)
-        if baseline:
-            embed, model_points, info = ev.baseline_embedder()
-            label = "baseline"
-        else:
-            ckpt = (
-                checkpoint / "model"
-                if (checkpoint / "model" / "model.json").is_file()
-                else checkpoint
-            )
-            embed, model_points, info = ev.checkpoint_embedder(ckpt, device)
-            label = checkpoint.name
-        if num_points is None:
-            num_points = model_points
-        elif num_points < 1:
-            raise InputError(f"must be >= 1, got {num_points}", "--num-points")
         rep = ev.evaluate_runs(
-            embed,
+            enc.embed,
             runs,
-            num_points,
+            enc.num_points if num_points is None else num_points,
             joint=joint,
             workers=workers,
             progress=progress,
-            encoder_info=info,
+            encoder_info=enc.info,
         )
         if out is not None:
             ev.write_report(rep, out)
-        typer.echo(
-            f"{label}: {_fmt(rep)} over {rep['n_pairs']} run pairs "
-            f"({rep['n_queries_evaluated']} queries)"
-        )
-        for area, a in rep["per_area"].items():
-            if len(rep["per_area"]) > 1:
-                typer.echo(f"  {area}: {_fmt(a)}")
-        if "joint" in rep and rep["joint"].get("n_queries"):
-            j = rep["joint"]
-            typer.echo(f"  joint database: {_fmt(j)}")
+        for line in ev.summary_lines(enc.label, rep):
+            typer.echo(line)
         if figures is not None:
-            ev.plot_recall_curves([(label, rep), *others], figures / "recall_at_n.png")
-            ev.plot_query_map(rep, figures / "query_map.png")
-            areas = [(a, r) for a, r in rep["per_area"].items() if r.get("n_pairs")]
-            if len(areas) > 1:
-                ev.plot_recall_curves(areas, figures / "recall_at_n_by_area.png", title=label)
+            ev.write_figures(enc.label, rep, figures, others)
             typer.echo(f"figures in {figures}")
-
-
-def _fmt(r: dict) -> str:
-    return f"recall@1 {r['recall_at_1']:.2f} %, recall@1% {r['recall_at_1pct']:.2f} %"

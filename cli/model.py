@@ -61,7 +61,11 @@ def import_(
 
 @app.command("info")
 def info(
-    model_dir: Path = typer.Argument(..., help="Model directory (model.json + model.safetensors)."),
+    model_dir: Path = typer.Argument(
+        ...,
+        help="Model directory (model.json + model.safetensors) or a training run directory "
+        "(its model/ is used).",
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of text."),
 ) -> None:
     """Show a model directory's configuration, parameter count, FLOPs and checksums.
@@ -72,8 +76,14 @@ def info(
     Example: pnvlad model info models/port --json
     """
     with user_errors():
-        from pnvlad_service.models.store import config_sha256, load_model, weights_sha256
+        from pnvlad_service.models.store import (
+            config_sha256,
+            load_model,
+            resolve_model_dir,
+            weights_sha256,
+        )
 
+        model_dir = resolve_model_dir(model_dir)
         model, cfg = load_model(model_dir)
         doc = {
             "dir": str(model_dir),

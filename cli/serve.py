@@ -13,19 +13,18 @@ from typing import Any
 
 import typer
 
-from pnvlad_cli.common import user_errors
+from pnvlad_cli import replay as replay_options
+from pnvlad_cli import rosbag as bag_options
+from pnvlad_cli.common import model_option, user_errors
 
 
 def serve(
     index: Path = typer.Option(
         None, "--index", "-i", help="Index bundle directory (pnvlad index build). Env PNVLAD_INDEX."
     ),
-    checkpoint: Path = typer.Option(
-        None,
-        "--checkpoint",
-        "-c",
-        help="Model checkpoint directory; default: the one the bundle records. It must hold "
-        "the weights the bundle was built with.",
+    model: Path = model_option(
+        help="The model; default: the one the bundle records. It must hold the weights the "
+        "bundle was built with. Env PNVLAD_CHECKPOINT."
     ),
     host: str = typer.Option(
         None, "--host", help="Interface to bind (default 127.0.0.1; 0.0.0.0 in a container)."
@@ -51,7 +50,7 @@ def serve(
     """
     options: dict[str, Any] = {
         "INDEX": index,
-        "CHECKPOINT": checkpoint,
+        "CHECKPOINT": model,
         "HOST": host,
         "PORT": port,
         "WORKERS": workers,
@@ -66,15 +65,16 @@ def serve(
 
     import uvicorn
 
-    from pnvlad_service.server.service import check_compatible, resolve_checkpoint
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.localization.localizer import checked_model
     from pnvlad_service.server.settings import ServerSettings
 
     with user_errors():
         settings = ServerSettings()
-        ckpt = resolve_checkpoint(settings)
-        assert settings.index is not None
-        check_compatible(settings.index, ckpt)
-    os.environ["PNVLAD_CHECKPOINT"] = str(ckpt.resolve())
+        if settings.index is None:
+            raise InputError("no index bundle given (--index or PNVLAD_INDEX)", "index")
+        identity = checked_model(settings.index, settings.checkpoint)
+    os.environ["PNVLAD_CHECKPOINT"] = identity.checkpoint
     uvicorn.run(
         "pnvlad_service.server.app:create_app_from_env",
         factory=True,
@@ -117,51 +117,30 @@ def format_matches(answer: dict[str, Any]) -> str:
     return "\n".join([line(header), *(line(r) for r in rows), footer])
 
 
-def _post(url: str, points: Any, preprocess: bool, top_n: int, api_key: str | None) -> Any:
-    import urllib.error
-    import urllib.parse
-    import urllib.request
+def _localize_here(
+    index: Path, model: Path | None, points: Any, preprocess: bool, top_n: int
+) -> dict[str, Any]:
+    """Search the bundle in this process: the same answer as the server's."""
+    from pnvlad_service.localization.limits import Limits
+    from pnvlad_service.localization.localizer import Localizer
 
-    import numpy as np
-
-    from pnvlad_service.errors import InputError
-
-    arr = np.ascontiguousarray(points)
-    dtype = "float64" if arr.dtype == np.float64 else "float32"
-    arr = arr.astype("<f8" if dtype == "float64" else "<f4", copy=False)
-    query = urllib.parse.urlencode(
-        {"top_n": top_n, "preprocess": str(preprocess).lower(), "dtype": dtype}
-    )
-    headers = {"Content-Type": "application/octet-stream", "Accept": "application/json"}
-    if api_key:
-        headers["Authorization"] = f"Bearer {api_key}"
-    req = urllib.request.Request(
-        f"{url.rstrip('/')}/localize?{query}", data=arr.tobytes(), headers=headers, method="POST"
-    )
-    try:
-        with urllib.request.urlopen(req, timeout=120) as resp:
-            return json.loads(resp.read())
-    except urllib.error.HTTPError as exc:
-        try:
-            detail = json.loads(exc.read()).get("detail", exc.reason)
-        except ValueError:
-            detail = exc.reason
-        raise InputError(f"server answered {exc.code}: {detail}", source=url) from None
-    except urllib.error.URLError as exc:
-        raise InputError(f"cannot reach the server: {exc.reason}", source=url) from None
+    top_n = max(top_n, 1)
+    # A local query is bounded by the bundle, not by the server's request limits.
+    limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)), max_top_n=top_n)
+    with Localizer.load(index, model) as loc:
+        answer = loc.localize(points, preprocess=preprocess, top_n=top_n, limits=limits)
+        return {**answer.to_json(), **loc.info.to_json()}
 
 
 def localize(
     scan: Path = typer.Argument(
-        ..., help="Point-cloud file (.bin submap, KITTI .bin, .npy, .pcd...)."
+        None, help="Point-cloud file (.bin submap, KITTI .bin, .npy, .pcd...); not with --rosbag."
     ),
     url: str = typer.Option(None, "--url", "-u", help="Server to ask, e.g. http://127.0.0.1:8000."),
     index: Path = typer.Option(
         None, "--index", "-i", help="Search this bundle locally instead of a server."
     ),
-    checkpoint: Path = typer.Option(
-        None, "--checkpoint", "-c", help="With --index: the model (default: the bundle's)."
-    ),
+    model: Path = model_option(help="With --index: the model (default: the bundle's)."),
     reader: str = typer.Option(
         None, "--reader", help="File format (benchmark, kitti, nuscenes, nclt, npy, pcd, ...)."
     ),
@@ -173,17 +152,35 @@ def localize(
     api_key: str = typer.Option(
         None, "--api-key", envvar="PNVLAD_API_KEY", help="Bearer token of the server."
     ),
+    rosbag: Path = bag_options.ROSBAG,
+    cloud_topic: str = bag_options.CLOUD_TOPIC,
+    pose_topic: str = bag_options.POSE_TOPIC,
+    tf_frame: str = bag_options.TF_FRAME,
+    max_pose_gap: float = bag_options.MAX_POSE_GAP,
+    origin: str = replay_options.ORIGIN,
+    yaw: float = replay_options.YAW,
+    every: int = replay_options.EVERY,
+    out: Path = replay_options.OUT,
+    map_bundle: Path = replay_options.MAP,
+    plot: bool = replay_options.PLOT,
 ) -> None:
     """Where was this scan taken? Print the nearest map places (UTM metres) as a table.
 
     Asks a running `pnvlad serve` (--url) or searches a bundle locally (--index). A benchmark
     submap (4096 points in [-1, 1]) goes as it is; a raw sensor scan needs --preprocess.
 
+    With --rosbag, replays a bag instead: every Nth scan of --cloud-topic goes as a raw scan
+    and the answers are written to OUT.csv and OUT.png (the map, the answers, and with
+    --pose-topic or --tf the bag's own trajectory and each answer's error), then a summary line.
+
     Examples:
 
       pnvlad localize oxford/RUN/pointcloud_20m/TIMESTAMP.bin --url http://127.0.0.1:8000
 
       pnvlad localize scan.bin --reader kitti --preprocess --index map.index --json
+
+      pnvlad localize --rosbag drive.bag --cloud-topic /points --pose-topic /odom
+      --origin 5735712.8,620084.4 --url http://127.0.0.1:8000 --out replay/drive
     """
     from pnvlad_service.errors import InputError
     from pnvlad_service.io.readers import read_points
@@ -191,21 +188,48 @@ def localize(
     with user_errors():
         if (url is None) == (index is None):
             raise InputError("give exactly one of --url and --index", "--url")
+        bag = {"cloud_topic": cloud_topic, "pose_topic": pose_topic, "tf_frame": tf_frame}
+        bag |= {"max_pose_gap": max_pose_gap, "origin": origin, "every": every, "out": out}
+        bag |= {"map": map_bundle}
+        if rosbag is not None:
+            if scan is not None or reader is not None or preprocess or as_json:
+                raise InputError(
+                    "a scan file, --reader, --preprocess and --json do not go with --rosbag "
+                    "(its scans are raw: they are always preprocessed)",
+                    "--rosbag",
+                )
+            replay_options.replay_rosbag(
+                rosbag=rosbag,
+                cloud_topic=cloud_topic,
+                pose_topic=pose_topic,
+                tf_frame=tf_frame,
+                origin_ne=replay_options.parse_origin(origin),
+                yaw_deg=yaw,
+                max_pose_gap=max_pose_gap,
+                url=url,
+                index=index,
+                model=model,
+                api_key=api_key,
+                every=every,
+                out=out,
+                map_bundle=map_bundle,
+                plot=plot,
+                top_n=top_n,
+            )
+            return
+        bag_options.check_unused(None, **bag)
+        if yaw != 0.0:
+            raise InputError("applies to --rosbag only", "--yaw")
+        if scan is None:
+            raise InputError("give a scan file (or --rosbag BAG to replay a bag)", "SCAN")
         points = read_points(scan, reader)
         if url is not None:
-            answer = _post(url, points, preprocess, top_n, api_key)
-        else:
-            from pnvlad_service.server.service import Localizer
-            from pnvlad_service.server.settings import ServerSettings
+            from pnvlad_service.localization.client import LocalizeClient
 
-            settings = ServerSettings(
-                index=index, checkpoint=checkpoint, batch_wait_ms=0.0, max_top_n=max(top_n, 1)
-            )
-            loc = Localizer.load(settings)
-            try:
-                answer = loc.localize(points, preprocess, top_n)
-            finally:
-                loc.close()
+            with LocalizeClient(url, api_key=api_key) as client:
+                answer = client.localize(points, top_n, preprocess)
+        else:
+            answer = _localize_here(index, model, points, preprocess, top_n)
     if as_json:
         json.dump(answer, sys.stdout, indent=2)
         sys.stdout.write("\n")

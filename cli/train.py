@@ -6,108 +6,106 @@ from pathlib import Path
 
 import typer
 
-from pnvlad_cli.common import user_errors
+from pnvlad_cli.common import pickles_option, root_option, splits_option, user_errors
 
 _DATA = "Data"
 _RUN = "Run"
 _MODEL = "Model and optimiser"
 
+# -c is --config here (and only here): see pnvlad_cli.common.
+_CONFIG = typer.Option(
+    None,
+    "--config",
+    "-c",
+    help="YAML/TOML config file, or a shipped preset name: 'paper' (default) or 'compact'.",
+    rich_help_panel=_RUN,
+)
+_OUT = typer.Option(
+    None,
+    "--out",
+    "-o",
+    help="Run directory: checkpoints/, metrics.jsonl, config.yaml and the final model/.",
+    rich_help_panel=_RUN,
+)
+_RESUME = typer.Option(
+    False,
+    "--resume",
+    help="Continue the run in --out from its newest checkpoint (its config.yaml unless "
+    "--config is given; options given here still apply).",
+    rich_help_panel=_RUN,
+)
+_EPOCHS = typer.Option(None, "--epochs", help="Epochs (paper: 20).", rich_help_panel=_RUN)
+_MAX_STEPS = typer.Option(None, "--max-steps", help="Stop after N steps.", rich_help_panel=_RUN)
+_MAX_MINUTES = typer.Option(
+    None,
+    "--max-minutes",
+    help="Wall-clock budget; checkpoint and stop when spent.",
+    rich_help_panel=_RUN,
+)
+_BATCH = typer.Option(
+    None, "--batch-size", "-b", help="Tuples a step (paper: 2).", rich_help_panel=_MODEL
+)
+_LR = typer.Option(None, "--lr", help="Base learning rate (paper: 5e-5).", rich_help_panel=_MODEL)
+_ARCH = typer.Option(None, "--arch", help="pointnetvlad | pointnet-max.", rich_help_panel=_MODEL)
+_NUM_POINTS = typer.Option(
+    None,
+    "--num-points",
+    help="Points a cloud (4096; fewer for quick tests).",
+    rich_help_panel=_MODEL,
+)
+_LOSS = typer.Option(
+    None,
+    "--loss",
+    help="lazy_quadruplet (paper) | lazy_triplet | quadruplet | triplet.",
+    rich_help_panel=_MODEL,
+)
+_MINING = typer.Option(
+    None,
+    "--mining",
+    help="tuple (paper: cached hard negatives) | in_batch (reuse every embedding).",
+    rich_help_panel=_MODEL,
+)
+_DEVICE = typer.Option(
+    None,
+    "--device",
+    help="auto (CUDA when present) | cpu | cuda | cuda:N.",
+    rich_help_panel=_RUN,
+)
+_SEED = typer.Option(None, "--seed", help="Seed of every random choice.", rich_help_panel=_RUN)
+_WORKERS = typer.Option(
+    None,
+    "--workers",
+    help="Threads reading submaps into RAM (default 4).",
+    rich_help_panel=_RUN,
+)
+_DUMP = typer.Option(
+    False,
+    "--dump-config",
+    help="Print the resolved config (defaults, file, options) as YAML and exit.",
+    rich_help_panel=_RUN,
+)
+
 
 def train(
-    config: str = typer.Option(
-        None,
-        "--config",
-        "-c",
-        help="YAML/TOML config file, or a shipped preset name: 'paper' (default) or 'compact'.",
-        rich_help_panel=_RUN,
-    ),
-    root: Path = typer.Option(
-        None, "--root", help="Benchmark tree root (holds oxford/, ...).", rich_help_panel=_DATA
-    ),
-    splits: Path = typer.Option(
-        None,
-        "--splits",
-        help="Splits JSON from 'pnvlad data splits' (default: built from the tree).",
-        rich_help_panel=_DATA,
-    ),
-    pickles: Path = typer.Option(
-        None,
-        "--pickles",
-        help="Folder of the published pickles instead of --splits.",
-        rich_help_panel=_DATA,
-    ),
-    out: Path = typer.Option(
-        None,
-        "--out",
-        "-o",
-        help="Run directory: checkpoints/, metrics.jsonl, config.yaml and the final model/.",
-        rich_help_panel=_RUN,
-    ),
-    resume: bool = typer.Option(
-        False,
-        "--resume",
-        help="Continue the run in --out from its newest checkpoint (its config.yaml unless "
-        "--config is given; options given here still apply).",
-        rich_help_panel=_RUN,
-    ),
-    epochs: int = typer.Option(None, "--epochs", help="Epochs (paper: 20).", rich_help_panel=_RUN),
-    max_steps: int = typer.Option(
-        None, "--max-steps", help="Stop after N steps.", rich_help_panel=_RUN
-    ),
-    max_minutes: float = typer.Option(
-        None,
-        "--max-minutes",
-        help="Wall-clock budget; checkpoint and stop when spent.",
-        rich_help_panel=_RUN,
-    ),
-    batch_size: int = typer.Option(
-        None, "--batch-size", "-b", help="Tuples a step (paper: 2).", rich_help_panel=_MODEL
-    ),
-    lr: float = typer.Option(
-        None, "--lr", help="Base learning rate (paper: 5e-5).", rich_help_panel=_MODEL
-    ),
-    arch: str = typer.Option(
-        None, "--arch", help="pointnetvlad | pointnet-max.", rich_help_panel=_MODEL
-    ),
-    num_points: int = typer.Option(
-        None,
-        "--num-points",
-        help="Points a cloud (4096; fewer for quick tests).",
-        rich_help_panel=_MODEL,
-    ),
-    loss: str = typer.Option(
-        None,
-        "--loss",
-        help="lazy_quadruplet (paper) | lazy_triplet | quadruplet | triplet.",
-        rich_help_panel=_MODEL,
-    ),
-    mining: str = typer.Option(
-        None,
-        "--mining",
-        help="tuple (paper: cached hard negatives) | in_batch (reuse every embedding).",
-        rich_help_panel=_MODEL,
-    ),
-    device: str = typer.Option(
-        None,
-        "--device",
-        help="auto (CUDA when present) | cpu | cuda | cuda:N.",
-        rich_help_panel=_RUN,
-    ),
-    seed: int = typer.Option(
-        None, "--seed", help="Seed of every random choice.", rich_help_panel=_RUN
-    ),
-    workers: int = typer.Option(
-        None,
-        "--workers",
-        help="Threads reading submaps into RAM (default 4).",
-        rich_help_panel=_RUN,
-    ),
-    dump_config: bool = typer.Option(
-        False,
-        "--dump-config",
-        help="Print the resolved config (defaults, file, options) as YAML and exit.",
-        rich_help_panel=_RUN,
-    ),
+    config: str = _CONFIG,
+    root: Path = root_option(panel=_DATA),
+    splits: Path = splits_option(panel=_DATA),
+    pickles: Path = pickles_option("Folder of the published pickles instead of --splits.", _DATA),
+    out: Path = _OUT,
+    resume: bool = _RESUME,
+    epochs: int = _EPOCHS,
+    max_steps: int = _MAX_STEPS,
+    max_minutes: float = _MAX_MINUTES,
+    batch_size: int = _BATCH,
+    lr: float = _LR,
+    arch: str = _ARCH,
+    num_points: int = _NUM_POINTS,
+    loss: str = _LOSS,
+    mining: str = _MINING,
+    device: str = _DEVICE,
+    seed: int = _SEED,
+    workers: int = _WORKERS,
+    dump_config: bool = _DUMP,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
     """Train PointNetVLAD on a benchmark tree and its splits.
@@ -130,17 +128,11 @@ def train(
     """
     with user_errors():
         from pnvlad_service.errors import InputError
-        from pnvlad_service.training.config import TrainConfig
+        from pnvlad_service.training.config import run_config
 
         if resume and out is None:
             raise InputError("--resume needs --out, the run directory to continue", "--out")
-        if config is not None:
-            cfg = TrainConfig.from_file(config)
-        elif resume and (out / "config.yaml").is_file():
-            cfg = TrainConfig.from_file(out / "config.yaml")
-        else:
-            cfg = TrainConfig.preset("paper")
-        cfg = cfg.with_overrides(
+        cfg = run_config(config, out if resume else None).with_overrides(
             {
                 "data.root": root,
                 "data.splits": splits,
@@ -168,8 +160,4 @@ def train(
 
         res = run(cfg, out, resume=resume, progress=progress)
         if res.model_dir is not None:
-            last = res.losses[max(res.losses)] if res.losses else float("nan")
-            typer.echo(
-                f"{res.steps} steps ({res.stopped}) in {res.seconds:.0f} s, last loss {last:.4f}; "
-                f"model: {res.model_dir}"
-            )
+            typer.echo(res.summary())

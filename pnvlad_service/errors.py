@@ -33,3 +33,7 @@ class MissingDependencyError(PnvladError, ImportError):
             f"{feature} needs the '{package}' package, which is not installed. "
             f"Install it with: pip install 'pnvlad[{extra}]'"
         )
+
+
+class NotReadyError(PnvladError):
+    """A service object was used before it was loaded or after it was closed."""

@@ -13,29 +13,38 @@ Exits non-zero if the server cannot be reached.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
-import urllib.error
-import urllib.request
 from pathlib import Path
 
 import numpy as np
 
 from pnvlad_service.data.splits import resolve_regions
-from pnvlad_service.data.tree import BenchmarkTree
+from pnvlad_service.data.tree import BenchmarkTree, Submap
+from pnvlad_service.errors import PnvladError
 from pnvlad_service.io.readers import read_points
+from pnvlad_service.localization.client import LocalizeClient
 
 
-def _post(url: str, body: bytes, top_n: int) -> dict:
-    req = urllib.request.Request(
-        f"{url.rstrip('/')}/localize?top_n={top_n}&dtype=float64",
-        data=body,
-        headers={"Content-Type": "application/octet-stream"},
-        method="POST",
+def report(q: Submap, answer: dict, radius: float) -> bool:
+    """Print one query's matches; whether its top-1 lies within ``radius`` metres of it."""
+    best = answer["matches"][0]
+    err = math.hypot(best["northing"] - q.northing, best["easting"] - q.easting)
+    ok = err <= radius
+    print(
+        f"\nquery {q.run}/{q.timestamp}  true N {q.northing:.1f} E {q.easting:.1f}  "
+        f"(embed {answer['timings_ms']['embed']:.1f} ms, search "
+        f"{answer['timings_ms']['search']:.2f} ms)"
     )
-    with urllib.request.urlopen(req, timeout=60) as resp:
-        return json.loads(resp.read())
+    print(f"  {'rank':>4}  {'run':<20} {'northing':>12} {'easting':>11} {'dist':>7} {'off':>8}")
+    for m in answer["matches"]:
+        off = math.hypot(m["northing"] - q.northing, m["easting"] - q.easting)
+        print(
+            f"  {m['rank']:>4}  {m['run']:<20} {m['northing']:>12.1f} {m['easting']:>11.1f} "
+            f"{m['distance']:>7.3f} {off:>6.1f} m"
+        )
+    print(f"  top-1 is {err:.1f} m from the truth: {'WITHIN' if ok else 'NOT within'} {radius:g} m")
+    return ok
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,33 +73,15 @@ def main(argv: list[str] | None = None) -> int:
     chosen = submaps[::step][: args.count]
 
     hits = 0
-    for q in chosen:
-        pts = read_points(args.root / q.path, reader="benchmark").astype(np.float64)
-        try:
-            answer = _post(args.url, pts.tobytes(), args.top_n)
-        except urllib.error.URLError as exc:
-            print(f"cannot reach {args.url}: {exc}", file=sys.stderr)
-            return 1
-        best = answer["matches"][0]
-        err = math.hypot(best["northing"] - q.northing, best["easting"] - q.easting)
-        ok = err <= args.radius
-        hits += ok
-        print(
-            f"\nquery {q.run}/{q.timestamp}  true N {q.northing:.1f} E {q.easting:.1f}  "
-            f"(embed {answer['timings_ms']['embed']:.1f} ms, search "
-            f"{answer['timings_ms']['search']:.2f} ms)"
-        )
-        print(f"  {'rank':>4}  {'run':<20} {'northing':>12} {'easting':>11} {'dist':>7} {'off':>8}")
-        for m in answer["matches"]:
-            off = math.hypot(m["northing"] - q.northing, m["easting"] - q.easting)
-            print(
-                f"  {m['rank']:>4}  {m['run']:<20} {m['northing']:>12.1f} {m['easting']:>11.1f} "
-                f"{m['distance']:>7.3f} {off:>6.1f} m"
-            )
-        print(
-            f"  top-1 is {err:.1f} m from the truth: {'WITHIN' if ok else 'NOT within'} "
-            f"{args.radius:g} m"
-        )
+    with LocalizeClient(args.url, timeout=60) as client:
+        for q in chosen:
+            pts = read_points(args.root / q.path, reader="benchmark").astype(np.float64)
+            try:
+                answer = client.localize(pts, args.top_n)
+            except PnvladError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 1
+            hits += report(q, answer, args.radius)
     print(
         f"\n{hits}/{len(chosen)} queries localised within {args.radius:g} m by their top-1 match."
     )

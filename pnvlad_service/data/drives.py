@@ -9,7 +9,8 @@ of them into benchmark submaps. The sources here:
 - :class:`CsvDrive`: a folder of scans in any format :mod:`pnvlad_service.io.readers` knows,
   plus a CSV of planar or full poses.
 
-(:class:`pnvlad_service.synth.runs.SimulatedDrive` is the synthetic city's.)
+(:class:`pnvlad_service.data.rosbag.RosbagDrive` reads ROS bags (extra ``rosbag``);
+:class:`pnvlad_service.synth.runs.SimulatedDrive` is the synthetic city's.)
 
 Conventions (docs/ARCHITECTURE.md): world frame x = easting, y = northing, z = up, UTM metres;
 timestamps are integer microseconds. Translations are snapped to a 2**-26 m (15 nm) grid

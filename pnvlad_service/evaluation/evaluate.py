@@ -20,9 +20,10 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -30,49 +31,35 @@ from pnvlad_service.data.dataset import EvalRun, load_clouds
 from pnvlad_service.errors import InputError, MissingDependencyError
 from pnvlad_service.evaluation import metrics
 from pnvlad_service.fileio import atomic_open, atomic_write_text
-
-if TYPE_CHECKING:
-    import torch
+from pnvlad_service.io.submap import SUBMAP_POINTS
+from pnvlad_service.models.embedding import EmbedFn, embed_in_chunks
 
 log = logging.getLogger(__name__)
-
-#: ``embed(points float32 [B, N, 3]) -> float32 [B, D]``.
-Embedder = Callable[[np.ndarray], np.ndarray]
 
 FORMAT = "pnvlad-eval"
 VERSION = 1
 DEFAULT_THRESHOLDS = (2.5, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 40.0, 50.0)
 
 
-def model_embedder(
-    model: torch.nn.Module, device: torch.device | str = "cpu", batch: int = 64
-) -> Embedder:
-    """An embedder from a ``torch.nn.Module`` (eval mode while embedding, mode restored)."""
-    import torch
+@dataclass(frozen=True)
+class EvalEncoder:
+    """What is evaluated: its embed function, the points a cloud it expects, the report's
+    ``encoder`` record and the ``label`` that names it in the summary and the figures."""
 
-    device = torch.device(device)
-
-    def embed(points: np.ndarray) -> np.ndarray:
-        was = model.training
-        model.eval()
-        out = []
-        with torch.inference_mode():
-            for s in range(0, len(points), batch):
-                x = torch.from_numpy(np.ascontiguousarray(points[s : s + batch])).to(device)
-                out.append(model(x).float().cpu().numpy())
-        model.train(was)
-        return np.concatenate(out)
-
-    return embed
+    embed: EmbedFn
+    num_points: int
+    info: dict[str, Any]
+    label: str
 
 
-def checkpoint_embedder(
-    directory: str | Path, device: str | None = None
-) -> tuple[Embedder, int, dict]:
-    """(embedder, num_points, description) for a model or training checkpoint directory, through
-    the batch-norm-folded ``models.inference.Encoder``."""
+def model_encoder(model: str | Path, device: str | None = None) -> EvalEncoder:
+    """A model directory or the training run that made it (``store.resolve_model_dir``),
+    through the batch-norm-folded ``models.inference.Encoder``; labelled with the model
+    directory and its architecture."""
     from pnvlad_service.models.inference import Encoder
+    from pnvlad_service.models.store import resolve_model_dir
 
+    directory = resolve_model_dir(model)
     enc = Encoder.from_checkpoint(directory, device=device, batch_size=32)
     info = {
         "kind": "checkpoint",
@@ -81,18 +68,19 @@ def checkpoint_embedder(
         "arch": enc.cfg.arch,
         "dim": enc.dim,
     }
-    return enc.embed, enc.cfg.num_points, info
+    return EvalEncoder(enc.embed, enc.cfg.num_points, info, f"{directory} ({enc.cfg.arch})")
 
 
-def baseline_embedder() -> tuple[Embedder, int, dict]:
-    """(embedder, 4096, description) for the training-free baseline descriptor."""
+def baseline_encoder() -> EvalEncoder:
+    """The training-free baseline descriptor, on whole 4096-point submaps."""
     from pnvlad_service.evaluation import baseline
 
-    return baseline.describe, 4096, {"kind": "baseline", "name": "baseline"}
+    info = {"kind": "baseline", "name": "baseline"}
+    return EvalEncoder(baseline.describe, SUBMAP_POINTS, info, "baseline")
 
 
 def embed_paths(
-    embed: Embedder,
+    embed: EmbedFn,
     paths: Sequence[str | Path],
     num_points: int,
     *,
@@ -102,17 +90,13 @@ def embed_paths(
 ) -> np.ndarray:
     """float32 [len(paths), D] descriptors, reading ``chunk`` submaps at a time (memory holds
     one chunk of clouds and the descriptors, never all the clouds)."""
-    from tqdm import tqdm
-
-    parts: list[np.ndarray] = []
-    with tqdm(total=len(paths), desc="embedding", unit="submap", disable=not progress) as bar:
-        for s in range(0, len(paths), chunk):
-            clouds = load_clouds(paths[s : s + chunk], num_points, workers=workers)
-            parts.append(np.asarray(embed(clouds), dtype=np.float32))
-            bar.update(len(clouds))
-    if not parts:
+    if not paths:
         raise InputError("nothing to embed", source="evaluation set")
-    return np.concatenate(parts)
+
+    def load(start: int, stop: int) -> np.ndarray:
+        return load_clouds(paths[start:stop], num_points, workers=workers)
+
+    return embed_in_chunks(embed, len(paths), load, chunk=chunk, progress=progress)
 
 
 def _faiss_search(db: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
@@ -221,7 +205,7 @@ def _joint_report(
 
 
 def evaluate_runs(
-    embed: Embedder,
+    embed: EmbedFn,
     runs: list[EvalRun],
     num_points: int,
     *,
@@ -241,17 +225,8 @@ def evaluate_runs(
     if len(runs) < 2:
         raise InputError(f"need at least 2 runs to evaluate, got {len(runs)}", "evaluation set")
     t0 = time.monotonic()
-    unique: dict[str, int] = {}
-    for r in runs:
-        for p in [*r.db_paths, *r.query_paths]:
-            unique.setdefault(str(p), len(unique))
-    paths = list(unique)
-    log.info("embedding %d unique submaps of %d runs", len(paths), len(runs))
-    desc = embed_paths(embed, paths, num_points, workers=workers, progress=progress)
+    n_unique, db_desc, q_desc = _embed_runs(embed, runs, num_points, workers, progress)
     t_embed = time.monotonic() - t0
-    db_desc = [desc[[unique[str(p)] for p in r.db_paths]] for r in runs]
-    q_desc = [desc[[unique[str(p)] for p in r.query_paths]] for r in runs]
-    del desc
     query_hits = [np.zeros(len(r.query_paths)) for r in runs]
     query_counts = [np.zeros(len(r.query_paths)) for r in runs]
     areas: dict[str, list[int]] = {}
@@ -261,17 +236,8 @@ def evaluate_runs(
         a: _pairs_report(runs, db_desc, q_desc, m, thresholds, query_hits, query_counts)
         for a, m in areas.items()
     }
-    # Overall: the mean over every scored pair of every area.
     pairs = [p for rep in per_area.values() for p in rep["per_pair"]]
-    if pairs:
-        ks = [a for a, rep in per_area.items() if rep["n_pairs"]]
-        weights = np.array([per_area[a]["n_pairs"] for a in ks], dtype=np.float64)
-        ran = np.average([per_area[a]["recall_at_n"] for a in ks], axis=0, weights=weights)
-        r1p = float(np.average([per_area[a]["recall_at_1pct"] for a in ks], weights=weights))
-        dist = [per_area[a]["recall_at_1_by_distance"] for a in ks]
-        rdist = [float(x) for x in np.average(dist, axis=0, weights=weights)]
-    else:
-        ran, r1p, rdist = np.full(metrics.NUM_NEIGHBOURS, np.nan), float("nan"), []
+    ran, r1p, rdist = _overall(per_area)
     report: dict[str, Any] = {
         "format": FORMAT,
         "version": VERSION,
@@ -281,7 +247,7 @@ def evaluate_runs(
         "n_runs": len(runs),
         "n_db": int(sum(len(r.db_paths) for r in runs)),
         "n_queries": int(sum(len(r.query_paths) for r in runs)),
-        "n_unique_submaps": len(paths),
+        "n_unique_submaps": n_unique,
         "n_pairs": len(pairs),
         "n_queries_evaluated": int(sum(p["n_queries"] for p in pairs)),
         "recall_at_n": [float(x) for x in ran],
@@ -293,25 +259,80 @@ def evaluate_runs(
             a: {k: v for k, v in rep.items() if k != "per_pair"} for a, rep in per_area.items()
         },
         "per_pair": pairs,
-        "queries": [
-            {
-                "run": r.name,
-                "area": r.area,
-                "northing": [float(x) for x in r.query_positions[:, 0]],
-                "easting": [float(x) for x in r.query_positions[:, 1]],
-                "top1_correct_share": [
-                    float(h / c) if c else None
-                    for h, c in zip(query_hits[k], query_counts[k], strict=True)
-                ],
-            }
-            for k, r in enumerate(runs)
-        ],
+        "queries": _query_records(runs, query_hits, query_counts),
         "seconds_embedding": round(t_embed, 3),
     }
     if joint:
         report["joint"] = _joint_report(runs, db_desc, q_desc, thresholds)
     report["seconds"] = round(time.monotonic() - t0, 3)
     return report
+
+
+def _embed_runs(
+    embed: EmbedFn, runs: list[EvalRun], num_points: int, workers: int, progress: bool
+) -> tuple[int, list[np.ndarray], list[np.ndarray]]:
+    """Embed every unique submap of the runs once (a query is also in its run's database):
+    (unique submaps, each run's database descriptors, each run's query descriptors)."""
+    unique: dict[str, int] = {}
+    for r in runs:
+        for p in [*r.db_paths, *r.query_paths]:
+            unique.setdefault(str(p), len(unique))
+    paths = list(unique)
+    log.info("embedding %d unique submaps of %d runs", len(paths), len(runs))
+    desc = embed_paths(embed, paths, num_points, workers=workers, progress=progress)
+    db_desc = [desc[[unique[str(p)] for p in r.db_paths]] for r in runs]
+    q_desc = [desc[[unique[str(p)] for p in r.query_paths]] for r in runs]
+    return len(paths), db_desc, q_desc
+
+
+def _overall(per_area: dict[str, dict[str, Any]]) -> tuple[np.ndarray, float, list[float]]:
+    """recall@N, recall@1% and recall@1 by distance over every scored pair of every area (the
+    areas' figures weighted by their pairs); NaN and ``[]`` when no pair was scored."""
+    ks = [a for a, rep in per_area.items() if rep["n_pairs"]]
+    if not ks:
+        return np.full(metrics.NUM_NEIGHBOURS, np.nan), float("nan"), []
+    weights = np.array([per_area[a]["n_pairs"] for a in ks], dtype=np.float64)
+    ran = np.average([per_area[a]["recall_at_n"] for a in ks], axis=0, weights=weights)
+    r1p = float(np.average([per_area[a]["recall_at_1pct"] for a in ks], weights=weights))
+    dist = [per_area[a]["recall_at_1_by_distance"] for a in ks]
+    return ran, r1p, [float(x) for x in np.average(dist, axis=0, weights=weights)]
+
+
+def _query_records(
+    runs: list[EvalRun], hits: list[np.ndarray], counts: list[np.ndarray]
+) -> list[dict[str, Any]]:
+    """Each run's query positions with the share of run pairs where the query's top-1 was
+    right (``None`` where it was never scored)."""
+    return [
+        {
+            "run": r.name,
+            "area": r.area,
+            "northing": [float(x) for x in r.query_positions[:, 0]],
+            "easting": [float(x) for x in r.query_positions[:, 1]],
+            "top1_correct_share": [
+                float(h / c) if c else None for h, c in zip(hits[k], counts[k], strict=True)
+            ],
+        }
+        for k, r in enumerate(runs)
+    ]
+
+
+def summary_lines(label: str, report: dict[str, Any]) -> list[str]:
+    """The report in a few lines: ``label``'s recall over all run pairs, then each area's (when
+    there are several) and the joint database's (when evaluated)."""
+    lines = [
+        f"{label}: {_fmt(report)} over {report['n_pairs']} run pairs "
+        f"({report['n_queries_evaluated']} queries)"
+    ]
+    if len(report["per_area"]) > 1:
+        lines += [f"  {area}: {_fmt(a)}" for area, a in report["per_area"].items()]
+    if "joint" in report and report["joint"].get("n_queries"):
+        lines.append(f"  joint database: {_fmt(report['joint'])}")
+    return lines
+
+
+def _fmt(r: dict[str, Any]) -> str:
+    return f"recall@1 {r['recall_at_1']:.2f} %, recall@1% {r['recall_at_1pct']:.2f} %"
 
 
 def write_report(report: dict[str, Any], path: str | Path) -> Path:
@@ -403,3 +424,19 @@ def plot_query_map(report: dict[str, Any], path: str | Path) -> Path:
         fig.savefig(fh, format="png")
     plt.close(fig)
     return Path(path)
+
+
+def write_figures(
+    label: str,
+    report: dict[str, Any],
+    folder: str | Path,
+    others: Sequence[tuple[str, dict[str, Any]]] = (),
+) -> None:
+    """Into ``folder``: ``recall_at_n.png`` (``report`` as ``label`` beside the ``others``),
+    ``query_map.png`` and, for several scored areas, ``recall_at_n_by_area.png``."""
+    folder = Path(folder)
+    plot_recall_curves([(label, report), *others], folder / "recall_at_n.png")
+    plot_query_map(report, folder / "query_map.png")
+    areas = [(a, r) for a, r in report["per_area"].items() if r.get("n_pairs")]
+    if len(areas) > 1:
+        plot_recall_curves(areas, folder / "recall_at_n_by_area.png", title=label)

@@ -120,7 +120,18 @@ def nearest(
     k smallest are selected, then ordered by (distance, index), and a tie across the k-th place
     is resolved by index too (the result equals a full stable sort).
     """
-    return _nearest(_prepare(db), _prepare(queries), k, block)
+    db, dn = _prepare(db)
+    queries, qn = _prepare(queries)
+    if len(queries) and db.shape[1] != queries.shape[1]:
+        raise InputError(
+            f"descriptor shapes do not match: database {db.shape}, queries {queries.shape}",
+            source="descriptors",
+        )
+    out = np.empty((len(queries), min(k, len(db))), dtype=np.int64)
+    for s in range(0, len(queries), block):
+        q = queries[s : s + block]
+        out[s : s + len(q)] = _rank(qn[s : s + block, None] - 2.0 * (q @ db.T) + dn[None, :], k)
+    return out
 
 
 def _prepare(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -148,26 +159,6 @@ def _rank(d2: np.ndarray, k: int) -> np.ndarray:
     tied = np.flatnonzero((d2 <= kth[:, None]).sum(axis=1) > kk)
     if len(tied):
         out[tied] = np.argsort(d2[tied], axis=1, kind="stable")[:, :kk]
-    return out
-
-
-def _nearest(
-    dbp: tuple[np.ndarray, np.ndarray],
-    qp: tuple[np.ndarray, np.ndarray],
-    k: int,
-    block: int = 1024,
-) -> np.ndarray:
-    db, dn = dbp
-    queries, qn = qp
-    if len(queries) and db.shape[1] != queries.shape[1]:
-        raise InputError(
-            f"descriptor shapes do not match: database {db.shape}, queries {queries.shape}",
-            source="descriptors",
-        )
-    out = np.empty((len(queries), min(k, len(db))), dtype=np.int64)
-    for s in range(0, len(queries), block):
-        q = queries[s : s + block]
-        out[s : s + len(q)] = _rank(qn[s : s + block, None] - 2.0 * (q @ db.T) + dn[None, :], k)
     return out
 
 
@@ -323,10 +314,6 @@ def average_pairs(
         n_queries=sum(p.n_queries for p in per_pair),
         skipped_pairs=list(skipped or []),
     )
-
-
-#: The name in the coordinator's brief; the same function.
-evaluate_descriptors = recall_at_n
 
 
 def recall_at_1_by_distance(

@@ -32,6 +32,7 @@ from pnvlad_service.index.keys import (
     recall_at_1,
 )
 from pnvlad_service.index.manifest import Manifest, ModelRecord
+from pnvlad_service.io.readers import read_points
 from pnvlad_service.models.embedding import Embedder, embed_in_chunks
 from pnvlad_service.models.store import model_identity, resolve_model_dir
 
@@ -85,13 +86,6 @@ def list_database_submaps(
     return records
 
 
-def read_submap(path: str | Path) -> np.ndarray:
-    """A benchmark submap file: float64 [4096, 3] (``.bin``: no header, 98,304 bytes)."""
-    from pnvlad_service.io.readers import read_points
-
-    return read_points(path, "benchmark")
-
-
 def embed_submaps(
     encoder: Embedder,
     root: str | Path,
@@ -106,7 +100,7 @@ def embed_submaps(
         return np.empty((0, encoder.dim), dtype=np.float32)
 
     def load(start: int, stop: int) -> np.ndarray:
-        clouds = [read_submap(root / r.path) for r in records[start:stop]]
+        clouds = [read_points(root / r.path, "benchmark") for r in records[start:stop]]
         return np.stack(clouds).astype(np.float32)
 
     return embed_in_chunks(

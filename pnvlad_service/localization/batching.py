@@ -1,6 +1,10 @@
 """A micro-batcher: worker threads ("lanes") embed and search queued clouds together.
 
-Handlers call :meth:`MicroBatcher.submit` with a preprocessed cloud float32 [4096, 3] and get a
+It lives in the library, not in the server: it batches concurrent callers of an encoder,
+whoever they are, and knows nothing of HTTP. The server's requests are such callers, and so
+are the threads of a library user who loads a ``Localizer`` with ``Batching``.
+
+Callers use :meth:`MicroBatcher.submit` with a preprocessed cloud float32 [4096, 3] and get a
 ``concurrent.futures.Future``. A free lane takes the first queued cloud, every other one already
 queued (up to ``max_size``) and, for up to ``wait_ms``, the ones whose requests are still being
 parsed (announced with :meth:`MicroBatcher.announce`). A lone request therefore never waits,
@@ -29,6 +33,16 @@ log = logging.getLogger(__name__)
 
 #: (clouds float32 [B, N, 3], k) -> (distances float32 [B, k], ids int64 [B, k], embed s, search s)
 BatchFn = Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray, float, float]]
+
+
+@dataclass(frozen=True)
+class Batching:
+    """How a :class:`MicroBatcher` batches: most clouds per batch, how long to wait for
+    announced ones (ms), batches in flight at once."""
+
+    max_size: int = 32
+    wait_ms: float = 2.0
+    lanes: int = 2
 
 
 @dataclass

@@ -3,7 +3,7 @@
 The encoder runs the network as the matrix products it is, on plain tensors:
 
 - every batch norm is folded into the layer before it (``W' = W * s``, ``b' = (b - mean) * s +
-  beta`` with ``s = gamma / sqrt(var + eps)``);
+  beta`` with ``s = gamma / sqrt(var + eps)``; ``folding.py``);
 - per-point layers are ``addmm`` on the points x channels matrix [N, C], ReLU in place;
 - the feature transform is folded into the next layer's weights per cloud (``(h T) W = h (T W)``);
 - max-pooled layers (transform nets, PN_MAX) take the max over points *before* the bias and ReLU
@@ -30,7 +30,6 @@ import hashlib
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,6 +37,7 @@ import numpy as np
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.folding import Dense, cast_folded, fold_model
 
 if TYPE_CHECKING:
     import torch
@@ -58,45 +58,6 @@ def bf16_supported() -> bool:
         )
     except (AttributeError, RuntimeError):
         return False
-
-
-@dataclass
-class _Dense:
-    """A folded layer: ``y = x @ w + b``; w [C_in, C_out], b [C_out]."""
-
-    w: torch.Tensor
-    b: torch.Tensor
-
-
-def _fold(lin: Any, bn: Any) -> _Dense:
-    """Fold ``bn`` (BatchNorm1d or Identity) into ``lin`` (Linear, bias optional), in float64."""
-    import torch
-    from torch import nn
-
-    w = lin.weight.detach().double()
-    b = (
-        lin.bias.detach().double()
-        if lin.bias is not None
-        else torch.zeros(w.shape[0], dtype=w.dtype)
-    )
-    if isinstance(bn, nn.BatchNorm1d):
-        s = bn.weight.detach().double() / torch.sqrt(bn.running_var.double() + bn.eps)
-        w = w * s[:, None]
-        b = (b - bn.running_mean.double()) * s + bn.bias.detach().double()
-    return _Dense(w.t().contiguous(), b)
-
-
-def _fold_tnet(tnet: Any) -> dict[str, Any]:
-    import torch
-
-    out = _fold(tnet.out, None)
-    out.b = out.b + torch.eye(tnet.k, dtype=out.b.dtype).reshape(-1)
-    return {
-        "points": [_fold(lin, bn) for lin, bn in zip(tnet.points, tnet.points_bn, strict=True)],
-        "fcs": [_fold(lin, bn) for lin, bn in zip(tnet.fcs, tnet.fcs_bn, strict=True)],
-        "out": out,
-        "k": tnet.k,
-    }
 
 
 def _state_sha256(model: Any) -> str:
@@ -160,7 +121,7 @@ class Encoder:
         self.agreement: float | None = None
         was_training = model.training
         model.eval()
-        self._p = self._fold_model(model)
+        self._p = fold_model(model)
         model.train(was_training)
         self._params: dict[str, dict[str, Any]] = {}
         if dtype == "auto":
@@ -181,87 +142,11 @@ class Encoder:
         model, cfg = load_model(directory)
         return cls(model, cfg, device=device, weights_sha256=weights_sha256(directory), **kwargs)
 
-    @staticmethod
-    def _fold_model(model: Any) -> dict[str, Any]:
-        p: dict[str, Any] = {
-            "input_tnet": _fold_tnet(model.input_tnet) if model.input_tnet is not None else None,
-            "feature_tnet": _fold_tnet(model.feature_tnet)
-            if model.feature_tnet is not None
-            else None,
-            "stem": [_fold(a, b) for a, b in zip(model.stem, model.stem_bn, strict=True)],
-            "trunk": [_fold(a, b) for a, b in zip(model.trunk, model.trunk_bn, strict=True)],
-        }
-        pool = model.pool
-        if model.cfg.arch == "pointnetvlad":
-            import torch
-            from torch import nn
-
-            wc = pool.cluster_weights.detach().double()
-            if pool.bn:
-                bn: nn.BatchNorm1d = pool.cluster_bn
-                s = bn.weight.detach().double() / torch.sqrt(bn.running_var.double() + bn.eps)
-                cluster = _Dense(wc * s, bn.bias.detach().double() - bn.running_mean.double() * s)
-            else:
-                cluster = _Dense(wc, pool.cluster_biases.detach().double())
-            fc = _fold(pool.fc, pool.fc_bn)  # w [D*K, out], rows d-major (d*K + k)
-            d, k = pool.dim, pool.clusters
-            fc.w = fc.w.reshape(d, k, -1).transpose(0, 1).reshape(d * k, -1).contiguous()
-            p["cluster"] = cluster
-            p["centers"] = pool.centers.detach().double().t().contiguous()  # [K, D]
-            p["fc"] = fc
-        else:
-            p["fc"] = _fold(pool.fc, None)
-        gating = pool.gating
-        p["gate"] = _fold(gating.gate, gating.gate_bn) if gating is not None else None
-        return p
-
     def _cast(self, dtype: str) -> dict[str, Any]:
-        """The folded parameters on the device: products' weights in ``dtype``, biases,
-        cluster logits, centres and the head in float32."""
-        import torch
-
-        if dtype in self._params:
-            return self._params[dtype]
-        mm = torch.bfloat16 if dtype == "bfloat16" else torch.float32
-        f32 = torch.float32
-        dev = self.device
-
-        def dense(x: _Dense | None, wdt: torch.dtype = mm) -> _Dense | None:
-            if x is None:
-                return None
-            return _Dense(x.w.to(dev, wdt).contiguous(), x.b.to(dev, f32))
-
-        def tnet(t: dict[str, Any] | None) -> dict[str, Any] | None:
-            if t is None:
-                return None
-            return {
-                "points": [dense(x) for x in t["points"]],
-                "fcs": [dense(x, f32) for x in t["fcs"]],
-                "out": dense(t["out"], f32),
-                "k": t["k"],
-            }
-
-        p = self._p
-        q: dict[str, Any] = {
-            "mm": mm,
-            "input_tnet": tnet(p["input_tnet"]),
-            "feature_tnet": tnet(p["feature_tnet"]),
-            "stem": [dense(x) for x in p["stem"]],
-            "trunk": [dense(x) for x in p["trunk"]],
-            # float32: the head as F.linear wants it, w [out, in] - a batch of 1-8 pooled vectors
-            # reads the 64 MB paper head about twice as fast as against [in, out]. bfloat16 keeps
-            # [in, out]: torch 2.13's bfloat16 F.linear of [24, 65536] x [256, 65536]^T dies with
-            # SIGFPE on this CPU (oneDNN), while the [in, out] product does not.
-            "fc": _Dense(p["fc"].w.t().to(dev, mm).contiguous(), p["fc"].b.to(dev, f32))
-            if mm == torch.float32
-            else dense(p["fc"], mm),
-            "gate": dense(p["gate"], f32),
-        }
-        if "cluster" in p:
-            q["cluster"] = dense(p["cluster"])
-            q["centers"] = p["centers"].to(dev, f32)
-        self._params[dtype] = q
-        return q
+        """The folded parameters on the device for ``dtype`` (made once, then reused)."""
+        if dtype not in self._params:
+            self._params[dtype] = cast_folded(self._p, dtype, self.device)
+        return self._params[dtype]
 
     # -- properties ---------------------------------------------------------------------------
 
@@ -310,7 +195,7 @@ class Encoder:
     def _tiles(self, n: int) -> range:
         return range(0, n, self.point_tile)
 
-    def _max_layer(self, h: torch.Tensor, layer: _Dense) -> torch.Tensor:
+    def _max_layer(self, h: torch.Tensor, layer: Dense) -> torch.Tensor:
         """``relu(max over points of h @ w + b)`` float32 [C_out] for one cloud's h [n, C_in].
 
         The product is taken a tile of points at a time so its output stays in cache; bias and
@@ -444,7 +329,7 @@ class Encoder:
         h = x.to(mm)
         for layer in q["stem"]:
             h = torch.addmm(layer.b.to(mm), h, layer.w).relu_()
-        trunk: list[_Dense] = q["trunk"]
+        trunk: list[Dense] = q["trunk"]
         last = len(trunk) - 1
         start = 0
         if q["feature_tnet"] is not None:
@@ -452,7 +337,7 @@ class Encoder:
             first = trunk[0]
             w = (t @ first.w.float()).to(mm)  # (h T) W = h (T W)
             if last == 0:
-                trunk = [_Dense(w, first.b)]
+                trunk = [Dense(w, first.b)]
             else:
                 h = torch.addmm(first.b.to(mm), h, w).relu_()
                 start = 1
@@ -463,7 +348,7 @@ class Encoder:
             return m.relu_() if cfg.last_relu else m
         return self._vlad_sums(h, trunk[last], q)
 
-    def _vlad_sums(self, h: torch.Tensor, layer: _Dense, q: dict[str, Any]) -> torch.Tensor:
+    def _vlad_sums(self, h: torch.Tensor, layer: Dense, q: dict[str, Any]) -> torch.Tensor:
         """The last trunk layer and NetVLAD's sums for one cloud, a tile of points at a time.
 
         Returns float32 [K*D + K]: ``sum_n a[n, k] x[n, d]`` ([K, D] flattened) and

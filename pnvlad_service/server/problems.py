@@ -1,9 +1,11 @@
 """Errors as ``application/problem+json`` (RFC 9457).
 
 Every error response has ``type``, ``title``, ``status`` and ``detail``; errors about a field
-add ``field`` (e.g. ``points[17]`` or ``top_n``). :class:`Problem` is raised by handlers;
-:func:`install` registers the handlers that turn it, FastAPI's own errors, the library's
-:class:`~pnvlad_service.errors.InputError` and unexpected exceptions into such responses.
+add ``field`` (e.g. ``points[17]`` or ``top_n``). :class:`Problem` is raised by the HTTP layer
+(routes, dependencies, middleware); :func:`install` registers the handlers that turn it,
+FastAPI's own errors, the library's :class:`~pnvlad_service.errors.InputError` (422, or 400 for
+malformed JSON) and :class:`~pnvlad_service.errors.NotReadyError` (503) and unexpected
+exceptions into such responses.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import json
 import logging
 from typing import Any
 
-from pnvlad_service.errors import InputError
+from pnvlad_service.errors import InputError, NotReadyError
 
 log = logging.getLogger(__name__)
 
@@ -28,7 +30,6 @@ KINDS: dict[str, tuple[int, str]] = {
     "unsupported-media-type": (415, "Unsupported content type"),
     "invalid-input": (422, "Invalid input"),
     "not-ready": (503, "Service not ready"),
-    "unavailable": (503, "Feature unavailable"),
     "internal": (500, "Internal server error"),
 }
 
@@ -135,6 +136,9 @@ def install(app: Any, on_error: Any = None) -> None:
             problem.status, problem.title = KINDS[kind]
         return respond(request, problem)
 
+    async def not_ready_handler(request: Request, exc: Exception) -> Response:
+        return respond(request, Problem("not-ready", str(exc)))
+
     async def validation_handler(request: Request, exc: Exception) -> Response:
         assert isinstance(exc, RequestValidationError)
         errors = exc.errors()
@@ -162,6 +166,7 @@ def install(app: Any, on_error: Any = None) -> None:
 
     app.add_exception_handler(Problem, problem_handler)
     app.add_exception_handler(InputError, input_handler)
+    app.add_exception_handler(NotReadyError, not_ready_handler)
     app.add_exception_handler(RequestValidationError, validation_handler)
     app.add_exception_handler(StarletteHTTPException, http_handler)
     app.add_exception_handler(Exception, unexpected_handler)

@@ -11,6 +11,10 @@ from pathlib import Path
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from pnvlad_service.io.submap import SUBMAP_POINTS
+from pnvlad_service.localization.batching import Batching
+from pnvlad_service.localization.limits import Limits
+
 
 class ServerSettings(BaseSettings):
     """Everything the HTTP service reads at start-up."""
@@ -33,19 +37,27 @@ class ServerSettings(BaseSettings):
         32 * 1024 * 1024, ge=1024, description="Largest request body accepted (bytes)."
     )
     max_raw_points: int = Field(
-        500_000, ge=4096, description="Most points of a raw scan sent with preprocess=true."
+        Limits.max_raw_points,
+        ge=SUBMAP_POINTS,
+        description="Most points of a raw scan sent with preprocess=true.",
     )
-    max_top_n: int = Field(100, ge=1, description="Largest top_n a request may ask for.")
-    max_batch_queries: int = Field(64, ge=1, description="Most queries in /localize/batch.")
-    batch_max_size: int = Field(32, ge=1, description="Most clouds embedded in one batch.")
+    max_top_n: int = Field(
+        Limits.max_top_n, ge=1, description="Largest top_n a request may ask for."
+    )
+    max_batch_queries: int = Field(
+        Limits.max_batch_queries, ge=1, description="Most queries in /localize/batch."
+    )
+    batch_max_size: int = Field(
+        Batching.max_size, ge=1, description="Most clouds embedded in one batch."
+    )
     batch_wait_ms: float = Field(
-        2.0,
+        Batching.wait_ms,
         ge=0.0,
         le=100.0,
         description="How long the batcher waits for requests already being parsed (ms).",
     )
     batch_lanes: int = Field(
-        2,
+        Batching.lanes,
         ge=1,
         le=16,
         description="Batches in flight at once: with 2 the next batch is embedded while the "
@@ -60,3 +72,17 @@ class ServerSettings(BaseSettings):
     )
     device: str | None = Field(None, description="torch device for the encoder (default cpu).")
     verify_bundle: bool = Field(True, description="Check the bundle's sha256s at start-up.")
+
+    def limits(self) -> Limits:
+        """The request limits these settings configure (the rest are the format's)."""
+        return Limits(
+            max_raw_points=self.max_raw_points,
+            max_top_n=self.max_top_n,
+            max_batch_queries=self.max_batch_queries,
+        )
+
+    def batching(self) -> Batching:
+        """The micro-batcher's configuration."""
+        return Batching(
+            max_size=self.batch_max_size, wait_ms=self.batch_wait_ms, lanes=self.batch_lanes
+        )

@@ -9,7 +9,6 @@ refreshed every 700 steps. ``pnvlad train --dump-config`` prints them.
 
 from __future__ import annotations
 
-import logging
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
@@ -18,8 +17,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.models.config import ModelConfig
-
-log = logging.getLogger(__name__)
 
 LossName = Literal["lazy_quadruplet", "lazy_triplet", "quadruplet", "triplet"]
 
@@ -162,6 +159,16 @@ class TrainConfig(BaseModel):
         import yaml
 
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+def run_config(config: str | Path | None, resumed_run: Path | None = None) -> TrainConfig:
+    """The config a run starts from: ``config`` (a file or a shipped preset name) when given;
+    else, when resuming ``resumed_run``, the ``config.yaml`` that run wrote; else the paper's."""
+    if config is not None:
+        return TrainConfig.from_file(config)
+    if resumed_run is not None and (Path(resumed_run) / "config.yaml").is_file():
+        return TrainConfig.from_file(Path(resumed_run) / "config.yaml")
+    return TrainConfig.preset("paper")
 
 
 def _parse(text: str, name: str) -> Any:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.data.dataset import TrainingSet
+from pnvlad_service.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +89,62 @@ def pick_other_negative(
         if ok:
             return int(ok[0])
     raise ValueError(f"submap {anchor} has no negative outside its tuple")
+
+
+def negative_counts(ts: TrainingSet, indices: np.ndarray, block: int = 256) -> np.ndarray:
+    """int64 [len(indices)]: how many negatives each of the submaps ``indices`` has in ``ts``
+    (the other submaps that :meth:`TrainingSet.negative_mask` accepts)."""
+    indices = np.asarray(indices, dtype=np.int64)
+    n = len(ts)
+    if ts.near is not None:
+        return np.array(
+            [n - len(np.unique(np.append(ts.near[i], i))) for i in indices.tolist()],
+            dtype=np.int64,
+        )
+    out = np.empty(len(indices), dtype=np.int64)
+    north, east = ts.positions[:, 0], ts.positions[:, 1]
+    for s in range(0, len(indices), block):  # [block, N] distances at a time
+        rows = ts.positions[indices[s : s + block]]
+        d2 = (rows[:, :1] - north[None, :]) ** 2 + (rows[:, 1:] - east[None, :]) ** 2
+        out[s : s + block] = (d2 > ts.negative_radius**2).sum(axis=1)
+    return out
+
+
+def fit_negatives(
+    ts: TrainingSet, anchors: np.ndarray, negatives: int, hard: int
+) -> tuple[int, int]:
+    """(negatives, hard negatives) a tuple takes on this training set: the configured ones, or
+    fewer where an anchor has too few negatives to fill a tuple and still leave one submap out
+    of it for the other negative (a warning says so). Raises :class:`InputError` naming the
+    option when an anchor has fewer than 2 negatives (no tuple can be built)."""
+    if len(anchors) == 0:
+        return negatives, hard
+    counts = negative_counts(ts, anchors)
+    worst = int(np.argmin(counts))
+    fewest = int(counts[worst])
+    room = fewest - 1  # one negative stays outside the tuple: the other negative
+    if room >= negatives:
+        return negatives, hard
+    anchor = int(anchors[worst])
+    if room < 1:
+        raise InputError(
+            f"the training set is too small for tuple mining: submap {anchor} has "
+            f"{fewest} negative(s), a tuple needs at least 2 (a negative and the other "
+            "negative); use a larger tree or --mining in_batch",
+            source="train.mining",
+        )
+    log.warning(
+        "train.negatives %d is more than this training set holds: submap %d has only %d "
+        "negatives and a tuple also needs an other negative; using %d negatives a tuple "
+        "(%d hard). Set train.negatives to %d or fewer in the config to silence this.",
+        negatives,
+        anchor,
+        fewest,
+        room,
+        min(hard, room),
+        room,
+    )
+    return room, min(hard, room)
 
 
 @dataclass

@@ -16,6 +16,11 @@ Distributed: every rank draws the same global batch (same seed) and takes its sh
 anchors; the descriptor cache is computed in shards and all-gathered; only rank 0 writes
 checkpoints, the metrics log and the final model. ``gloo`` on CPU, ``nccl`` on CUDA.
 
+The run is in named steps: ``runtime.setup_runtime`` (device, AMP, process group),
+``state.prepare_data`` (the data, checked against the config before anything is written),
+``state.build_state`` / ``state.resume_state``, then a loop of :func:`tuple_step` or
+:func:`in_batch_step` with cache refreshes, validation and ``state.save_state`` on schedule.
+
 Outputs under ``OUT``: ``checkpoints/`` (see ``checkpoint.py``), ``metrics.jsonl`` (one JSON
 object a line: ``event`` = ``step`` | ``cache`` | ``val`` | ``start`` | ``end``), ``model/``
 (the final weights), ``config.yaml`` (the resolved config).
@@ -25,8 +30,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -35,17 +38,29 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pnvlad_service.data.dataset import EvalRun, TrainingSet, load_clouds
-from pnvlad_service.errors import InputError
+from pnvlad_service.data.dataset import EvalRun, TrainingSet
 from pnvlad_service.fileio import atomic_write_text
+from pnvlad_service.models.embedding import embed_in_chunks, module_embedder
 from pnvlad_service.training import mining
-from pnvlad_service.training.checkpoint import (
-    TrainingState,
-    latest_checkpoint,
-    load_checkpoint,
-    save_checkpoint,
-)
 from pnvlad_service.training.config import TrainConfig
+from pnvlad_service.training.runtime import (
+    Runtime,
+    any_rank,
+    gather_rows,
+    mean_over_ranks,
+    setup_runtime,
+    shutdown,
+    wrap_ddp,
+)
+from pnvlad_service.training.state import (
+    TrainData,
+    TrainState,
+    build_state,
+    checkpoint_to_resume,
+    prepare_data,
+    resume_state,
+    save_state,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -66,6 +81,14 @@ class TrainResult:
     seconds: float = 0.0
     cache_refreshes: int = 0
     last_val: dict[str, Any] | None = None
+
+    def summary(self) -> str:
+        """One line: steps, why it stopped, seconds, the last loss and the model directory."""
+        last = self.losses[max(self.losses)] if self.losses else float("nan")
+        return (
+            f"{self.steps} steps ({self.stopped}) in {self.seconds:.0f} s, last loss {last:.4f}; "
+            f"model: {self.model_dir}"
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -90,73 +113,6 @@ def bn_momentum(cfg: TrainConfig, step: int) -> float:
 
 
 # ---------------------------------------------------------------------------------------------
-# distributed helpers
-
-
-@dataclass
-class Dist:
-    """Process group facts: ``rank``, ``world`` size, ``local_rank``; ``world == 1`` alone."""
-
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-    local_world: int = 1
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-
-def _init_dist(device_kind: str) -> Dist:
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return Dist()
-    import torch.distributed as dist
-
-    if not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if device_kind == "cuda" else "gloo")
-    return Dist(
-        rank=dist.get_rank(),
-        world=dist.get_world_size(),
-        local_rank=int(os.environ.get("LOCAL_RANK", "0")),
-        local_world=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))),
-    )
-
-
-def _pick_device(name: str, d: Dist) -> torch.device:
-    import torch
-
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise InputError("CUDA requested but not available", source="train.device")
-        if name == "cuda":
-            name = f"cuda:{d.local_rank}"
-        torch.cuda.set_device(torch.device(name))
-    return torch.device(name)
-
-
-def _any_rank(flag: bool, d: Dist, device: torch.device) -> bool:
-    """True on every rank when ``flag`` is true on any (one all-reduce; plain value alone)."""
-    if d.world == 1:
-        return flag
-    import torch
-    import torch.distributed as dist
-
-    t = torch.tensor([1.0 if flag else 0.0], device=device)
-    dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return bool(t.item() > 0)
-
-
-def _cpu_count() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
-# ---------------------------------------------------------------------------------------------
 # losses
 
 
@@ -178,63 +134,143 @@ def make_loss(cfg: TrainConfig) -> Callable[..., torch.Tensor]:
 # ---------------------------------------------------------------------------------------------
 # descriptors
 
-
-def embed_all(
-    model: torch.nn.Module,
-    clouds: torch.Tensor,
-    indices: np.ndarray,
-    device: torch.device,
-    batch: int = 64,
-    amp_dtype: Any = None,
-) -> np.ndarray:
-    """float32 [len(indices), D] descriptors of ``clouds[indices]`` with ``model`` in eval mode
-    (the mode is restored afterwards)."""
-    import torch
-
-    was = model.training
-    model.eval()
-    out = []
-    with torch.inference_mode():
-        for s in range(0, len(indices), batch):
-            x = clouds[torch.from_numpy(indices[s : s + batch])].to(device, non_blocking=True)
-            with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
-                out.append(model(x).float().cpu().numpy())
-    model.train(was)
-    if not out:
-        return np.zeros((0, 0), dtype=np.float32)
-    return np.concatenate(out).astype(np.float32)
+#: Clouds gathered from RAM at a time for the cache (a multiple of the embedding batch, so the
+#: batches the network sees are those of one pass over all the indices).
+CACHE_CHUNK = 1024
 
 
 def compute_cache(
-    model: torch.nn.Module,
-    clouds: torch.Tensor,
-    device: torch.device,
-    d: Dist,
-    amp_dtype: Any = None,
-    batch: int = 64,
+    model: torch.nn.Module, clouds: torch.Tensor, rt: Runtime, batch: int = 64
 ) -> np.ndarray:
-    """float32 [N, D] descriptors of every training cloud; with several ranks each embeds the
-    indices ``rank::world`` and the shards are all-gathered."""
+    """float32 [N, D] descriptors of every training cloud (``clouds`` float32 [N, P, 3]) with
+    ``model`` in eval mode; with several ranks each embeds the indices ``rank::world`` and the
+    shards are all-gathered."""
     import torch
 
     n = clouds.shape[0]
-    mine = np.arange(d.rank, n, d.world, dtype=np.int64)
-    desc = embed_all(model, clouds, mine, device, batch, amp_dtype)
-    if d.world == 1:
-        return desc
-    import torch.distributed as dist
+    mine = np.arange(rt.dist.rank, n, rt.dist.world, dtype=np.int64)
+    embed = module_embedder(model, rt.device, batch=batch, amp_dtype=rt.amp_dtype)
+    desc = embed_in_chunks(
+        embed, len(mine), lambda s, e: clouds[torch.from_numpy(mine[s:e])], chunk=CACHE_CHUNK
+    )
+    return gather_rows(desc, n, rt)
 
-    rows = math.ceil(n / d.world)
-    dim = desc.shape[1]
-    buf = torch.zeros(rows, dim, dtype=torch.float32, device=device)
-    buf[: len(desc)] = torch.from_numpy(desc).to(device)
-    parts = [torch.zeros_like(buf) for _ in range(d.world)]
-    dist.all_gather(parts, buf)
-    full = np.zeros((n, dim), dtype=np.float32)
-    for r, part in enumerate(parts):
-        idx = np.arange(r, n, d.world)
-        full[idx] = part[: len(idx)].cpu().numpy()
-    return full
+
+# ---------------------------------------------------------------------------------------------
+# one step
+
+#: A step's forward: (loss, distinct clouds embedded, the step's indices for ``on_step``).
+StepOut = tuple["torch.Tensor", int, np.ndarray]
+
+
+def _embed(
+    net: torch.nn.Module, clouds: torch.Tensor, idx: np.ndarray, rt: Runtime
+) -> torch.Tensor:
+    """float32 [len(idx), D]: one forward pass (training mode, autocast) over ``clouds[idx]``."""
+    import torch
+
+    x = clouds[torch.from_numpy(idx)].to(rt.device, non_blocking=True)
+    with torch.autocast(rt.device.type, dtype=rt.amp_dtype, enabled=rt.amp_dtype is not None):
+        emb = net(x)
+    return emb.float()
+
+
+def tuple_step(
+    state: TrainState,
+    data: TrainData,
+    rt: Runtime,
+    cfg: TrainConfig,
+    loss_fn: Callable[..., torch.Tensor],
+    batch_anchors: np.ndarray,
+) -> StepOut:
+    """The paper's step: a tuple per anchor of the global batch (hard negatives from the cache
+    once it exists), this rank's share of them, every distinct cloud embedded once; the
+    indices are this rank's tuples int64 [b, 1 + P + Nn + 1]."""
+    import torch
+
+    t = cfg.train
+    hard = data.hard_negatives
+    tb = mining.sample_tuples(
+        state.tuple_rng,
+        data.training_set,
+        batch_anchors,
+        positives=t.positives,
+        negatives=data.negatives,
+        cache=state.cache if hard > 0 else None,
+        hard=hard,
+        sampled=t.sampled_negatives,
+    )
+    table = tb.table()[rt.dist.rank :: rt.dist.world]
+    uniq, inv = np.unique(table, return_inverse=True)
+    emb = _embed(state.net, data.clouds, uniq, rt)
+    e = emb[torch.from_numpy(inv.reshape(table.shape)).to(rt.device)]  # [b, 1 + P + Nn + 1, D]
+    q, p = e[:, 0], e[:, 1 : 1 + t.positives]
+    n, o = e[:, 1 + t.positives : -1], e[:, -1]
+    return loss_fn(q, p, n, o), len(uniq), table
+
+
+def in_batch_step(
+    state: TrainState,
+    data: TrainData,
+    rt: Runtime,
+    cfg: TrainConfig,
+    loss_fn: Callable[..., torch.Tensor],
+    batch_anchors: np.ndarray,
+) -> StepOut:
+    """In-batch mining: this rank's anchors plus a positive each are embedded once, and every
+    member with a positive and a negative in the batch gets a tuple from the batch's
+    descriptors (a zero loss when none has); the indices are the members int64 [M]."""
+    import torch
+
+    members = mining.in_batch_members(
+        state.tuple_rng, data.training_set, batch_anchors[rt.dist.rank :: rt.dist.world]
+    )
+    emb = _embed(state.net, data.clouds, members, rt)
+    pos_m, neg_m = mining.pair_masks(data.training_set, members)
+    tb = mining.in_batch_tuples(emb.detach().cpu().numpy(), pos_m, neg_m, data.negatives)
+    if tb is None:
+        return emb.sum() * 0.0, len(members), members
+    e = emb[torch.from_numpy(tb.table()).to(rt.device)]
+    return loss_fn(e[:, 0], e[:, 1:2], e[:, 2:-1], e[:, -1]), len(members), members
+
+
+def _refresh_cache_if_due(
+    state: TrainState, cfg: TrainConfig, data: TrainData, rt: Runtime, mlog: _Log
+) -> None:
+    """Recompute the hard-negative cache on schedule (tuple mode with hard negatives only)."""
+    t = cfg.train
+    if t.mining != "tuple" or data.hard_negatives == 0:
+        return
+    if state.sampler.epoch < t.cache_warmup_epochs:
+        return
+    if state.cache is not None and state.step - state.cache_step < t.cache_refresh_steps:
+        return
+    tc = time.monotonic()
+    state.cache = compute_cache(state.model, data.clouds, rt)
+    state.cache_step = state.step
+    state.refreshes += 1
+    mlog.write(event="cache", step=state.step, seconds=round(time.monotonic() - tc, 3))
+
+
+def _apply_schedules(state: TrainState, cfg: TrainConfig) -> tuple[float, float]:
+    """Set this step's learning rate and batch-norm momentum; returns both."""
+    import torch
+
+    lr = learning_rate(cfg, state.step)
+    mom = bn_momentum(cfg, state.step)
+    for g in state.optim.param_groups:
+        g["lr"] = lr
+    for m in state.model.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.momentum = mom
+    return lr, mom
+
+
+def _optimise(state: TrainState, loss: torch.Tensor) -> None:
+    state.optim.zero_grad(set_to_none=True)
+    state.scaler.scale(loss).backward()
+    state.scaler.step(state.optim)
+    state.scaler.update()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -258,13 +294,20 @@ class _Log:
             self.fh.close()
 
 
-def _rng_state_tensors() -> dict[str, Any]:
-    import torch
+@dataclass
+class _Loop:
+    """What the step loop needs besides the state: the run's fixed parts and its hooks."""
 
-    out: dict[str, Any] = {"torch": torch.get_rng_state()}
-    if torch.cuda.is_available():
-        out["cuda"] = torch.cuda.get_rng_state_all()
-    return out
+    cfg: TrainConfig
+    out: Path
+    rt: Runtime
+    data: TrainData
+    mlog: _Log
+    result: TrainResult
+    total: int
+    t0: float
+    progress: bool
+    on_step: Callable[[dict[str, Any]], None] | None
 
 
 def train(
@@ -286,287 +329,154 @@ def train(
     sees the (unwrapped) model once built, ``on_step`` each step's record: hooks for tests and
     tools. Under ``torchrun`` (``WORLD_SIZE`` > 1) each process calls this with the same config.
     """
-    import torch
-
     t0 = time.monotonic()
     out = Path(out)
     t = cfg.train
-    dev_kind = (
-        "cuda"
-        if (t.device.startswith("cuda") or (t.device == "auto" and torch.cuda.is_available()))
-        else "cpu"
-    )
-    d = _init_dist(dev_kind)
-    device = _pick_device(t.device, d)
-    if device.type == "cpu":
-        torch.set_num_threads(t.threads or max(1, _cpu_count() // d.local_world))
-    amp_dtype = None
-    if device.type == "cuda" and t.amp != "off":
-        bf16 = t.amp == "bf16" or (t.amp == "auto" and torch.cuda.is_bf16_supported())
-        amp_dtype = torch.bfloat16 if bf16 else torch.float16
-
-    ckpt = latest_checkpoint(out) if resume else None
-    if resume and ckpt is None:
-        raise InputError("--resume: no checkpoint under this output directory", source=out)
-    if not resume and latest_checkpoint(out) is not None:
-        raise InputError(
-            "output directory already holds a training run (use --resume, or another --out)",
-            source=out,
-        )
-
-    if training_set is None:
-        from pnvlad_service.data.dataset import load_training_data
-
-        training_set, loaded_val = load_training_data(cfg.data)
-        val_runs = val_runs if val_runs is not None else loaded_val
-    anchors = training_set.anchors(min_positives=min(2, t.positives))
-    skipped = len(training_set) - len(anchors)
-    if len(anchors) < t.batch_size:
-        raise InputError(
-            f"only {len(anchors)} anchors with at least 2 positives, fewer than the batch size "
-            f"{t.batch_size}",
-            source="training set",
-        )
-    if t.batch_size % d.world:
-        raise InputError(
-            f"batch size {t.batch_size} is not a multiple of the {d.world} processes",
-            source="train.batch_size",
-        )
-    if d.main:
-        log.info(
-            "training set: %d submaps, %d anchors (%d skipped with < 2 positives)",
-            len(training_set),
-            len(anchors),
-            skipped,
-        )
-    clouds_np = load_clouds(
-        training_set.paths, cfg.model.num_points, workers=t.workers, progress=progress and d.main
-    )
-    clouds = torch.from_numpy(clouds_np)
-    if device.type == "cuda":
-        clouds = clouds.pin_memory()
-
-    from pnvlad_service.models.pointnetvlad import build_model
-
-    torch.manual_seed(t.seed)
-    model = build_model(cfg.model).to(device)
-    if on_model is not None:
-        on_model(model)
-    optim = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
-    scaler = torch.amp.GradScaler("cuda", enabled=amp_dtype == torch.float16)
-    sampler = mining.AnchorSampler(anchors, t.seed)
-    tuple_rng = np.random.default_rng([t.seed, 1])
-    cache: np.ndarray | None = None
-    cache_step = -1
-    step = 0
-    refreshes = 0
-
+    rt = setup_runtime(t)
+    ckpt = checkpoint_to_resume(out, resume)
+    data = prepare_data(cfg, rt, training_set, val_runs, progress)
+    state = build_state(cfg, rt, data, on_model)
     if ckpt is not None:
-        weights, state, _ = load_checkpoint(ckpt)
-        model.load_state_dict(weights)
-        optim.load_state_dict(state.tensors["optimizer"])
-        if "scaler" in state.tensors:
-            scaler.load_state_dict(state.tensors["scaler"])
-        torch.set_rng_state(state.tensors["rng"]["torch"])
-        if "cuda" in state.tensors["rng"] and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(state.tensors["rng"]["cuda"])
-        if "cache" in state.tensors:
-            cache = state.tensors["cache"].numpy()
-        info = state.info
-        step = int(info["step"])
-        cache_step = int(info["cache_step"])
-        refreshes = int(info.get("cache_refreshes", 0))
-        sampler.load_state(info["sampler"])
-        tuple_rng.bit_generator.state = info["tuple_rng"]
-        if d.main:
-            log.info("resumed from %s at step %d", ckpt, step)
+        resume_state(state, ckpt)
+        if rt.dist.main:
+            log.info("resumed from %s at step %d", ckpt, state.step)
+    state.net = wrap_ddp(state.model, rt)
+    state.model.train()
+    full = t.epochs * state.sampler.steps_per_epoch(t.batch_size)
+    total = full if t.max_steps is None else min(full, t.max_steps)
+    mlog = _start_log(cfg, out, rt, data, state, total, resumed=ckpt is not None)
+    loop = _Loop(
+        cfg, out, rt, data, mlog, TrainResult(steps=state.step), total, t0, progress, on_step
+    )
+    try:
+        stopped = _run_steps(loop, state)
+        if state.step >= total and t.max_steps is not None and total == t.max_steps:
+            stopped = "max_steps" if total < full else "done"
+        loop.result.model_dir = _finish(loop, state, stopped)
+    finally:
+        mlog.close()
+        shutdown(rt)
+    res = loop.result
+    res.steps, res.stopped, res.cache_refreshes = state.step, stopped, state.refreshes
+    res.seconds = time.monotonic() - t0
+    if rt.dist.main:
+        log.info("trained %d steps in %.1f s (%s)", state.step, res.seconds, stopped)
+    return res
 
-    net: torch.nn.Module = model
-    if d.world > 1:
-        from torch.nn.parallel import DistributedDataParallel
 
-        net = DistributedDataParallel(
-            model, device_ids=[device.index] if device.type == "cuda" else None
-        )
-    model.train()
-    loss_fn = make_loss(cfg)
-    steps_per_epoch = sampler.steps_per_epoch(t.batch_size)
-    total = t.epochs * steps_per_epoch
-    if t.max_steps is not None:
-        total = min(total, t.max_steps)
+def _start_log(
+    cfg: TrainConfig,
+    out: Path,
+    rt: Runtime,
+    data: TrainData,
+    state: TrainState,
+    total: int,
+    resumed: bool,
+) -> _Log:
+    """Create ``out`` with ``config.yaml`` and open ``metrics.jsonl`` with its ``start`` line
+    (rank 0; the other ranks get a log that writes nothing)."""
+    if not rt.dist.main:
+        return _Log(None)
+    out.mkdir(parents=True, exist_ok=True)
+    mlog = _Log(out / "metrics.jsonl")
+    atomic_write_text(out / "config.yaml", cfg.to_yaml())
+    mlog.write(
+        event="start",
+        step=state.step,
+        total=total,
+        resumed=resumed,
+        world=rt.dist.world,
+        device=str(rt.device),
+        anchors=len(data.anchors),
+        submaps=len(data.training_set),
+    )
+    return mlog
 
-    if d.main:
-        out.mkdir(parents=True, exist_ok=True)
-    mlog = _Log(out / "metrics.jsonl" if d.main else None)
-    if d.main:
-        atomic_write_text(out / "config.yaml", cfg.to_yaml())
-        mlog.write(
-            event="start",
-            step=step,
-            total=total,
-            resumed=ckpt is not None,
-            world=d.world,
-            device=str(device),
-            anchors=len(anchors),
-            submaps=len(training_set),
-        )
 
-    def checkpoint() -> None:
-        if not d.main:
-            return
-        tensors: dict[str, Any] = {
-            "optimizer": optim.state_dict(),
-            "scaler": scaler.state_dict(),
-            "rng": _rng_state_tensors(),
-        }
-        if cache is not None:
-            tensors["cache"] = torch.from_numpy(cache)
-        info = {
-            "epoch": sampler.epoch,
-            "cache_step": cache_step,
-            "cache_refreshes": refreshes,
-            "sampler": sampler.state(),
-            "tuple_rng": tuple_rng.bit_generator.state,
-            "config": cfg.model_dump(mode="json"),
-            "elapsed_s": round(time.monotonic() - t0, 3),
-        }
-        save_checkpoint(
-            out, step, model, cfg.model, TrainingState(tensors, info), keep=t.keep_checkpoints
-        )
-
+def _run_steps(loop: _Loop, state: TrainState) -> str:
+    """Steps until ``loop.total`` (``"done"``) or the time budget is spent (``"max_minutes"``,
+    every rank at the same step), with cache refreshes, logging, validation and checkpoints on
+    schedule."""
     from tqdm import tqdm
 
+    cfg, rt, t = loop.cfg, loop.rt, loop.cfg.train
+    loss_fn = make_loss(cfg)
+    step_fn = tuple_step if t.mining == "tuple" else in_batch_step
     bar = tqdm(
-        total=total, initial=step, desc="train", unit="step", disable=not (progress and d.main)
+        total=loop.total,
+        initial=state.step,
+        desc="train",
+        unit="step",
+        disable=not (loop.progress and rt.dist.main),
     )
-    result = TrainResult(steps=step)
-    stopped = "done"
-    last_ckpt = step
-    first_step, t_loop = step, time.monotonic()
+    first_step, t_loop = state.step, time.monotonic()
     try:
-        while step < total:
-            if t.max_minutes is not None and _any_rank(
-                time.monotonic() - t0 > 60 * t.max_minutes, d, device
-            ):
-                stopped = "max_minutes"  # every rank stops at the same step
-                break
-            # Hard-negative cache, refreshed on schedule (tuple mode only).
-            use_hard = t.mining == "tuple" and t.hard_negatives > 0
-            if (
-                use_hard
-                and sampler.epoch >= t.cache_warmup_epochs
-                and (cache is None or step - cache_step >= t.cache_refresh_steps)
-            ):
-                tc = time.monotonic()
-                cache = compute_cache(model, clouds, device, d, amp_dtype)
-                cache_step = step
-                refreshes += 1
-                mlog.write(event="cache", step=step, seconds=round(time.monotonic() - tc, 3))
-            lr = learning_rate(cfg, step)
-            mom = bn_momentum(cfg, step)
-            for g in optim.param_groups:
-                g["lr"] = lr
-            for m in model.modules():
-                if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-                    m.momentum = mom
-
-            batch_anchors = sampler.next(t.batch_size)
-            share = batch_anchors[d.rank :: d.world]
-            if t.mining == "tuple":
-                tb = mining.sample_tuples(
-                    tuple_rng,
-                    training_set,
-                    batch_anchors,
-                    positives=t.positives,
-                    negatives=t.negatives,
-                    cache=cache if use_hard else None,
-                    hard=t.hard_negatives,
-                    sampled=t.sampled_negatives,
-                )
-                table = tb.table()[d.rank :: d.world]
-                uniq, inv = np.unique(table, return_inverse=True)
-                inv = inv.reshape(table.shape)
-            else:
-                members = mining.in_batch_members(tuple_rng, training_set, share)
-                uniq = members
-                table = members
-            x = clouds[torch.from_numpy(uniq)].to(device, non_blocking=True)
-            with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
-                emb = net(x)
-            emb = emb.float()
-            if t.mining == "tuple":
-                e = emb[torch.from_numpy(inv).to(device)]  # [b, 1 + P + Nn + 1, D]
-                q, p = e[:, 0], e[:, 1 : 1 + t.positives]
-                n, o = e[:, 1 + t.positives : -1], e[:, -1]
-                loss = loss_fn(q, p, n, o)
-            else:
-                pos_m, neg_m = mining.pair_masks(training_set, members)
-                tb2 = mining.in_batch_tuples(emb.detach().cpu().numpy(), pos_m, neg_m, t.negatives)
-                if tb2 is None:
-                    loss = emb.sum() * 0.0
-                else:
-                    tab = torch.from_numpy(tb2.table()).to(device)
-                    e = emb[tab]
-                    loss = loss_fn(e[:, 0], e[:, 1:2], e[:, 2:-1], e[:, -1])
-            optim.zero_grad(set_to_none=True)
-            scaler.scale(loss).backward()
-            scaler.step(optim)
-            scaler.update()
-            step += 1
-            lv = float(loss.detach())
-            if d.world > 1:
-                import torch.distributed as dist
-
-                lt = torch.tensor([lv], device=device)
-                dist.all_reduce(lt)
-                lv = float(lt) / d.world
-            result.losses[step] = lv
+        while state.step < loop.total:
+            spent = time.monotonic() - loop.t0
+            if t.max_minutes is not None and any_rank(spent > 60 * t.max_minutes, rt):
+                return "max_minutes"
+            _refresh_cache_if_due(state, cfg, loop.data, rt, loop.mlog)
+            lr, mom = _apply_schedules(state, cfg)
+            batch_anchors = state.sampler.next(t.batch_size)
+            loss, clouds, indices = step_fn(state, loop.data, rt, cfg, loss_fn, batch_anchors)
+            _optimise(state, loss)
+            state.step += 1
+            lv = mean_over_ranks(float(loss.detach()), rt)
+            loop.result.losses[state.step] = lv
             rec = {
                 "event": "step",
-                "step": step,
-                "epoch": sampler.epoch,
+                "step": state.step,
+                "epoch": state.sampler.epoch,
                 "loss": lv,
                 "lr": lr,
                 "bn_momentum": mom,
-                "clouds": len(uniq),
+                "clouds": clouds,
             }
-            if on_step is not None:
-                on_step({**rec, "indices": table})
-            if step % t.log_every == 0 or step == total:
-                rec["steps_per_s"] = round((step - first_step) / (time.monotonic() - t_loop), 4)
-                mlog.write(**rec)
-            bar.set_postfix(loss=f"{lv:.4f}", epoch=sampler.epoch)
+            if loop.on_step is not None:
+                loop.on_step({**rec, "indices": indices})
+            if state.step % t.log_every == 0 or state.step == loop.total:
+                rec["steps_per_s"] = round(
+                    (state.step - first_step) / (time.monotonic() - t_loop), 4
+                )
+                loop.mlog.write(**rec)
+            bar.set_postfix(loss=f"{lv:.4f}", epoch=state.sampler.epoch)
             bar.update()
-            if t.val_every and step % t.val_every == 0 and val_runs and d.main:
-                result.last_val = _validate(model, cfg, val_runs, device, mlog, step)
-            if step % t.checkpoint_every == 0:
-                checkpoint()
-                last_ckpt = step
-        if step >= total and t.max_steps is not None and total == t.max_steps:
-            stopped = "max_steps" if total < t.epochs * steps_per_epoch else "done"
-        if step != last_ckpt:
-            checkpoint()
-        if d.main:
-            from pnvlad_service.models.store import save_model
-
-            meta = {"source": "pnvlad train", "step": step, "stopped": stopped}
-            result.model_dir = save_model(out / "model", model, cfg.model, meta, overwrite=True)
-        mlog.write(event="end", step=step, stopped=stopped, seconds=round(time.monotonic() - t0, 3))
+            _after_step(loop, state)
     finally:
         bar.close()
-        mlog.close()
-        if d.world > 1:
-            import torch.distributed as dist
+    return "done"
 
-            dist.barrier()
-            dist.destroy_process_group()
-    result.steps = step
-    result.stopped = stopped
-    result.seconds = time.monotonic() - t0
-    result.cache_refreshes = refreshes
-    if d.main:
-        log.info("trained %d steps in %.1f s (%s)", step, result.seconds, stopped)
-    return result
+
+def _after_step(loop: _Loop, state: TrainState) -> None:
+    """Validation and checkpoint when their schedules say so."""
+    t, rt = loop.cfg.train, loop.rt
+    if t.val_every and state.step % t.val_every == 0 and loop.data.val_runs and rt.dist.main:
+        loop.result.last_val = _validate(
+            state.model, loop.cfg, loop.data.val_runs, rt.device, loop.mlog, state.step
+        )
+    if state.step % t.checkpoint_every == 0:
+        if rt.dist.main:
+            save_state(state, loop.cfg, loop.out, time.monotonic() - loop.t0)
+        state.saved_step = state.step
+
+
+def _finish(loop: _Loop, state: TrainState, stopped: str) -> Path | None:
+    """The last checkpoint (unless just written), the final model (rank 0: its directory) and
+    the ``end`` line."""
+    main = loop.rt.dist.main
+    if state.step != state.saved_step and main:
+        save_state(state, loop.cfg, loop.out, time.monotonic() - loop.t0)
+    model_dir = None
+    if main:
+        from pnvlad_service.models.store import save_model
+
+        meta = {"source": "pnvlad train", "step": state.step, "stopped": stopped}
+        model_dir = save_model(
+            loop.out / "model", state.model, loop.cfg.model, meta, overwrite=True
+        )
+    seconds = round(time.monotonic() - loop.t0, 3)
+    loop.mlog.write(event="end", step=state.step, stopped=stopped, seconds=seconds)
+    return model_dir
 
 
 def _validate(
@@ -578,11 +488,11 @@ def _validate(
     step: int,
 ) -> dict[str, Any]:
     """Recall of the current weights on (up to ``data.val_max_runs``) evaluation runs."""
-    from pnvlad_service.evaluation.evaluate import evaluate_runs, model_embedder
+    from pnvlad_service.evaluation.evaluate import evaluate_runs
 
     runs = runs[: cfg.data.val_max_runs]
     tv = time.monotonic()
-    rep = evaluate_runs(model_embedder(model, device), runs, cfg.model.num_points, progress=False)
+    rep = evaluate_runs(module_embedder(model, device), runs, cfg.model.num_points, progress=False)
     rec = {
         "event": "val",
         "step": step,

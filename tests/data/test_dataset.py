@@ -45,3 +45,28 @@ def test_load_clouds_fits_every_submap_to_the_point_count(tmp_path: Path) -> Non
         # every fitted row is a row of the file
         rows = {tuple(r) for r in read_submap(path).tolist()}
         assert all(tuple(r) in rows for r in clouds[k].tolist())
+
+
+def test_training_sets_of_two_datasets_pool_with_offsets(tmp_path) -> None:
+    from pnvlad_service.data.dataset import training_set_from_tuples
+    from pnvlad_service.data.splits import TrainingTuples
+
+    def tt(name: str, n: int) -> TrainingTuples:
+        north = np.arange(n) * 6.0
+        pos = [
+            np.array([j for j in range(n) if j != i and abs(north[j] - north[i]) <= 10])
+            for i in range(n)
+        ]
+        near = [np.array([j for j in range(n) if abs(north[j] - north[i]) <= 50]) for i in range(n)]
+        return TrainingTuples(
+            name, [f"{name}/r/p/{i}.bin" for i in range(n)], pos, near, north, np.zeros(n)
+        )
+
+    ts = training_set_from_tuples([tt("a", 20), tt("b", 30)], tmp_path)
+    assert len(ts) == 50
+    assert ts.paths[25] == tmp_path / "b" / "r" / "p" / "5.bin"
+    assert ts.positives[25].tolist() == [24, 26]  # b's 4 and 6, offset by 20
+    # a negative of a b-submap is any a-submap (never near) or a b-submap beyond 50 m
+    mask = ts.negative_mask(25, np.arange(50))
+    assert mask[:20].all()
+    assert mask[20:].tolist() == [abs(k - 5) * 6.0 > 50 for k in range(30)]

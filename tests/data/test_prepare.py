@@ -459,5 +459,5 @@ def test_cli_prepare_scans_and_g_config(tmp_path: Path) -> None:
     )
     assert res.exit_code == 2 and "target_points" in res.output
     res = CliRunner().invoke(app, [*base, "--out", str(tmp_path / "r3"), "--origin", "1,2"])
-    assert res.exit_code == 2 and "--kitti only" in res.output
+    assert res.exit_code == 2 and "--kitti and --rosbag only" in res.output
     assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()

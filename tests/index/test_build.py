@@ -18,6 +18,7 @@ from pnvlad_service.errors import InputError
 from pnvlad_service.index import build as ib
 from pnvlad_service.index.bundle import METADATA_FIELDS, IndexBundle
 from pnvlad_service.index.manifest import Manifest
+from pnvlad_service.io.submap import read_submap
 from tests.index.helpers import PER_RUN, RUNS, free_port, make_checkpoint
 
 
@@ -41,7 +42,7 @@ def test_database_submaps_are_the_trees_records(world: dict[str, Path]) -> None:
 def test_embedded_submaps_are_the_encoders_descriptors(world: dict[str, Path], encoder) -> None:
     records = ib.list_database_submaps(world["tree"])[:7]
     got = ib.embed_submaps(encoder, world["tree"], records, batch_size=3, progress=False)
-    clouds = np.stack([ib.read_submap(world["tree"] / r.path) for r in records])
+    clouds = np.stack([read_submap(world["tree"] / r.path) for r in records])
     assert clouds.shape == (7, 4096, 3) and clouds.dtype == np.float64
     np.testing.assert_allclose(got, encoder.embed(clouds.astype(np.float32)), atol=1e-5)
     assert ib.embed_submaps(encoder, world["tree"], [], progress=False).shape == (0, 16)

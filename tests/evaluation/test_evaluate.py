@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from pnvlad_service.data.dataset import EvalRun
 from pnvlad_service.errors import InputError
 from pnvlad_service.evaluation import evaluate
+from tests.training.street import make_tiny_tree, tiny_config
 
 
 def mean_embedder(points: np.ndarray) -> np.ndarray:
@@ -174,16 +176,17 @@ def test_bad_inputs(tmp_path: Path) -> None:
 
 
 def test_real_model_path_on_tiny_model(tmp_path: Path) -> None:
-    """A tiny real network through model_embedder: descriptors of unit norm, recall in range."""
+    """A tiny real network through module_embedder: descriptors of unit norm, recall in range."""
     torch = pytest.importorskip("torch")
     from pnvlad_service.models.config import ModelConfig
+    from pnvlad_service.models.embedding import module_embedder
     from pnvlad_service.models.pointnetvlad import build_model
 
     runs, _ = hand_case(tmp_path)
     torch.manual_seed(0)
     cfg = ModelConfig.compact(num_points=64, cluster_size=4, output_dim=16)
     model = build_model(cfg)
-    emb = evaluate.model_embedder(model)
+    emb = module_embedder(model)
     d = evaluate.embed_paths(emb, runs[0].db_paths, 64, chunk=3)
     assert d.shape == (10, 16) and d.dtype == np.float32
     assert np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4)
@@ -202,7 +205,6 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
-    from tests.test_train import make_tiny_tree, tiny_config
 
     root = tmp_path_factory.mktemp("evaltree")
     splits = make_tiny_tree(root, runs=3, train_step=10.0)
@@ -254,6 +256,7 @@ def test_cli_eval_checkpoint_report_and_figures(
     assert rep["recall_at_1pct"] == pytest.approx(rep["recall_at_1"])
     assert rep["recall_at_n"] == sorted(rep["recall_at_n"])  # cumulative
     assert "joint" in rep and rep["joint"]["n_queries"] > 0
+    assert rep["encoder"]["path"] == str(run / "model")  # the run directory's final model
     assert f"recall@1 {rep['recall_at_1']:.2f}" in res.output
     if _has_matplotlib():
         assert (tmp_path / "fig" / "recall_at_n.png").is_file()
@@ -311,17 +314,46 @@ def test_cli_eval_from_published_pickles_matches_splits(
     assert reps[0]["recall_at_1pct"] == pytest.approx(reps[1]["recall_at_1pct"])
 
 
+def test_cli_eval_summary_names_what_was_evaluated(
+    trained: tuple[Path, Path, Path], tmp_path: Path
+) -> None:
+    """The summary line names the model directory and its architecture (or "baseline"), not
+    the folder the command was pointed at: `-m RUN` evaluates RUN/model."""
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    root, splits, run = trained
+    data = ["--root", str(root), "--splits", str(splits), "--no-progress"]
+    model = f"{run / 'model'} (pointnetvlad)"  # the run's final model: a compact PN_VLAD
+    for what, label in (
+        (["--checkpoint", str(run)], model),
+        (["-m", str(run)], model),
+        (["--model", str(run / "model")], model),
+        (["--baseline"], "baseline"),
+    ):
+        res = CliRunner().invoke(app, ["-q", "eval", *what, *data])
+        assert res.exit_code == 0, res.output
+        first = res.stdout.splitlines()[0]
+        pattern = rf"{re.escape(label)}: recall@1 [\d.]+ %, recall@1% [\d.]+ % over 6 run pairs"
+        assert re.fullmatch(pattern + r" \(\d+ queries\)", first), first
+
+
 def test_cli_eval_errors_exit_2(tmp_path: Path) -> None:
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
 
     res = CliRunner().invoke(app, ["eval", "--root", str(tmp_path)])
-    assert res.exit_code == 2 and "--checkpoint" in res.output
+    assert res.exit_code == 2 and "--model" in res.output
     res = CliRunner().invoke(
         app, ["eval", "--checkpoint", str(tmp_path / "none"), "--root", str(tmp_path)]
     )
     assert res.exit_code == 2
+    # a training run that has not written its final model yet: named as such
+    (tmp_path / "run" / "checkpoints").mkdir(parents=True)
+    res = CliRunner().invoke(app, ["eval", "-m", str(tmp_path / "run"), "--root", str(tmp_path)])
+    assert res.exit_code == 2 and "has not finished" in res.output
 
 
 def _has_matplotlib() -> bool:
@@ -354,3 +386,30 @@ def test_cli_eval_num_points_overrides_the_models(
     assert reports[4096]["num_points"] == 4096
     res = CliRunner().invoke(app, [*common, "--num-points", "0"])
     assert res.exit_code == 2 and "--num-points" in res.output
+
+
+def test_summary_lines_and_figures_of_a_two_area_report(tmp_path: Path) -> None:
+    def figures(r1: float, pct: float, pairs: int) -> dict:
+        return {"recall_at_1": r1, "recall_at_1pct": pct, "n_pairs": pairs}
+
+    runs, _ = hand_case(tmp_path / "data")
+    rep = evaluate.evaluate_runs(mean_embedder, runs, 64, progress=False, joint=True)
+    rep["per_area"] = {"a": {**rep["per_area"]["line"]}, "b": {**rep["per_area"]["line"]}}
+    rep.update(figures(50.0, 62.5, 12), n_queries_evaluated=120)
+    rep["per_area"]["b"].update(figures(25.0, 37.125, 6))
+    rep["joint"].update(figures(12.5, 100.0, 0), n_queries=30)
+    a = rep["per_area"]["a"]
+    assert evaluate.summary_lines("m (pointnetvlad)", rep) == [
+        "m (pointnetvlad): recall@1 50.00 %, recall@1% 62.50 % over 12 run pairs (120 queries)",
+        f"  a: recall@1 {a['recall_at_1']:.2f} %, recall@1% {a['recall_at_1pct']:.2f} %",
+        "  b: recall@1 25.00 %, recall@1% 37.12 %",
+        "  joint database: recall@1 12.50 %, recall@1% 100.00 %",
+    ]
+    del rep["joint"]
+    rep["per_area"].pop("b")
+    assert len(evaluate.summary_lines("x", rep)) == 1  # one area: no per-area lines
+    pytest.importorskip("matplotlib")
+    rep["per_area"]["b"] = rep["per_area"]["a"]
+    evaluate.write_figures("x", rep, tmp_path / "fig", [("other", rep)])
+    names = sorted(p.name for p in (tmp_path / "fig").iterdir())
+    assert names == ["query_map.png", "recall_at_n.png", "recall_at_n_by_area.png"]

@@ -1,9 +1,10 @@
 """`pnvlad localize` searching a bundle locally: the table, JSON output and usage errors.
-(Against a server: tests/test_server.py::test_pnvlad_localize_against_the_server.)"""
+(Against a server: tests/server/test_app.py::test_pnvlad_localize_against_the_server.)"""
 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,16 +13,7 @@ from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
 from pnvlad_service.index import build as ix
-from tests.index.helpers import PER_RUN, make_checkpoint, make_tree
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    base = tmp_path_factory.mktemp("localize")
-    tree = make_tree(base / "tree")
-    ckpt = make_checkpoint(base / "ckpt")
-    ix.build_bundle(base / "map.index", ckpt, tree, progress=False)
-    return {"tree": tree, "ckpt": ckpt, "bundle": base / "map.index"}
+from tests.index.helpers import PER_RUN
 
 
 def test_table_and_json_name_the_submap_itself_first(world: dict[str, Path]) -> None:
@@ -48,7 +40,7 @@ def test_table_and_json_name_the_submap_itself_first(world: dict[str, Path]) -> 
             "benchmark",
             "--index",
             str(world["bundle"]),
-            "-c",
+            "-m",
             str(world["ckpt"]),
             "--json",
         ],
@@ -59,6 +51,26 @@ def test_table_and_json_name_the_submap_itself_first(world: dict[str, Path]) -> 
     assert body["matches"][0]["submap_id"] == rec.submap_id
     d = [m["distance"] for m in body["matches"]]
     assert d == sorted(d) and d[0] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_model_is_a_model_or_a_training_run_directory(
+    world: dict[str, Path], tmp_path: Path
+) -> None:
+    """-m/--model and --checkpoint take a model directory or the training run that made it
+    (OUT/model); -c is no longer a model flag anywhere."""
+    run = tmp_path / "run"
+    shutil.copytree(world["ckpt"], run / "model")
+    rec = ix.list_database_submaps(world["tree"])[3]
+    base = ["localize", str(world["tree"] / rec.path), "--reader", "benchmark", "--json"]
+    base += ["--index", str(world["bundle"])]
+    for flag, model in (("--checkpoint", run), ("--model", world["ckpt"])):
+        res = CliRunner().invoke(app, [*base, flag, str(model)])
+        assert res.exit_code == 0, res.output
+        assert json.loads(res.stdout)["matches"][0]["submap_id"] == rec.submap_id
+    res = CliRunner().invoke(app, [*base, "-c", str(world["ckpt"])])
+    assert res.exit_code == 2 and "No such option: -c" in res.output
+    res = CliRunner().invoke(app, [*base, "-m", str(tmp_path / "nowhere")])
+    assert res.exit_code == 2 and "model directory not found" in res.output
 
 
 def test_usage_errors_exit_2(world: dict[str, Path], tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""Training: config, schedules, one forward per cloud a step, resume after SIGKILL, torchrun."""
+"""Training: schedules, one forward per cloud a step, resume after SIGKILL, torchrun."""
 
 from __future__ import annotations
 
@@ -12,174 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.training.config import TrainConfig
-
-REPO = Path(__file__).resolve().parents[1]
-BASE_N, BASE_E = 5_000_000.0, 600_000.0
-
-
-# ---------------------------------------------------------------------------------------------
-# A tiny benchmark tree: 3 runs along a 300 m street of box-shaped landmarks
-
-
-def _landmarks(seed: int = 7) -> np.ndarray:
-    """float64 [L, 6]: northing, easting (local metres), half sizes (n, e), height, kind."""
-    rng = np.random.default_rng(seed)
-    n = rng.uniform(-30, 330, 120)
-    e = rng.choice([-1, 1], 120) * rng.uniform(6, 25, 120)
-    return np.stack(
-        [
-            n,
-            e,
-            rng.uniform(0.5, 4, 120),
-            rng.uniform(0.5, 4, 120),
-            rng.uniform(1, 12, 120),
-            rng.integers(0, 3, 120),
-        ],
-        axis=1,
-    )
-
-
-def _cloud(lm: np.ndarray, north: float, east: float, rng: np.random.Generator) -> np.ndarray:
-    """float64 [4096, 3] in [-1, 1]: points on the landmarks within 25 m, centred and scaled."""
-    near = lm[np.hypot(lm[:, 0] - north, lm[:, 1] - east) < 25.0]
-    near = near[rng.random(len(near)) > 0.1]  # a run misses a few landmarks (parked cars...)
-    if len(near) == 0:
-        near = lm[np.argsort(np.hypot(lm[:, 0] - north, lm[:, 1] - east))[:2]]
-    pick = near[rng.integers(0, len(near), 4096)]
-    u = rng.uniform(-1, 1, (4096, 3))
-    pts = np.stack(
-        [
-            pick[:, 1] + u[:, 1] * pick[:, 3] - east,
-            pick[:, 0] + u[:, 0] * pick[:, 2] - north,
-            (u[:, 2] + 1) / 2 * pick[:, 4],
-        ],
-        axis=1,
-    )
-    pts += rng.normal(scale=0.05, size=pts.shape)
-    pts -= pts.mean(0)
-    pts /= max(np.abs(pts).max(), 1e-6)
-    return pts
-
-
-def make_tiny_tree(root: Path, runs: int = 3, train_step: float = 4.0) -> Path:
-    """A benchmark tree ``root/city/run<k>`` (oxford layout) with a test region around 220 m
-    (half size 50 m) and ``root/splits.json``. Returns the splits path."""
-    from pnvlad_service.data import splits
-    from pnvlad_service.data import tree as benchmark
-
-    lm = _landmarks()
-    for r in range(runs):
-        rng = np.random.default_rng(100 + r)
-        run = root / "city" / f"2020-01-0{r + 1}-00-00-00"
-        for kind, folder, csv, step in (
-            (
-                "train",
-                "pointcloud_20m_10overlap",
-                "pointcloud_locations_20m_10overlap.csv",
-                train_step,
-            ),
-            ("test", "pointcloud_20m", "pointcloud_locations_20m.csv", 10.0),
-        ):
-            (run / folder).mkdir(parents=True, exist_ok=True)
-            rows = []
-            for k, n in enumerate(np.arange(0.0, 300.0, step)):
-                east = rng.normal(scale=1.0)
-                ts = 1_600_000_000_000_000 + r * 10**10 + k * 10**6 + (kind == "test")
-                _cloud(lm, n, east, rng).astype("<f8").tofile(run / folder / f"{ts}.bin")
-                rows.append((ts, BASE_N + n, BASE_E + east))
-            benchmark.write_locations_csv(run / csv, rows)
-    regions = splits.TestRegions(((BASE_N + 220.0, BASE_E),), 50.0)
-    splits.save_regions(root / "city" / splits.REGIONS_FILE, regions)
-    s = splits.build_splits(root)
-    splits.save_splits(root / "splits.json", s)
-    return root / "splits.json"
-
-
-@pytest.fixture(scope="session")
-def tiny_tree(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    root = tmp_path_factory.mktemp("tiny_tree")
-    return root, make_tiny_tree(root)
-
-
-def tiny_config(root: Path, splits: Path, **train: object) -> TrainConfig:
-    """A very small network and run: 128 points, K = 4, 32-d output, 1 thread."""
-    cfg = TrainConfig.from_mapping(
-        {
-            "model": {
-                "preset": "compact",
-                "num_points": 128,
-                "cluster_size": 4,
-                "output_dim": 32,
-                "stem_widths": [16],
-                "trunk_widths": [32, 64],
-                "tnet_point_widths": [16, 32],
-                "tnet_fc_widths": [16],
-            },
-            "train": {
-                "batch_size": 2,
-                "positives": 2,
-                "negatives": 6,
-                "hard_negatives": 3,
-                "sampled_negatives": 40,
-                "cache_warmup_epochs": 0,
-                "cache_refresh_steps": 3,
-                "checkpoint_every": 2,
-                "log_every": 1,
-                "val_every": 0,
-                "threads": 1,
-                "workers": 2,
-                "lr": 1e-3,
-                **train,
-            },
-            "data": {"root": str(root), "splits": str(splits)},
-        }
-    )
-    return cfg
-
-
-# ---------------------------------------------------------------------------------------------
-# config and schedules
-
-
-def test_config_file_partial_fields_and_overrides(tmp_path: Path) -> None:
-    p = tmp_path / "c.yaml"
-    p.write_text("model: {preset: compact, num_points: 512}\ntrain: {lr: 0.001, epochs: 3}\n")
-    cfg = TrainConfig.from_file(p)
-    assert cfg.model.num_points == 512 and cfg.model.cluster_size == 16
-    assert cfg.train.lr == 1e-3 and cfg.train.epochs == 3 and cfg.train.negatives == 18
-    cfg2 = cfg.with_overrides({"train.batch_size": 8, "model.arch": "pointnet-max", "x": None})
-    assert cfg2.train.batch_size == 8 and cfg2.model.arch == "pointnet-max"
-    # the dumped YAML holds every field and reads back to the same config
-    assert TrainConfig.from_mapping(yaml.safe_load(cfg2.to_yaml())) == cfg2
-    t = tmp_path / "c.toml"
-    t.write_text("[train]\nseed = 5\n")
-    assert TrainConfig.from_file(t).train.seed == 5
-
-
-def test_config_errors_name_the_field(tmp_path: Path) -> None:
-    p = tmp_path / "bad.yaml"
-    p.write_text("train: {lr: -1}\n")
-    with pytest.raises(InputError, match=r"train\.lr"):
-        TrainConfig.from_file(p)
-    p.write_text("train: {learning_rate: 1}\n")
-    with pytest.raises(InputError, match="learning_rate"):
-        TrainConfig.from_file(p)
-    with pytest.raises(InputError, match="unknown config field"):
-        TrainConfig().with_overrides({"nope.x": 1})
-    with pytest.raises(InputError):
-        TrainConfig.from_file(tmp_path / "missing.yaml")
-
-
-def test_shipped_configs_load() -> None:
-    paper = TrainConfig.preset("paper")
-    assert paper == TrainConfig()  # paper.yaml lists exactly the defaults
-    assert paper.train.lr == 5e-5 and paper.train.negatives == 18 and paper.train.positives == 2
-    assert paper.model.cluster_size == 64
-    assert TrainConfig.preset("compact").model.cluster_size == 16
+from tests.training.street import tiny_config
 
 
 def test_schedules_hand_worked() -> None:
@@ -193,10 +29,6 @@ def test_schedules_hand_worked() -> None:
     assert bn_momentum(cfg, 0) == pytest.approx(0.5)  # TF decay 0.5
     assert bn_momentum(cfg, 100_000) == pytest.approx(0.25)
     assert bn_momentum(cfg, 10**7) == pytest.approx(0.01)  # decay clipped at 0.99
-
-
-# ---------------------------------------------------------------------------------------------
-# training in-process
 
 
 def test_each_cloud_embedded_once_per_step(tiny_tree: tuple[Path, Path], tmp_path: Path) -> None:
@@ -282,10 +114,6 @@ def test_refuses_to_overwrite_a_run(tiny_tree: tuple[Path, Path], tmp_path: Path
         train(cfg, tmp_path / "run", progress=False)
     with pytest.raises(InputError, match="no checkpoint"):
         train(cfg, tmp_path / "other", progress=False, resume=True)
-
-
-# ---------------------------------------------------------------------------------------------
-# real processes: kill and resume, torchrun
 
 
 def _cli(*args: str) -> list[str]:
@@ -425,3 +253,87 @@ def test_published_pickles_train_like_our_splits(
     finally:
         torch.set_num_threads(threads)
     assert a.losses == b.losses
+
+
+# ---------------------------------------------------------------------------------------------
+# data too small for the configured tuple: adapt, or one clear error before anything is written
+
+
+@pytest.fixture(scope="module")
+def synth_tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """`pnvlad synth --preset tiny` (its default seed): 33 training submaps, every anchor with
+    15 to 18 negatives, fewer than the paper's 18 negatives and 1 other negative a tuple."""
+    from pnvlad_service.synth.generate import generate
+
+    root = tmp_path_factory.mktemp("synth") / "t"
+    generate("tiny", root, seed=0, workers=2, progress=False)
+    return root
+
+
+@pytest.mark.parametrize("config", [[], ["-c", "compact"]], ids=["paper", "compact"])
+def test_the_tiny_synth_preset_trains_with_the_default_command(
+    synth_tiny: Path, tmp_path: Path, config: list[str]
+) -> None:
+    """`pnvlad train --root t --out r` on the tiny preset (it died with a ValueError traceback
+    from mining): the tuple shrinks to the negatives the set holds, and a warning names the
+    option. --num-points only keeps the step quick; the tuple is the configured one."""
+    pytest.importorskip("torch")
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+    from pnvlad_service.data.dataset import load_training_data
+
+    cfg = TrainConfig.preset(config[-1] if config else "paper")
+    ts, _ = load_training_data(cfg.with_overrides({"data.root": synth_tiny}).data)
+    anchors = ts.anchors()
+    every = np.arange(len(ts))
+    fewest = min(int(ts.negative_mask(int(a), every[every != a]).sum()) for a in anchors)
+    assert fewest <= cfg.train.negatives  # the preset is too small for the configured tuple
+    run = tmp_path / "r"
+    args = ["-q", "train", *config, "--root", str(synth_tiny), "--out", str(run)]
+    res = CliRunner().invoke(app, [*args, "--max-steps", "1", "--num-points", "256"])
+    assert res.exit_code == 0, res.output
+    assert "Traceback" not in res.output
+    assert f"using {fewest - 1} negatives a tuple" in res.output and "train.negatives" in res.output
+    assert "1 steps (max_steps)" in res.stdout
+    steps = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    step = [e for e in steps if e["event"] == "step"]
+    assert len(step) == 1 and np.isfinite(step[0]["loss"])
+    from pnvlad_service.models.store import load_model
+
+    _, mcfg = load_model(run / "model")
+    assert mcfg.cluster_size == cfg.model.cluster_size  # the preset's model, not a stand-in
+
+
+def test_too_few_anchors_for_the_batch_is_one_line_and_writes_nothing(
+    synth_tiny: Path, tmp_path: Path
+) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    run = tmp_path / "r"
+    res = CliRunner().invoke(
+        app, ["-q", "train", "-r", str(synth_tiny), "-o", str(run), "--batch-size", "64"]
+    )
+    assert res.exit_code == 2
+    assert res.output.count("\n") == 1 and "fewer than the batch size 64" in res.output
+    assert "--batch-size" in res.output
+    assert not run.exists()
+
+
+def test_a_set_without_room_for_a_tuple_is_refused_before_writing(tmp_path: Path) -> None:
+    """Submaps along 40 m only: no anchor has 2 negatives (one for the tuple, one "other"):
+    an InputError naming train.mining, and the output directory never appears."""
+    pytest.importorskip("torch")
+    from pnvlad_service.data.dataset import TrainingSet
+    from pnvlad_service.training.train import train
+
+    north = np.arange(9) * 5.0
+    positives = [np.flatnonzero((np.abs(north - n) <= 10) & (north != n)) for n in north]
+    ts = TrainingSet([tmp_path / f"{i}.bin" for i in range(9)], np.c_[north, 0 * north], positives)
+    cfg = TrainConfig().with_overrides({"train.device": "cpu"})
+    with pytest.raises(InputError, match="too small for tuple mining") as err:
+        train(cfg, tmp_path / "run", training_set=ts, progress=False)
+    assert err.value.source == "train.mining"
+    assert not (tmp_path / "run").exists()

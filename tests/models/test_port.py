@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterator
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -24,15 +24,6 @@ from pnvlad_service.models.port import convert_port_state, import_port, port_con
 from pnvlad_service.models.store import load_model
 
 D, K = 1024, 64
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    """These tensors are small: one thread avoids OpenMP barrier stalls on a busy machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def port_shapes(output_dim: int = 256) -> dict[str, tuple[int, ...]]:
@@ -255,6 +246,13 @@ def test_cli_import_and_info(tmp_path: Path) -> None:
     assert doc["model"]["output_dim"] == 16 and doc["model"]["trunk_batch_norm"] is True
     buffers = ("running_mean", "running_var", "num_batches_tracked")
     assert doc["parameters"] == sum(v.numel() for k, v in state.items() if not k.endswith(buffers))
+    # a training run directory names its final model, as in every command that takes a model
+    shutil.copytree(tmp_path / "m", tmp_path / "run" / "model")
+    res = runner.invoke(app, ["model", "info", str(tmp_path / "run"), "--json"])
+    assert res.exit_code == 0, res.output
+    doc_run = json.loads(res.output)
+    assert doc_run["dir"] == str(tmp_path / "run" / "model")
+    assert doc_run["weights_sha256"] == doc["weights_sha256"]
     del state["net_vlad.cluster_weights"]
     torch.save(state, ckpt)
     res = runner.invoke(app, ["model", "import", str(ckpt), "--out", str(tmp_path / "m2")])

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pnvlad_service.data.dataset import TrainingSet
+from pnvlad_service.errors import InputError
 from pnvlad_service.training import mining
 
 
@@ -156,31 +157,6 @@ def test_negative_lists_from_pickle_style_sets() -> None:
         mining.AnchorSampler(np.array([], dtype=np.int64), 0)
 
 
-def test_training_sets_of_two_datasets_pool_with_offsets(tmp_path) -> None:
-    from pnvlad_service.data.dataset import training_set_from_tuples
-    from pnvlad_service.data.splits import TrainingTuples
-
-    def tt(name: str, n: int) -> TrainingTuples:
-        north = np.arange(n) * 6.0
-        pos = [
-            np.array([j for j in range(n) if j != i and abs(north[j] - north[i]) <= 10])
-            for i in range(n)
-        ]
-        near = [np.array([j for j in range(n) if abs(north[j] - north[i]) <= 50]) for i in range(n)]
-        return TrainingTuples(
-            name, [f"{name}/r/p/{i}.bin" for i in range(n)], pos, near, north, np.zeros(n)
-        )
-
-    ts = training_set_from_tuples([tt("a", 20), tt("b", 30)], tmp_path)
-    assert len(ts) == 50
-    assert ts.paths[25] == tmp_path / "b" / "r" / "p" / "5.bin"
-    assert ts.positives[25].tolist() == [24, 26]  # b's 4 and 6, offset by 20
-    # a negative of a b-submap is any a-submap (never near) or a b-submap beyond 50 m
-    mask = ts.negative_mask(25, np.arange(50))
-    assert mask[:20].all()
-    assert mask[20:].tolist() == [abs(k - 5) * 6.0 > 50 for k in range(30)]
-
-
 def test_other_negative_falls_back_on_small_trees() -> None:
     """On a 20-submap line every negative is a positive of some negative: the rule is relaxed
     to "a negative of the anchor outside the tuple" instead of failing."""
@@ -190,3 +166,69 @@ def test_other_negative_falls_back_on_small_trees() -> None:
     neg = np.array([j for j in range(20) if ts.positions[j, 0] > 50])  # 55..95 m, all of them
     o = mining.pick_other_negative(rng, ts, anchor, ts.positives[anchor][:2], neg[:-1])
     assert o == neg[-1]
+
+
+# -- a training set too small for the configured tuple ----------------------------------------
+
+
+def _negatives_by_loop(ts: TrainingSet, i: int) -> int:
+    """Negatives of submap i counted one candidate at a time (no vectorised mask)."""
+    if ts.near is not None:
+        near = set(ts.near[i].tolist())
+        return sum(1 for j in range(len(ts)) if j != i and j not in near)
+    north, east = ts.positions[i]
+    return sum(
+        1
+        for j in range(len(ts))
+        if (ts.positions[j, 0] - north) ** 2 + (ts.positions[j, 1] - east) ** 2 > 50.0**2
+    )
+
+
+def test_negative_counts_match_a_plain_loop() -> None:
+    ts = line_set(40, spacing=4.0)
+    idx = np.arange(40)
+    want = [_negatives_by_loop(ts, i) for i in range(40)]
+    assert mining.negative_counts(ts, idx, block=7).tolist() == want
+    assert want[0] == 27 and want[20] == 40 - 25  # 0 m: 52..156 m; 80 m: beyond 30 and 130 m
+    # the splits' form: "near" lists (i included) instead of positions
+    near = [np.flatnonzero(np.abs(ts.positions[:, 0] - ts.positions[i, 0]) <= 50) for i in idx]
+    ts2 = TrainingSet(ts.paths, np.full((40, 2), np.nan), ts.positives, near=near)
+    assert mining.negative_counts(ts2, idx).tolist() == want
+
+
+def test_fit_negatives_keeps_a_tuple_that_fits() -> None:
+    ts = line_set()  # 60 submaps 5 m apart: every anchor has at least 49 negatives
+    assert mining.fit_negatives(ts, ts.anchors(), 18, 10) == (18, 10)
+
+
+def test_fit_negatives_shrinks_the_tuple_to_what_the_set_holds(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    ts = line_set(24, spacing=5.0)  # 0..115 m: the middle anchors have 3 negatives
+    anchors = ts.anchors()
+    fewest = min(_negatives_by_loop(ts, int(a)) for a in anchors)
+    assert fewest == 3
+    # the published 18 negatives cannot be drawn: today's sampler fails on such a set
+    with pytest.raises(ValueError, match="no negative outside its tuple"):
+        mining.sample_tuples(np.random.default_rng(0), ts, anchors, negatives=18)
+    with caplog.at_level("WARNING"):
+        negatives, hard = mining.fit_negatives(ts, anchors, 18, 10)
+    assert (negatives, hard) == (fewest - 1, fewest - 1)  # one negative left for the other
+    assert "train.negatives" in caplog.text and f"using {fewest - 1} negatives" in caplog.text
+    # with the fitted sizes every anchor gets a full tuple and a proper other negative
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        tb = mining.sample_tuples(rng, ts, anchors, negatives=negatives)
+        assert tb.negatives.shape == (len(anchors), negatives)
+        for r, a in enumerate(tb.anchors.tolist()):
+            neg = set(tb.negatives[r].tolist())
+            assert all(abs(ts.positions[n, 0] - ts.positions[a, 0]) > 50 for n in neg)
+            assert tb.others[r] not in neg | {a} | set(tb.positives[r].tolist())
+            assert abs(ts.positions[tb.others[r], 0] - ts.positions[a, 0]) > 50
+
+
+def test_fit_negatives_refuses_a_set_without_room_for_a_tuple() -> None:
+    ts = line_set(16, spacing=5.0)  # 0..75 m: the middle anchors have no negative at all
+    with pytest.raises(InputError, match="too small for tuple mining") as err:
+        mining.fit_negatives(ts, ts.anchors(), 18, 10)
+    assert err.value.source == "train.mining" and "--mining in_batch" in str(err.value)

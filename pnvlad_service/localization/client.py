@@ -1,0 +1,150 @@
+"""The HTTP client of ``pnvlad serve`` (standard library only): one keep-alive connection.
+
+:class:`LocalizeClient` sends a cloud as a binary body (little-endian xyz, float64 when the
+array is float64, else float32) and returns the server's JSON answer; ``ready()`` and
+``info()`` ask the operations routes. A refused request (4xx) raises
+:class:`ServerRefused` (an ``InputError``), any other failure :class:`ServerError`, both with
+the problem's ``detail`` and the status. One client is not thread-safe: one per thread.
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import urllib.parse
+from typing import Any
+
+import numpy as np
+
+from pnvlad_service.errors import InputError, PnvladError
+
+_RETRY = (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError)
+
+
+class ServerError(PnvladError):
+    """The server answered an error (``status``, its problem document) or could not be
+    reached (``status`` None)."""
+
+    def __init__(
+        self, url: str, message: str, status: int | None = None, problem: Any = None
+    ) -> None:
+        super().__init__(f"{url}: {message}")
+        self.url, self.status, self.problem = url, status, problem
+
+
+class ServerRefused(InputError):
+    """The server refused the request (4xx): the input was wrong (the detail says what)."""
+
+    def __init__(self, url: str, message: str, status: int, problem: Any = None) -> None:
+        super().__init__(message, source=url)
+        self.url, self.status, self.problem = url, status, problem
+
+
+class LocalizeClient:
+    """A client of the server at ``url`` (``http://host:port`` with an optional path prefix);
+    ``api_key``: the bearer token; ``timeout``: seconds per request."""
+
+    def __init__(self, url: str, api_key: str | None = None, timeout: float = 120.0) -> None:
+        parts = urllib.parse.urlsplit(url)
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise InputError("expected an http:// or https:// URL", source=url)
+        self.url = url
+        self.timeout = timeout
+        self._parts = parts
+        self._prefix = parts.path.rstrip("/")
+        self._headers = {"Accept": "application/json"}
+        if api_key:
+            self._headers["Authorization"] = f"Bearer {api_key}"
+        self._conn: http.client.HTTPConnection | None = None
+
+    def close(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def __enter__(self) -> LocalizeClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # the API ----------------------------------------------------------------------------
+    def localize(
+        self, points: np.ndarray, top_n: int = 5, preprocess: bool = False
+    ) -> dict[str, Any]:
+        """The server's answer for one cloud float [N, 3] (a raw scan with ``preprocess``):
+        ``{"matches": [...], "batch_size", "timings_ms", "model", "index"}``."""
+        arr = np.asarray(points)
+        dtype = "float64" if arr.dtype == np.float64 else "float32"
+        body = np.ascontiguousarray(arr, dtype="<f8" if dtype == "float64" else "<f4")
+        query = urllib.parse.urlencode(
+            {"top_n": top_n, "preprocess": str(preprocess).lower(), "dtype": dtype}
+        )
+        return self.call("POST", f"/localize?{query}", body.tobytes(), "application/octet-stream")
+
+    def ready(self) -> bool:
+        """Whether the server answers ``GET /readyz`` with 200 (False when unreachable)."""
+        try:
+            status, _ = self.send("GET", "/readyz")
+        except ServerError:
+            return False
+        return status == 200
+
+    def info(self) -> dict[str, Any]:
+        """``GET /info``: the bundle's manifest, the model and the request limits."""
+        return self.call("GET", "/info")
+
+    # the transport ----------------------------------------------------------------------
+    def call(
+        self, method: str, path: str, body: bytes | None = None, content_type: str | None = None
+    ) -> Any:
+        """One request; its JSON answer, or :class:`ServerRefused` / :class:`ServerError`."""
+        status, data = self.send(method, path, body, content_type)
+        if status >= 400:
+            raise self._error(status, data)
+        return json.loads(data)
+
+    def send(
+        self, method: str, path: str, body: bytes | None = None, content_type: str | None = None
+    ) -> tuple[int, bytes]:
+        """One request on the kept connection (reopened once if the server closed it while
+        idle); ``(status, body)`` whatever the status. :class:`ServerError` if unreachable."""
+        headers = dict(self._headers)
+        if content_type is not None:
+            headers["Content-Type"] = content_type
+        for attempt in (0, 1):
+            reused = self._conn is not None
+            conn = self._connection()
+            try:
+                conn.request(method, f"{self._prefix}{path}", body=body, headers=headers)
+                resp = conn.getresponse()
+                return resp.status, resp.read()
+            except _RETRY as exc:
+                self.close()
+                if not reused or attempt:
+                    raise ServerError(self.url, f"cannot reach the server: {exc}") from None
+            except (OSError, http.client.HTTPException) as exc:
+                self.close()
+                raise ServerError(self.url, f"cannot reach the server: {exc}") from None
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _connection(self) -> http.client.HTTPConnection:
+        if self._conn is None:
+            cls = (
+                http.client.HTTPSConnection
+                if self._parts.scheme == "https"
+                else http.client.HTTPConnection
+            )
+            self._conn = cls(self._parts.hostname, self._parts.port, timeout=self.timeout)
+        return self._conn
+
+    def _error(self, status: int, data: bytes) -> PnvladError:
+        try:
+            problem = json.loads(data)
+            detail = problem.get("detail") or http.client.responses.get(status, "")
+        except (ValueError, AttributeError):
+            problem, detail = None, http.client.responses.get(status, "")
+        message = f"server answered {status}: {detail}"
+        if 400 <= status < 500:
+            return ServerRefused(self.url, message, status, problem)
+        return ServerError(self.url, message, status, problem)

@@ -1,0 +1,134 @@
+"""The limits of a query and the check of its point array: the one home of both.
+
+:class:`Limits` holds every bound a query must respect (the server builds one from its
+settings; the library's default is the server's default). :meth:`Limits.check_points` is the
+check of one cloud as an array, used by every way a cloud arrives: the server's JSON and
+binary bodies and a library or CLI caller. The server's request models and their JSON Schema
+(``pnvlad_service.server.contract``) are derived from the same :class:`Limits`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_POINTS
+
+#: Slack on the submap bound: normalised clouds written by other tools round a little past it.
+BOUND_SLACK = 1e-4
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What a query may hold. Points per cloud and the coordinate bounds are the format's;
+    the counts are configurable (``ServerSettings`` takes its defaults from here)."""
+
+    #: Most points of a raw scan (``preprocess``); the fewest is 1 (the filter G may still
+    #: refuse a scan that ground removal leaves too small).
+    max_raw_points: int = 500_000
+    #: Largest ``top_n`` a query may ask for.
+    max_top_n: int = 100
+    #: Most clouds in one batch request.
+    max_batch_queries: int = 64
+    #: ``top_n`` when a query gives none.
+    default_top_n: int = 5
+    #: Points of a preprocessed cloud (exactly).
+    points_per_cloud: int = SUBMAP_POINTS
+    #: Largest |coordinate| of a preprocessed cloud (the normalised frame, with its slack).
+    bound: float = SUBMAP_BOUND + BOUND_SLACK
+    #: Largest |coordinate| of a raw scan, metres (sensor frame): far beyond any LiDAR's
+    #: range, and it keeps overflowing values (1e308) away from the filter G's plane fits.
+    max_raw_coord: float = 100_000.0
+    #: Fewest points of a raw scan.
+    min_raw_points: int = 1
+
+    def to_json(self) -> dict[str, int]:
+        """The configurable counts and the cloud size, as ``GET /info`` reports them."""
+        return {
+            "max_raw_points": self.max_raw_points,
+            "max_top_n": self.max_top_n,
+            "max_batch_queries": self.max_batch_queries,
+            "points_per_cloud": self.points_per_cloud,
+        }
+
+    def check_top_n(self, top_n: Any, field: str = "top_n") -> int:
+        """``top_n`` as an int in 1..max_top_n; :class:`InputError` naming ``field`` else."""
+        if isinstance(top_n, bool) or not isinstance(top_n, int):
+            raise InputError(f"expected an integer, got {show_value(top_n)}", field)
+        if not 1 <= top_n <= self.max_top_n:
+            raise InputError(f"must be between 1 and {self.max_top_n}, got {top_n}", field)
+        return top_n
+
+    def check_count(self, count: int, field: str) -> None:
+        """A batch of ``count`` clouds: 1..max_batch_queries."""
+        if not 1 <= count <= self.max_batch_queries:
+            raise InputError(f"expected 1 to {self.max_batch_queries} clouds, got {count}", field)
+
+    def check_points(self, points: np.ndarray, preprocess: bool, field: str) -> np.ndarray:
+        """Validate one cloud; return float32 [4096, 3] (preprocessed) or float64 [N, 3] (raw).
+
+        Preprocessed: exactly :attr:`points_per_cloud` finite points, |coordinate| <=
+        :attr:`bound`. Raw (``preprocess``): :attr:`min_raw_points` to :attr:`max_raw_points`
+        finite points, |coordinate| <= :attr:`max_raw_coord` metres. The checks run in that
+        order; errors name ``field`` or ``field[i]`` of the first bad point. No copy is made
+        when ``points`` already has the returned dtype and is contiguous.
+        """
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise InputError(
+                f"expected an array of [x, y, z] points, got shape {points.shape}", field
+            )
+        n = len(points)
+        if not np.isfinite(points).all():
+            bad = int(np.argwhere(~np.isfinite(points))[0][0])
+            raise InputError(f"point {bad} has a NaN or infinite coordinate", f"{field}[{bad}]")
+        if preprocess:
+            if not self.min_raw_points <= n <= self.max_raw_points:
+                raise InputError(
+                    f"a raw scan needs between {self.min_raw_points} and {self.max_raw_points} "
+                    f"points, got {n}",
+                    field,
+                )
+            out64 = np.ascontiguousarray(points, dtype=np.float64)
+            if _outside(out64, self.max_raw_coord):
+                bad = _first_outside(out64, self.max_raw_coord)
+                raise InputError(
+                    f"point {bad} is more than {self.max_raw_coord:,.0f} m from the sensor: raw "
+                    "scans are in the sensor frame, metres",
+                    f"{field}[{bad}]",
+                )
+            return out64
+        if n != self.points_per_cloud:
+            raise InputError(
+                f"expected exactly {self.points_per_cloud} preprocessed points, got {n} "
+                "(send a raw scan with preprocess=true)",
+                field,
+            )
+        if _outside(points, self.bound):  # on the values as sent, before the float32 cast
+            bad = _first_outside(points, self.bound)
+            raise InputError(
+                f"point {bad} lies outside [-1, 1]: preprocessed points are in the benchmark's "
+                "normalised frame (send a raw scan with preprocess=true)",
+                f"{field}[{bad}]",
+            )
+        return np.ascontiguousarray(points, dtype=np.float32)
+
+
+def show_value(value: Any) -> str:
+    """A value as JSON (as a JSON body would have it), else its repr; at most 40 characters."""
+    try:
+        return json.dumps(value)[:40]
+    except (TypeError, ValueError):
+        return repr(value)[:40]
+
+
+def _outside(points: np.ndarray, bound: float) -> bool:
+    """Whether any coordinate of finite ``points`` has |value| > ``bound`` (no temporary)."""
+    return bool(points.max() > bound or points.min() < -bound)
+
+
+def _first_outside(points: np.ndarray, bound: float) -> int:
+    return int(np.argmax((np.abs(points) > bound).any(axis=1)))

@@ -1,0 +1,361 @@
+"""Localisation as a library: a bundle and its model loaded together, a cloud in, typed
+matches out. No HTTP here; the server (``pnvlad_service.server``) and ``pnvlad localize``
+are two callers of the same path.
+
+One query goes through four steps, whoever drives them:
+
+1. ``Limits.check_points`` (:mod:`pnvlad_service.localization.limits`) validates the array;
+2. :meth:`Localizer.prepare` runs the filter G on a raw scan, with the bundle's G config;
+3. :meth:`Localizer.submit` embeds and searches (queued to the micro-batcher when the
+   localizer was loaded with :class:`Batching`, else at once in the caller's thread);
+4. :meth:`Localizer.answer` turns the batch result into an :class:`Answer`.
+
+:meth:`Localizer.localize` runs the four in a row (the CLI, scripts); the server runs them
+from its event loop, awaiting step 3. Errors are the library's own: ``InputError`` (bad cloud,
+a bundle built with other weights), ``NotReadyError`` (used after :meth:`Localizer.close`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pnvlad_service.errors import InputError, NotReadyError
+from pnvlad_service.index.build import load_encoder
+from pnvlad_service.index.bundle import IndexBundle, Match
+from pnvlad_service.index.manifest import Manifest
+from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
+from pnvlad_service.localization.limits import Limits
+from pnvlad_service.models.store import ModelIdentity, model_identity
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "Answer",
+    "Batching",
+    "IndexInfo",
+    "Localizer",
+    "LocalizerInfo",
+    "Match",
+    "ModelInfo",
+    "Timings",
+    "checked_model",
+    "set_threads",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Typed answers
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Timings:
+    """Seconds one query spent in each stage (``queue``: waiting for the batcher)."""
+
+    parse: float = 0.0
+    preprocess: float = 0.0
+    queue: float = 0.0
+    embed: float = 0.0
+    search: float = 0.0
+    total: float = 0.0
+
+    def seconds(self) -> dict[str, float]:
+        return {
+            "parse": self.parse,
+            "preprocess": self.preprocess,
+            "queue": self.queue,
+            "embed": self.embed,
+            "search": self.search,
+            "total": self.total,
+        }
+
+    def to_json(self) -> dict[str, float]:
+        """Milliseconds, rounded to the microsecond."""
+        return {k: round(v * 1000.0, 3) for k, v in self.seconds().items()}
+
+
+def match_json(m: Match) -> dict[str, Any]:
+    """One match as the HTTP answer has it: no zone and a non-finite distance are ``null``."""
+    return {
+        "rank": m.rank,
+        "submap_id": m.submap_id,
+        "dataset": m.dataset,
+        "run": m.run,
+        "timestamp": m.timestamp,
+        "northing": m.northing,
+        "easting": m.easting,
+        "utm_zone": m.utm_zone or None,
+        "distance": m.distance if math.isfinite(m.distance) else None,
+    }
+
+
+@dataclass(frozen=True)
+class Answer:
+    """The nearest map places of one cloud, nearest first (``rank`` 1), and how long it took.
+
+    ``batch_size``: clouds embedded together with this one.
+    """
+
+    matches: tuple[Match, ...]
+    batch_size: int
+    timings: Timings
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "matches": [match_json(m) for m in self.matches],
+            "batch_size": self.batch_size,
+            "timings_ms": self.timings.to_json(),
+        }
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """The loaded model: sha256 of its weights and of its configuration, arch, output dim."""
+
+    weights_sha256: str
+    config_sha256: str
+    arch: str | None
+    dim: int
+
+
+@dataclass(frozen=True)
+class IndexInfo:
+    """The loaded bundle: its id (16 hex digits of the index file's sha256), key, vectors."""
+
+    id: str
+    key: str
+    count: int
+
+
+@dataclass(frozen=True)
+class LocalizerInfo:
+    model: ModelInfo
+    index: IndexInfo
+
+    def to_json(self) -> dict[str, Any]:
+        return {"model": vars(self.model).copy(), "index": vars(self.index).copy()}
+
+
+# --------------------------------------------------------------------------------------------
+# The compatibility check
+# --------------------------------------------------------------------------------------------
+
+
+def checked_model(index: str | Path, model: str | Path | None = None) -> ModelIdentity:
+    """The model to load with the bundle at ``index``: ``model`` (a model directory or a
+    training run), else the one the bundle records. :class:`InputError` naming both files when
+    the bundle was built with other weights (``Manifest.check_model``)."""
+    manifest = Manifest.read(index)
+    if model is None:
+        model = manifest.model.checkpoint
+        if not model:
+            raise InputError("the bundle records no checkpoint; pass --checkpoint", index)
+    identity = model_identity(model)
+    manifest.check_model(identity)
+    return identity
+
+
+# --------------------------------------------------------------------------------------------
+# The localiser
+# --------------------------------------------------------------------------------------------
+
+
+def set_threads(torch_threads: int | None = None, faiss_threads: int | None = None) -> None:
+    """Process-wide thread counts of torch (intra-op) and FAISS (OpenMP); ``None``: as is."""
+    if torch_threads:
+        import torch
+
+        torch.set_num_threads(torch_threads)
+    if faiss_threads:
+        import faiss
+
+        faiss.omp_set_num_threads(faiss_threads)
+
+
+class Localizer:
+    """A bundle and the encoder it was built with, loaded once; answers queries.
+
+    With ``batching``, concurrent callers (threads, or an event loop's requests) share forward
+    passes through a :class:`MicroBatcher`; without, each query runs in its caller's thread.
+    """
+
+    def __init__(
+        self,
+        bundle: IndexBundle,
+        encoder: Any,
+        identity: ModelIdentity,
+        batching: Batching | None = None,
+        on_batch: Callable[[int], None] | None = None,
+    ) -> None:
+        if getattr(encoder, "dim", bundle.dim) != bundle.dim:
+            raise InputError(
+                f"encoder output dimension {encoder.dim} != index dimension {bundle.dim}",
+                bundle.path,
+            )
+        from pnvlad_service.data.preprocess import GConfig
+
+        self.bundle = bundle
+        self.encoder = encoder
+        self.identity = identity
+        recorded = bundle.manifest.preprocess
+        self._gconfig = GConfig.model_validate(dict(recorded)) if recorded else GConfig()
+        self.info = LocalizerInfo(
+            model=ModelInfo(
+                weights_sha256=identity.weights_sha256,
+                config_sha256=identity.config_sha256,
+                arch=identity.config.get("arch"),
+                dim=bundle.dim,
+            ),
+            index=IndexInfo(id=bundle.bundle_id, key=bundle.key, count=bundle.count),
+        )
+        self._closed = False
+        self._batcher = (
+            None
+            if batching is None
+            else MicroBatcher(
+                self._embed_and_search,
+                max_size=batching.max_size,
+                wait_ms=batching.wait_ms,
+                on_batch=on_batch,
+                lanes=batching.lanes,
+            )
+        )
+
+    @classmethod
+    def load(
+        cls,
+        index: str | Path,
+        model: str | Path | None = None,
+        *,
+        device: str | None = None,
+        verify: bool = True,
+        batching: Batching | None = None,
+        on_batch: Callable[[int], None] | None = None,
+    ) -> Localizer:
+        """Load the bundle at ``index`` and ``model`` (default: the one the bundle records),
+        after checking that the bundle was built with these weights (:func:`checked_model`);
+        ``verify``: check the bundle's files against their sha256."""
+        ident = checked_model(index, model)
+        t0 = time.perf_counter()
+        bundle = IndexBundle.load(index, verify=verify)
+        encoder = load_encoder(ident.checkpoint, device=device)
+        log.info(
+            "loaded %s (%s, %d vectors) and model %s in %.2f s",
+            index,
+            bundle.key,
+            bundle.count,
+            ident.checkpoint,
+            time.perf_counter() - t0,
+        )
+        return cls(bundle, encoder, ident, batching=batching, on_batch=on_batch)
+
+    def close(self) -> None:
+        """Finish queued batches, then stop the encoder's cloud worker threads."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._batcher is not None:
+            self._batcher.close()
+        close = getattr(self.encoder, "close", None)
+        if close is not None:
+            close()
+
+    def __enter__(self) -> Localizer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def manifest_json(self) -> dict[str, Any]:
+        """The bundle's manifest as JSON (``manifest.json``'s content)."""
+        return self.bundle.manifest.to_json()
+
+    # the steps of a query ---------------------------------------------------------------
+    @contextlib.contextmanager
+    def announce(self, count: int = 1) -> Iterator[None]:
+        """Tell the batcher that ``count`` clouds are being parsed (it waits for them)."""
+        if self._batcher is None:
+            yield
+            return
+        with self._batcher.announce(count):
+            yield
+
+    def prepare(self, points: np.ndarray, preprocess: bool) -> np.ndarray:
+        """The encoder's input: ``points`` as they are, or a raw scan float [N, 3] metres
+        through the bundle's filter G -> float32 [4096, 3]."""
+        if not preprocess:
+            return points
+        from pnvlad_service.data.preprocess import filter_g
+
+        out = filter_g(points, self._gconfig, seed=0)
+        return np.ascontiguousarray(out, dtype=np.float32)
+
+    def submit(self, cloud: np.ndarray, top_n: int) -> Future[BatchResult]:
+        """Embed and search one prepared cloud float32 [4096, 3]; the future resolves to its
+        :class:`BatchResult` (already resolved without batching)."""
+        if self._closed:
+            raise NotReadyError("the localizer is closed")
+        if self._batcher is not None:
+            return self._batcher.submit(cloud, top_n)
+        fut: Future[BatchResult] = Future()
+        distances, ids, embed_s, search_s = self._embed_and_search(cloud[None], top_n)
+        fut.set_result(BatchResult(distances[0], ids[0], 0.0, embed_s, search_s, 1))
+        return fut
+
+    def answer(
+        self, result: BatchResult, *, parse_s: float, preprocess_s: float, total_s: float
+    ) -> Answer:
+        """One cloud's :class:`Answer` from its batch result and its earlier stage times."""
+        (matches,) = self.bundle.matches(result.distances[None], result.ids[None])
+        timings = Timings(
+            parse=parse_s,
+            preprocess=preprocess_s,
+            queue=result.queue_s,
+            embed=result.embed_s,
+            search=result.search_s,
+            total=total_s,
+        )
+        return Answer(tuple(matches), result.batch_size, timings)
+
+    def localize(
+        self,
+        points: np.ndarray,
+        *,
+        preprocess: bool = False,
+        top_n: int = 5,
+        limits: Limits | None = None,
+    ) -> Answer:
+        """The ``top_n`` map places nearest to one cloud: exactly 4096 points in [-1, 1]
+        float [4096, 3], or with ``preprocess`` a raw scan float [N, 3] in metres (checked
+        against ``limits``, default :class:`Limits`)."""
+        t0 = time.perf_counter()
+        limits = limits or Limits()
+        pts = limits.check_points(np.asarray(points), preprocess, "points")
+        top_n = limits.check_top_n(top_n)
+        t1 = time.perf_counter()
+        cloud = self.prepare(pts, preprocess)
+        t2 = time.perf_counter()
+        result = self.submit(cloud, top_n).result()
+        return self.answer(
+            result, parse_s=t1 - t0, preprocess_s=t2 - t1, total_s=time.perf_counter() - t0
+        )
+
+    def _embed_and_search(
+        self, clouds: np.ndarray, k: int
+    ) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """float32 [B, 4096, 3] -> (distances [B, k], ids [B, k], embed s, search s)."""
+        t0 = time.perf_counter()
+        desc = np.asarray(self.encoder.embed(clouds), dtype=np.float32)
+        t1 = time.perf_counter()
+        distances, ids = self.bundle.search(desc, k)
+        return distances, ids, t1 - t0, time.perf_counter() - t1

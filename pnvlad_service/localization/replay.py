@@ -1,0 +1,290 @@
+"""Replaying a drive against the localisation service: one query every Nth scan, a CSV and a map.
+
+:func:`replay` sends scans of a drive (a :class:`pnvlad_service.data.rosbag.RosbagClouds` or any
+object with ``timestamps`` and ``scan(i)``; with ``poses`` too, each answer gets its error) to
+an ``ask`` function (a raw scan -> the service's JSON answer: ``LocalizeClient.localize`` with
+``preprocess=True``, or a local ``Localizer``) and returns one :class:`ReplayRow` a query.
+:func:`write_replay_csv` writes them, :func:`summarise` gives the summary line's figures and
+:func:`plot_replay` the PNG (extra ``plot``): the map's submap positions in grey, the drive's
+trajectory, the answers coloured by whether they were verified, and each answer's error in
+metres along the drive. A refused query (too few points left by G, ...) is a row with its
+reason, not the end of the replay.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pnvlad_service.errors import InputError, MissingDependencyError
+from pnvlad_service.fileio import atomic_write_text
+
+#: Errors beyond this many metres are counted apart in the summary (a wrong place).
+FAR_M = 25.0
+
+#: Match fields written in their own columns; any other field of the top match (verification,
+#: pose) follows them, scalars as they are, lists and objects as JSON.
+_MATCH_FIELDS = ("timestamp", "run", "northing", "easting", "distance")
+_SKIP_FIELDS = {"rank", "dataset", "submap_id", "utm_zone", "path"}
+
+
+@dataclass
+class ReplayRow:
+    """One query: the scan, the service's top-1 answer (``None`` fields when it gave none)."""
+
+    scan: int
+    timestamp: int
+    time_s: float
+    status: str = "ok"
+    submap: int | None = None
+    run: str | None = None
+    northing: float | None = None
+    easting: float | None = None
+    distance: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+    true_northing: float | None = None
+    true_easting: float | None = None
+    error_m: float | None = None
+
+    @property
+    def answered(self) -> bool:
+        return self.northing is not None
+
+    @property
+    def verified(self) -> bool | None:
+        """The top match's ``verified`` field, when the service gives one."""
+        value = self.extra.get("verified")
+        return None if value is None else bool(value)
+
+
+def replay(
+    drive: Any,
+    ask: Callable[[np.ndarray], dict[str, Any]],
+    *,
+    every: int = 10,
+    refused: tuple[type[BaseException], ...] = (InputError,),
+    progress: bool = True,
+) -> list[ReplayRow]:
+    """Ask ``ask`` about scans 0, ``every``, 2 * ``every``, ... of ``drive``.
+
+    ``ask(points)`` returns the answer (``{"matches": [{"timestamp", "run", "northing",
+    "easting", "distance", ...}, ...], ...}``); an exception of a ``refused`` type makes a row
+    whose ``status`` is its message. With ``drive.poses`` (float64 [T, 4, 4], UTM) each answer
+    gets the scan's true position and the horizontal error of the top-1 submap's position.
+    """
+    if every < 1:
+        raise InputError(f"must be >= 1, got {every}", "every")
+    from tqdm.auto import tqdm
+
+    stamps = np.asarray(drive.timestamps, dtype=np.int64)
+    if len(stamps) == 0:
+        raise InputError("no scans to replay", getattr(drive, "name", "drive"))
+    poses = getattr(drive, "poses", None)
+    rows = []
+    indices = range(0, len(stamps), every)
+    bar = tqdm(indices, desc="replay", unit="query", disable=None if progress else True)
+    for i in bar:
+        row = ReplayRow(scan=i, timestamp=int(stamps[i]), time_s=float(stamps[i] - stamps[0]) / 1e6)
+        if poses is not None:
+            row.true_northing = float(poses[i, 1, 3])
+            row.true_easting = float(poses[i, 0, 3])
+        try:
+            answer = ask(drive.scan(i))
+        except refused as exc:
+            row.status = f"refused: {getattr(exc, 'detail', None) or exc}"
+            rows.append(row)
+            continue
+        matches = answer.get("matches") or []
+        if not matches:
+            row.status = "no match"
+        else:
+            _fill(row, matches[0])
+        rows.append(row)
+        if row.error_m is not None:
+            bar.set_postfix(error=f"{row.error_m:.1f} m", refresh=False)
+    bar.close()
+    return rows
+
+
+def _fill(row: ReplayRow, top: dict[str, Any]) -> None:
+    row.submap = int(top["timestamp"])
+    row.run = str(top.get("run", ""))
+    row.northing = float(top["northing"])
+    row.easting = float(top["easting"])
+    row.distance = None if top.get("distance") is None else float(top["distance"])
+    row.extra = {k: v for k, v in top.items() if k not in _MATCH_FIELDS and k not in _SKIP_FIELDS}
+    if row.true_northing is not None and row.true_easting is not None:
+        row.error_m = math.hypot(row.northing - row.true_northing, row.easting - row.true_easting)
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, (list, dict)):
+        return json.dumps(value, separators=(",", ":"))
+    return str(value)
+
+
+def write_replay_csv(rows: Sequence[ReplayRow], path: str | Path) -> Path:
+    """The rows as a CSV (atomically): scan, timestamp, time_s, status, the top-1 submap
+    (submap, run, northing, easting, distance), any other field of the service's match
+    (verification, pose), then true_northing, true_easting and error_m."""
+    extra: dict[str, None] = {}
+    for r in rows:
+        extra.update(dict.fromkeys(r.extra))
+    head = ["scan", "timestamp", "time_s", "status", "submap", "run", "northing", "easting"]
+    head += ["distance", *extra, "true_northing", "true_easting", "error_m"]
+    import io
+
+    buf = io.StringIO()
+    out = csv.writer(buf, lineterminator="\n")
+    out.writerow(head)
+    for r in rows:
+        base = [r.scan, r.timestamp, r.time_s, r.status, r.submap, r.run, r.northing, r.easting]
+        tail = [r.true_northing, r.true_easting, r.error_m]
+        out.writerow(_cell(v) for v in [*base, r.distance, *(r.extra.get(k) for k in extra), *tail])
+    path = Path(path)
+    atomic_write_text(path, buf.getvalue())
+    return path
+
+
+@dataclass(frozen=True)
+class ReplaySummary:
+    """The summary line's figures. ``median_error_m``/``beyond_m`` are ``None`` without poses;
+    ``verified`` is ``None`` when the service gives no verification."""
+
+    queries: int
+    answered: int
+    median_error_m: float | None
+    beyond_m: int | None
+    verified: int | None
+    far_m: float = FAR_M
+
+    def line(self) -> str:
+        text = f"replay: {self.answered} of {self.queries} queries answered"
+        if self.verified is not None:
+            text += f", {self.verified} verified"
+        if self.median_error_m is not None:
+            text += f", median error {self.median_error_m:.1f} m"
+            text += f", {self.beyond_m} beyond {self.far_m:g} m"
+        elif self.beyond_m is None:
+            text += " (no poses in the bag: errors unknown)"
+        return text
+
+
+def summarise(rows: Sequence[ReplayRow], far_m: float = FAR_M) -> ReplaySummary:
+    """How many were answered, median error, how many beyond ``far_m``, how many verified."""
+    answered = [r for r in rows if r.answered]
+    errors = [r.error_m for r in answered if r.error_m is not None]
+    flags = [r.verified for r in answered if r.verified is not None]
+    has_poses = any(r.true_northing is not None for r in rows)
+    return ReplaySummary(
+        queries=len(rows),
+        answered=len(answered),
+        median_error_m=float(np.median(errors)) if errors else None,
+        beyond_m=sum(e > far_m for e in errors) if has_poses else None,
+        verified=sum(flags) if flags else None,
+        far_m=far_m,
+    )
+
+
+def plot_replay(
+    rows: Sequence[ReplayRow],
+    path: str | Path,
+    *,
+    map_ne: np.ndarray | None = None,
+    trajectory_ne: np.ndarray | None = None,
+    title: str = "",
+    far_m: float = FAR_M,
+) -> Path:
+    """The replay as a PNG: a map (easting right, northing up) and, with poses, the errors.
+
+    ``map_ne``: float [M, 2] (northing, easting) of the map's submaps, in grey;
+    ``trajectory_ne``: float [T, 2] of the drive's poses, a line. Answers are dots coloured by
+    verification (green verified, red rejected, blue when the service does not verify), with a
+    thin line to where the scan really was when that is known.
+    """
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise MissingDependencyError("matplotlib", "plot", "The replay figure") from None
+    has_errors = any(r.error_m is not None for r in rows)
+    fig, axes = plt.subplots(
+        1, 2 if has_errors else 1, figsize=(13 if has_errors else 7, 6), squeeze=False
+    )
+    ax = axes[0, 0]
+    if map_ne is not None and len(map_ne):
+        m = np.asarray(map_ne, dtype=np.float64)
+        ax.scatter(m[:, 1], m[:, 0], s=6, c="0.75", label=f"map ({len(m)} submaps)", zorder=1)
+    if trajectory_ne is not None and len(trajectory_ne):
+        t = np.asarray(trajectory_ne, dtype=np.float64)
+        ax.plot(t[:, 1], t[:, 0], "-", c="0.2", lw=1.0, label="drive (bag poses)", zorder=2)
+    groups = [
+        ("verified", "tab:green", lambda r: r.verified is True),
+        ("not verified", "tab:red", lambda r: r.verified is False),
+        ("answer", "tab:blue", lambda r: r.verified is None),
+    ]
+    answered = [r for r in rows if r.answered]
+    for label, colour, pick in groups:
+        sel = [r for r in answered if pick(r)]
+        if not sel:
+            continue
+        for r in sel:
+            if r.true_easting is not None:
+                ax.plot(
+                    [r.true_easting, r.easting],
+                    [r.true_northing, r.northing],
+                    "-",
+                    c=colour,
+                    lw=0.6,
+                    alpha=0.6,
+                    zorder=3,
+                )
+        e = [r.easting for r in sel]
+        n = [r.northing for r in sel]
+        ax.scatter(e, n, s=18, c=colour, label=f"{label} ({len(sel)})", zorder=4)
+    ax.set_xlabel("easting (m)")
+    ax.set_ylabel("northing (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title or "replay")
+    if has_errors:
+        ax2 = axes[0, 1]
+        for label, colour, pick in groups:
+            sel = [r for r in answered if pick(r) and r.error_m is not None]
+            if sel:
+                ax2.scatter([r.time_s for r in sel], [r.error_m for r in sel], s=14, c=colour,
+                            label=label)  # fmt: skip
+        ax2.axhline(far_m, c="0.4", ls="--", lw=0.8, label=f"{far_m:g} m")
+        ax2.set_yscale("symlog", linthresh=1.0)
+        ax2.set_xlabel("time in the bag (s)")
+        ax2.set_ylabel("error of the top-1 submap (m)")
+        s = summarise(rows, far_m)
+        ax2.set_title(
+            f"median {s.median_error_m:.1f} m, {s.beyond_m} of {s.answered} beyond {far_m:g} m"
+            if s.median_error_m is not None
+            else "errors"
+        )
+        ax2.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    tmp.replace(path)
+    return path

@@ -1,0 +1,90 @@
+"""Request bodies of the localisation routes, by content type, to validated clouds.
+
+JSON goes through the request models (:mod:`pnvlad_service.server.contract`); the binary
+bodies (``application/octet-stream``: little-endian xyz of float32 or float64, and
+``application/x-npy``) are read as arrays without a copy and checked by the same
+``Limits.check_points``; with them ``top_n`` and ``preprocess`` are query parameters.
+Every function raises :class:`~pnvlad_service.errors.InputError` naming the field.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.server.contract import BatchQueries, Contract, Query
+
+JSON = "application/json"
+OCTET = "application/octet-stream"
+NPY = "application/x-npy"
+
+_DTYPES = {"float32": "<f4", "float64": "<f8", "f4": "<f4", "f8": "<f8"}
+
+
+def parse_binary_points(body: bytes, dtype: str) -> np.ndarray:
+    """Interleaved little-endian xyz of ``dtype`` (float32 or float64) -> [N, 3] (a view)."""
+    if dtype not in _DTYPES:
+        raise InputError(f"dtype must be float32 or float64, got {dtype!r}", "dtype")
+    dt = np.dtype(_DTYPES[dtype])
+    step = 3 * dt.itemsize
+    if not body or len(body) % step:
+        raise InputError(
+            f"{len(body)} bytes is not a whole, non-zero number of {dtype} xyz triples "
+            f"({step} bytes each)",
+            "body",
+        )
+    return np.frombuffer(body, dtype=dt).reshape(-1, 3)
+
+
+def parse_npy(body: bytes, ndim: int) -> np.ndarray:
+    """An ``.npy`` file (float32/float64, no pickle) of ``ndim`` dimensions, last of size 3."""
+    try:
+        arr = np.load(io.BytesIO(body), allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(f"not a readable .npy array: {exc}", "body") from None
+    if not isinstance(arr, np.ndarray) or arr.dtype.kind != "f":
+        raise InputError(
+            f"expected a float32 or float64 array, got {getattr(arr, 'dtype', '?')}", "body"
+        )
+    if arr.ndim != ndim or arr.shape[-1] != 3:
+        want = "[N, 3]" if ndim == 2 else "[B, N, 3]"
+        raise InputError(f"expected an array of shape {want}, got {arr.shape}", "body")
+    return arr
+
+
+def read_query(
+    contract: Contract,
+    ctype: str,
+    body: bytes,
+    top_n: int | None,
+    preprocess: bool | None,
+    dtype: str,
+) -> Query:
+    """The cloud of a ``/localize`` body of content type ``ctype`` (JSON, raw xyz or .npy);
+    ``top_n``, ``preprocess`` and ``dtype`` are the query's, for binary bodies."""
+    if ctype == JSON:
+        return contract.parse_query(body)
+    pre = bool(preprocess)
+    raw = parse_npy(body, 2) if ctype == NPY else parse_binary_points(body, dtype)
+    points = contract.limits.check_points(raw, pre, "body")
+    return Query(points, pre, top_n if top_n is not None else contract.limits.default_top_n)
+
+
+def read_batch(
+    contract: Contract, ctype: str, body: bytes, top_n: int | None, preprocess: bool | None
+) -> BatchQueries:
+    """The clouds of a ``/localize/batch`` body: JSON, or .npy [B, N, 3] with the query's
+    ``top_n`` and ``preprocess``."""
+    if ctype == JSON:
+        return contract.parse_batch(body)
+    limits = contract.limits
+    pre = bool(preprocess)
+    n = top_n if top_n is not None else limits.default_top_n
+    arr = parse_npy(body, 3)
+    limits.check_count(len(arr), "body")
+    queries = tuple(
+        Query(limits.check_points(a, pre, f"body[{i}]"), pre, n) for i, a in enumerate(arr)
+    )
+    return BatchQueries(queries, n)

@@ -1,0 +1,346 @@
+"""The JSON request contract of ``POST /localize`` and ``POST /localize/batch``.
+
+:func:`request_models` builds, from one :class:`~pnvlad_service.localization.limits.Limits`,
+the pydantic models that validate JSON bodies (:meth:`Contract.parse_query`,
+:meth:`Contract.parse_batch`: ``model_validate_json``, then ``Limits.check_points`` on each
+cloud) and whose ``model_json_schema()`` is the OpenAPI request schema. The schema of a cloud
+is split into its two forms (4096 preprocessed points, or a raw scan with ``preprocess: true``)
+with the counts and bounds of the same ``Limits``; tests/server/test_contract.py checks that a
+body is schema-valid exactly when it is accepted.
+
+Pydantic's errors are mapped to today's :class:`~pnvlad_service.errors.InputError` field
+names and messages, the first one in the order a reader of the body meets them (unknown
+fields, a missing field, ``top_n``, ``preprocess``, then the points in order).
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import json
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    WithJsonSchema,
+    model_validator,
+)
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.localization.limits import Limits, show_value
+
+
+class MalformedJSON(InputError):
+    """The body is not JSON at all (400 rather than 422)."""
+
+    problem_kind = "malformed-json"
+
+
+#: One point: three numbers (validated as a tuple: fast, and a short point is reported as such).
+Point = Annotated[
+    tuple[float, float, float],
+    WithJsonSchema({"type": "array", "minItems": 3, "maxItems": 3, "items": {"type": "number"}}),
+]
+
+POINTS_DOC = (
+    "Exactly 4096 preprocessed points in the benchmark's normalised frame ([-1, 1]), or with "
+    "preprocess=true a raw scan (sensor frame, metres) of any size up to the server's limit."
+)
+
+
+@dataclass(frozen=True)
+class Query:
+    """A validated cloud: float32 [4096, 3], or float64 [N, 3] when ``preprocess``."""
+
+    points: np.ndarray
+    preprocess: bool
+    top_n: int
+
+
+@dataclass(frozen=True)
+class BatchQueries:
+    queries: tuple[Query, ...]
+    top_n: int
+
+
+class Contract:
+    """The request models of one :class:`Limits` and the parsing of JSON bodies with them."""
+
+    def __init__(self, limits: Limits) -> None:
+        self.limits = limits
+        self.query_model, self.batch_model = request_models(limits)
+
+    def parse_query(self, body: bytes) -> Query:
+        """``{"points": [[x, y, z], ...], "top_n": 5, "preprocess": false}`` -> :class:`Query`."""
+        try:
+            req = self.query_model.model_validate_json(_utf8(body))
+        except ValidationError as exc:
+            raise _query_error(exc.errors(), self.limits) from None
+        return Query(req._array, req.preprocess, req.top_n)
+
+    def parse_batch(self, body: bytes) -> BatchQueries:
+        """``{"queries": [{"points": ..., "preprocess": false}, ...], "top_n": 5}``."""
+        try:
+            req = self.batch_model.model_validate_json(_utf8(body))
+        except ValidationError as exc:
+            raise _batch_error(exc.errors(), self.limits) from None
+        return BatchQueries(
+            tuple(Query(q._array, q.preprocess, req.top_n) for q in req.queries), req.top_n
+        )
+
+    def query_schema(self) -> dict[str, Any]:
+        """JSON Schema of the ``/localize`` JSON body (no ``$ref``: it sits in the OpenAPI)."""
+        return inline_refs(self.query_model.model_json_schema())
+
+    def batch_schema(self) -> dict[str, Any]:
+        """JSON Schema of the ``/localize/batch`` JSON body."""
+        return inline_refs(self.batch_model.model_json_schema())
+
+
+def _utf8(body: bytes) -> bytes | str:
+    """The body as the JSON parser takes it: UTF-8 bytes as they are (no copy); UTF-16 and
+    UTF-32 (told by their first bytes, as ``json.loads`` tells them) and a UTF-8 BOM decoded."""
+    encoding = json.detect_encoding(body)
+    if encoding == "utf-8":
+        return body
+    try:
+        return body.decode(encoding)
+    except UnicodeDecodeError as exc:
+        raise MalformedJSON(f"body is not valid JSON: {exc}", "body") from None
+
+
+# --------------------------------------------------------------------------------------------
+# The models
+# --------------------------------------------------------------------------------------------
+
+
+@functools.cache
+def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
+    """``(LocalizeRequest, BatchRequest)`` for ``limits`` (built once per ``Limits``)."""
+
+    def split(schema: dict[str, Any]) -> None:
+        cloud_variants(schema, limits)
+
+    class Cloud(BaseModel):
+        model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra=split)
+
+        points: list[Point] = Field(..., min_length=1, description=POINTS_DOC)
+        preprocess: bool = Field(False, description="Run the filter G on a raw scan first.")
+        _array: np.ndarray = PrivateAttr()
+
+        @model_validator(mode="after")
+        def _check_points(self) -> Cloud:
+            pts = np.asarray(self.points, dtype=np.float64)
+            self._array = limits.check_points(pts, self.preprocess, "points")
+            return self
+
+    def top_n_field() -> Any:
+        return Field(
+            limits.default_top_n,
+            ge=1,
+            le=limits.max_top_n,
+            description=f"Matches to return (at most {limits.max_top_n}).",
+        )
+
+    class LocalizeRequest(Cloud):
+        """One query cloud."""
+
+        top_n: int = top_n_field()
+
+    class BatchQuery(Cloud):
+        """One cloud of a batch."""
+
+    class BatchRequest(BaseModel):
+        """Several clouds, embedded as one batch."""
+
+        model_config = ConfigDict(extra="forbid", strict=True)
+
+        queries: list[BatchQuery] = Field(..., min_length=1, max_length=limits.max_batch_queries)
+        top_n: int = top_n_field()
+
+    return LocalizeRequest, BatchRequest
+
+
+def cloud_variants(schema: dict[str, Any], limits: Limits) -> None:
+    """Turn a cloud model's object schema, in place, into ``oneOf`` its two forms with the
+    counts and bounds that ``Limits.check_points`` enforces: exactly ``points_per_cloud``
+    points within ``bound`` (``preprocess`` false or absent), or ``min_raw_points`` to
+    ``max_raw_points`` points within ``max_raw_coord`` (``preprocess: true``, required)."""
+    head = {k: schema.pop(k) for k in ("title", "description") if k in schema}
+    pre, raw = copy.deepcopy(schema), copy.deepcopy(schema)
+    for form, lo, hi, bound, flag in (
+        (pre, limits.points_per_cloud, limits.points_per_cloud, limits.bound, False),
+        (raw, limits.min_raw_points, limits.max_raw_points, limits.max_raw_coord, True),
+    ):
+        points = form["properties"]["points"]
+        points.update(minItems=lo, maxItems=hi)
+        points["items"] = copy.deepcopy(points["items"])
+        points["items"]["items"].update(minimum=-bound, maximum=bound)
+        form["properties"]["preprocess"]["enum"] = [flag]
+    del raw["properties"]["preprocess"]["default"]
+    raw["required"] = [*schema.get("required", []), "preprocess"]
+    schema.clear()
+    schema.update(head, oneOf=[pre, raw])
+
+
+def inline_refs(schema: dict[str, Any]) -> dict[str, Any]:
+    """``schema`` with every ``{"$ref": "#/$defs/X"}`` replaced by ``X`` and no ``$defs``."""
+    defs = schema.get("$defs", {})
+
+    def walk(node: Any) -> Any:
+        if isinstance(node, dict):
+            ref = node.get("$ref")
+            if isinstance(ref, str) and ref.startswith("#/$defs/"):
+                return walk(defs[ref.removeprefix("#/$defs/")])
+            return {k: walk(v) for k, v in node.items() if k != "$defs"}
+        if isinstance(node, list):
+            return [walk(v) for v in node]
+        return node
+
+    return walk(schema)
+
+
+# --------------------------------------------------------------------------------------------
+# Pydantic's errors as today's InputError
+# --------------------------------------------------------------------------------------------
+
+Loc = tuple[Any, ...]
+
+
+def _cloud_rank(err: dict[str, Any], loc: Loc) -> tuple[Any, ...]:
+    """Where an error about one cloud comes in reading order (``loc`` relative to the cloud):
+    the object itself, unknown fields, a missing ``points``, ``top_n``, ``preprocess``, the
+    points in order (a point's shape before its coordinates), the values' checks last."""
+    kind = err["type"]
+    if not loc:
+        return (7,) if kind == "value_error" else (1,)
+    if kind == "extra_forbidden":
+        return (2,)
+    if loc[0] == "points":
+        if len(loc) == 1:
+            return (3,) if kind == "missing" else (6, -1, 0, 0)
+        if len(loc) == 2:
+            return (6, loc[1], 0, 0)
+        return (6, loc[1], int(kind == "float_type"), loc[2])
+    return {"top_n": (4,), "preprocess": (5,)}.get(loc[0], (8,))
+
+
+def _cloud_error(
+    err: dict[str, Any],
+    loc: Loc,
+    errors: list[dict[str, Any]],
+    where: str,
+    prefix: str,
+    allowed: list[str],
+) -> InputError:
+    """The :class:`InputError` of the first error ``err`` of one cloud (``loc`` relative to it;
+    ``errors``: the errors of its fields); ``where`` names the cloud's object, ``prefix`` its
+    fields, ``allowed`` its field names."""
+    kind, value = err["type"], err.get("input")
+    if not loc and kind == "value_error":
+        inner = err["ctx"]["error"]
+        if isinstance(inner, InputError):
+            return InputError(inner.detail, f"{prefix}{inner.source}")
+        return InputError(str(inner), where)
+    if not loc:
+        return InputError(f"expected a JSON object, got {type(value).__name__}", where)
+    if kind == "extra_forbidden":
+        extra = sorted(str(e["loc"][-1]) for e in errors if e["type"] == "extra_forbidden")
+        return InputError(f"unknown fields {extra}; allowed: {allowed}", where)
+    if loc == ("points",):
+        if kind == "missing":
+            return InputError("field required", f"{prefix}points")
+        if kind == "too_short":
+            return InputError("expected at least one point, got an empty list", f"{prefix}points")
+        return InputError(
+            f"expected a list of [x, y, z] points, got {type(value).__name__}", f"{prefix}points"
+        )
+    if loc[0] == "points":
+        i = loc[1]
+        field = f"{prefix}points[{i}]"
+        if kind == "float_type":
+            return InputError(f"point {i} has a non-numeric coordinate {value!r}", field)
+        what = f"{len(value)} values" if isinstance(value, list) else type(value).__name__
+        return InputError(f"point {i} must be [x, y, z], got {what}", field)
+    if loc == ("preprocess",):
+        return InputError(f"expected true or false, got {show_value(value)}", "preprocess")
+    return InputError(err.get("msg", "invalid value"), ".".join(map(str, loc)))
+
+
+def _json_error(errors: list[dict[str, Any]]) -> MalformedJSON | None:
+    for e in errors:
+        if e["type"] == "json_invalid":
+            reason = e.get("ctx", {}).get("error") or e.get("msg", "")
+            return MalformedJSON(f"body is not valid JSON: {reason}", "body")
+    return None
+
+
+def _top_n_error(value: Any, limits: Limits) -> InputError:
+    try:
+        limits.check_top_n(value)
+    except InputError as exc:
+        return exc
+    return InputError(f"invalid top_n {show_value(value)}", "top_n")  # pragma: no cover
+
+
+def _query_error(errors: list[dict[str, Any]], limits: Limits) -> InputError:
+    """The first of a ``/localize`` body's errors as an :class:`InputError`."""
+    bad = _json_error(errors)
+    if bad is not None:
+        return bad
+    err = min(errors, key=lambda e: _cloud_rank(e, tuple(e["loc"])))
+    loc = tuple(err["loc"])
+    if loc == ("top_n",):
+        return _top_n_error(err.get("input"), limits)
+    top = [e for e in errors if len(e["loc"]) == 1]
+    return _cloud_error(err, loc, top, "body", "", ["points", "preprocess", "top_n"])
+
+
+def _batch_rank(err: dict[str, Any]) -> tuple[Any, ...]:
+    loc, kind = tuple(err["loc"]), err["type"]
+    if not loc:
+        return (1,)
+    if kind == "extra_forbidden" and len(loc) == 1:
+        return (2,)
+    if loc[0] == "queries":
+        if len(loc) == 1:
+            return (3,) if kind == "missing" else (5,)
+        return (6, loc[1], *_cloud_rank(err, loc[2:]))
+    return (4,) if loc[0] == "top_n" else (8,)
+
+
+def _batch_error(errors: list[dict[str, Any]], limits: Limits) -> InputError:
+    """The first of a ``/localize/batch`` body's errors as an :class:`InputError`."""
+    bad = _json_error(errors)
+    if bad is not None:
+        return bad
+    err = min(errors, key=_batch_rank)
+    loc, kind, value = tuple(err["loc"]), err["type"], err.get("input")
+    rank = _batch_rank(err)
+    if rank == (1,):
+        return InputError(f"expected a JSON object, got {type(value).__name__}", "body")
+    if rank == (2,):
+        extra = sorted(str(e["loc"][0]) for e in errors if len(e["loc"]) == 1 and e["type"] == kind)
+        return InputError(f"unknown fields {extra}; allowed: ['queries', 'top_n']", "body")
+    if rank == (3,):
+        return InputError("field required", "queries")
+    if rank == (4,):
+        return _top_n_error(value, limits)
+    if rank == (5,):
+        n = len(value) if isinstance(value, list) else type(value).__name__
+        return InputError(
+            f"expected a list of 1 to {limits.max_batch_queries} queries, got {n}", "queries"
+        )
+    if rank[0] == 6:
+        i = loc[1]
+        same = [e for e in errors if tuple(e["loc"][:2]) == ("queries", i) and len(e["loc"]) == 3]
+        return _cloud_error(
+            err, loc[2:], same, f"queries[{i}]", f"queries[{i}].", ["points", "preprocess"]
+        )
+    return InputError(err.get("msg", "invalid value"), ".".join(map(str, loc)))

@@ -1,0 +1,191 @@
+"""Localisation: ``POST /localize`` (one cloud) and ``POST /localize/batch`` (several).
+
+The routes only parse, call and serialise: the body is read into validated clouds in the
+thread pool (:mod:`pnvlad_service.server.bodies`), the filter G runs in the thread pool
+(``Localizer.prepare``), embedding and search in the micro-batcher's lanes
+(``Localizer.submit``, awaited), and the typed answers are written as JSON.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse, Response
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.localization.localizer import Localizer
+from pnvlad_service.server import problems, schemas
+from pnvlad_service.server.bodies import JSON, NPY, OCTET, read_batch, read_query
+from pnvlad_service.server.contract import Contract
+from pnvlad_service.server.contract import Query as Cloud
+from pnvlad_service.server.deps import get_localizer, get_metrics
+from pnvlad_service.server.metrics import Metrics
+from pnvlad_service.server.problems import Problem
+
+_BINARY_SCHEMA = {"type": "string", "format": "binary"}
+
+
+def _content_type(request: Request, allowed: tuple[str, ...]) -> str:
+    """The request's media type, one of ``allowed``; 415 else."""
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype not in allowed:
+        *first, last = allowed
+        send = f"{', '.join(first)} or {last}" if first else last
+        raise Problem(
+            "unsupported-media-type",
+            f"content type {ctype or '(none)'!r} is not supported; send {send}",
+            field="Content-Type",
+        )
+    return ctype
+
+
+def _ms(seconds: float) -> float:
+    return round(seconds * 1000.0, 3)
+
+
+async def _prepare(loc: Localizer, cloud: Cloud, field: str) -> np.ndarray:
+    """The encoder's input of one cloud; a raw scan goes through the filter G in the thread
+    pool, and its refusal names ``field``."""
+    if not cloud.preprocess:
+        return cloud.points
+    try:
+        return await run_in_threadpool(loc.prepare, cloud.points, True)
+    except InputError as exc:
+        raise InputError(f"filter G: {exc.detail}", field) from None
+
+
+async def localize_one(
+    request: Request,
+    contract: Contract,
+    loc: Localizer,
+    metrics: Metrics,
+    params: tuple[int | None, bool | None, str | None],
+) -> Response:
+    """``POST /localize``; ``params``: the query's ``top_n``, ``preprocess`` and ``dtype``."""
+    t0 = time.perf_counter()
+    ctype = _content_type(request, (JSON, OCTET, NPY))
+    body = await request.body()
+    top_n, preprocess, dtype = params
+    dtype = dtype or request.headers.get("x-points-dtype", "float32")
+    with loc.announce():
+        cloud = await run_in_threadpool(read_query, contract, ctype, body, top_n, preprocess, dtype)
+        parse_s = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        prepared = await _prepare(loc, cloud, "points")
+        preprocess_s = time.perf_counter() - t1
+        future = loc.submit(prepared, cloud.top_n)
+    result = await asyncio.wrap_future(future)
+    answer = loc.answer(
+        result, parse_s=parse_s, preprocess_s=preprocess_s, total_s=time.perf_counter() - t0
+    )
+    metrics.observe(answer.timings.seconds())
+    return JSONResponse({**answer.to_json(), **loc.info.to_json()})
+
+
+async def localize_many(
+    request: Request,
+    contract: Contract,
+    loc: Localizer,
+    metrics: Metrics,
+    params: tuple[int | None, bool | None],
+) -> Response:
+    """``POST /localize/batch``; ``params``: the query's ``top_n`` and ``preprocess``."""
+    t0 = time.perf_counter()
+    ctype = _content_type(request, (JSON, NPY))
+    body = await request.body()
+    batch = await run_in_threadpool(read_batch, contract, ctype, body, *params)
+    parse_s = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    prepared = [await _prepare(loc, q, f"queries[{i}].points") for i, q in enumerate(batch.queries)]
+    preprocess_s = (time.perf_counter() - t1) / len(prepared)
+    futures = [loc.submit(c, batch.top_n) for c in prepared]
+    results = await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))
+    total_s = time.perf_counter() - t0
+    answers = [
+        loc.answer(r, parse_s=parse_s, preprocess_s=preprocess_s, total_s=total_s) for r in results
+    ]
+    for a in answers:
+        metrics.observe(a.timings.seconds())
+    doc: dict[str, Any] = {
+        "results": [a.to_json() for a in answers],
+        "timings_ms": {"parse": _ms(parse_s), "total": _ms(total_s)},
+        **loc.info.to_json(),
+    }
+    return JSONResponse(doc)
+
+
+def _request_body(content: dict[str, Any]) -> dict[str, Any]:
+    return {"requestBody": {"required": True, "content": content}}
+
+
+def router(contract: Contract) -> APIRouter:
+    """The two routes, their query parameters and request schemas from ``contract``."""
+    r = APIRouter(tags=["localize"])
+    query_top_n = Query(
+        None, ge=1, le=contract.limits.max_top_n, description="Matches to return (binary bodies)."
+    )
+    query_pre = Query(None, description="Raw scan: run the filter G first (binary bodies).")
+    query_dtype = Query(
+        None,
+        pattern="^(float32|float64)$",
+        description="Element type of an application/octet-stream body (default float32; "
+        "or the header X-Points-Dtype).",
+    )
+
+    @r.post(
+        "/localize",
+        summary="Localise one point cloud",
+        response_model=schemas.LocalizeResponse,
+        responses=problems.openapi_responses(400, 401, 413, 415, 422, 503),
+        openapi_extra=_request_body(
+            {
+                JSON: {"schema": contract.query_schema()},
+                OCTET: {"schema": _BINARY_SCHEMA},
+                NPY: {"schema": _BINARY_SCHEMA},
+            }
+        ),
+    )
+    async def localize(
+        request: Request,
+        top_n: int | None = query_top_n,
+        preprocess: bool | None = query_pre,
+        dtype: str | None = query_dtype,
+        loc: Localizer = Depends(get_localizer),
+        metrics: Metrics = Depends(get_metrics),
+    ) -> Response:
+        """Find the map places nearest to one cloud.
+
+        JSON ``{"points": [[x, y, z], ...], "top_n": 5, "preprocess": false}`` with exactly
+        4096 preprocessed points, or a raw scan with ``preprocess: true``. Binary bodies:
+        ``application/octet-stream`` (little-endian xyz, float32 unless ``dtype=float64``) or
+        ``application/x-npy`` ([N, 3]); then ``top_n`` and ``preprocess`` are query parameters.
+        """
+        return await localize_one(request, contract, loc, metrics, (top_n, preprocess, dtype))
+
+    @r.post(
+        "/localize/batch",
+        summary="Localise several clouds, embedded as one batch",
+        response_model=schemas.BatchResponse,
+        responses=problems.openapi_responses(400, 401, 413, 415, 422, 503),
+        openapi_extra=_request_body(
+            {JSON: {"schema": contract.batch_schema()}, NPY: {"schema": _BINARY_SCHEMA}}
+        ),
+    )
+    async def localize_batch(
+        request: Request,
+        top_n: int | None = query_top_n,
+        preprocess: bool | None = query_pre,
+        loc: Localizer = Depends(get_localizer),
+        metrics: Metrics = Depends(get_metrics),
+    ) -> Response:
+        """Several clouds in one request: JSON ``{"queries": [{"points": ...}, ...],
+        "top_n": 5}`` or an ``application/x-npy`` array [B, N, 3] (query parameters
+        ``top_n``, ``preprocess``). At most ``max_batch_queries`` clouds."""
+        return await localize_many(request, contract, loc, metrics, (top_n, preprocess))
+
+    return r

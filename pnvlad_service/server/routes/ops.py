@@ -1,0 +1,71 @@
+"""Operations: ``GET /healthz``, ``/readyz``, ``/info`` and ``/metrics``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Depends
+from fastapi.params import Depends as DependsParam
+from fastapi.responses import Response
+
+from pnvlad_service.localization.localizer import Localizer
+from pnvlad_service.server import problems, schemas
+from pnvlad_service.server.deps import get_localizer, get_metrics, get_settings
+from pnvlad_service.server.metrics import Metrics
+from pnvlad_service.server.settings import ServerSettings
+
+
+def healthz() -> dict[str, str]:
+    """Liveness: the process answers."""
+    return {"status": "ok"}
+
+
+def readyz(loc: Localizer = Depends(get_localizer)) -> dict[str, str]:
+    """Readiness: model and index are loaded."""
+    return {"status": "ready"}
+
+
+def info(
+    loc: Localizer = Depends(get_localizer), settings: ServerSettings = Depends(get_settings)
+) -> dict[str, Any]:
+    """The bundle's manifest, the model and the request limits."""
+    return {
+        "manifest": loc.manifest_json(),
+        "model": loc.identity.to_json(),
+        "limits": {"max_body_bytes": settings.max_body_bytes, **settings.limits().to_json()},
+    }
+
+
+def prometheus(metrics: Metrics = Depends(get_metrics)) -> Response:
+    """Prometheus metrics: requests, latency by stage, errors by kind, batch sizes."""
+    data, ctype = metrics.render()
+    return Response(data, media_type=ctype)
+
+
+def router(protected: list[DependsParam]) -> APIRouter:
+    """The routes; ``protected`` (the bearer check, when a key is set) guards ``/info``."""
+    r = APIRouter(tags=["ops"])
+    r.add_api_route("/healthz", healthz, methods=["GET"], response_model=schemas.Health)
+    r.add_api_route(
+        "/readyz",
+        readyz,
+        methods=["GET"],
+        response_model=schemas.Health,
+        responses=problems.openapi_responses(503),
+    )
+    r.add_api_route(
+        "/info",
+        info,
+        methods=["GET"],
+        response_model=schemas.Info,
+        responses=problems.openapi_responses(401, 503),
+        dependencies=protected,
+    )
+    r.add_api_route(
+        "/metrics",
+        prometheus,
+        methods=["GET"],
+        response_class=Response,
+        responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}},
+    )
+    return r

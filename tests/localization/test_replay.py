@@ -1,0 +1,248 @@
+"""Tests of pnvlad_service.localization.replay (a drive replayed against the service) with a
+stand-in service; the CLI against a real server lives in test_cli_replay.py."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.localization.replay import (
+    plot_replay,
+    replay,
+    summarise,
+    write_replay_csv,
+)
+
+
+class LineDrive:
+    """Scans 1 s apart along northing, 10 m apart, each scan's first point x = its index."""
+
+    def __init__(self, n: int, poses: bool = True) -> None:
+        self.name = "line"
+        self.timestamps = np.arange(n, dtype=np.int64) * 1_000_000 + 5_000_000
+        if poses:
+            self.poses = np.tile(np.eye(4), (n, 1, 1))
+            self.poses[:, 1, 3] = 5_735_000.0 + 10.0 * np.arange(n)
+            self.poses[:, 0, 3] = 620_000.0
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def scan(self, i: int) -> np.ndarray:
+        return np.full((100, 3), float(i), dtype=np.float32)
+
+
+def fake_service(points: np.ndarray) -> dict:
+    """Answers scan i with a submap 3 m east of it (scan 4: 40 m off, scan 6: refused, scan 8:
+    no match); even scans are verified."""
+    i = int(points[0, 0])
+    if i == 6:
+        raise InputError("only 3 points left after G", "points")
+    if i == 8:
+        return {"matches": []}
+    north = 5_735_000.0 + 10.0 * i + (40.0 if i == 4 else 0.0)
+    top = {"rank": 1, "timestamp": 1000 + i, "run": "r0", "northing": north,
+           "easting": 620_003.0, "distance": 0.25 * i, "verified": i % 4 == 0,
+           "pose": [1.0, 0.0, 3.0], "submap_id": "x"}  # fmt: skip
+    return {"matches": [top, {**top, "rank": 2}]}
+
+
+def test_replay_rows_csv_and_summary(tmp_path: Path) -> None:
+    drive = LineDrive(10)
+    rows = replay(drive, fake_service, every=2, progress=False)
+    assert [r.scan for r in rows] == [0, 2, 4, 6, 8]
+    assert [r.status for r in rows[:3]] == ["ok", "ok", "ok"]
+    assert rows[3].status == "refused: only 3 points left after G"
+    assert rows[4].status == "no match"
+    assert rows[1].error_m == pytest.approx(3.0)
+    assert rows[2].error_m == pytest.approx(math.hypot(40.0, 3.0))
+    assert [r.verified for r in rows] == [True, False, True, None, None]
+    s = summarise(rows)
+    assert (s.queries, s.answered, s.verified, s.beyond_m) == (5, 3, 2, 1)
+    assert s.median_error_m == pytest.approx(3.0)
+    assert (
+        s.line() == "replay: 3 of 5 queries answered, 2 verified, median error 3.0 m, 1 beyond 25 m"
+    )
+
+    path = write_replay_csv(rows, tmp_path / "answers.csv")
+    with open(path, newline="") as fh:
+        table = list(csv.DictReader(fh))
+    assert list(table[0]) == ["scan", "timestamp", "time_s", "status", "submap", "run",
+                              "northing", "easting", "distance", "verified", "pose",
+                              "true_northing", "true_easting", "error_m"]  # fmt: skip
+    assert table[1]["timestamp"] == "7000000" and table[1]["time_s"] == "2.0"
+    assert table[1]["submap"] == "1002" and table[1]["verified"] == "false"
+    assert table[1]["pose"] == "[1.0,0.0,3.0]"
+    assert float(table[2]["error_m"]) == pytest.approx(math.hypot(40.0, 3.0))
+    assert table[3]["northing"] == "" and table[3]["status"].startswith("refused")
+    # The summary's figures follow from the CSV alone.
+    errors = sorted(float(r["error_m"]) for r in table if r["error_m"])
+    assert s.median_error_m == pytest.approx(float(np.median(errors)))
+
+
+def test_replay_without_poses_and_bad_every(tmp_path: Path) -> None:
+    rows = replay(LineDrive(3, poses=False), fake_service, every=1, progress=False)
+    assert all(r.error_m is None and r.true_northing is None for r in rows)
+    s = summarise(rows)
+    assert s.median_error_m is None and s.beyond_m is None
+    assert s.line().endswith("(no poses in the bag: errors unknown)")
+    with pytest.raises(InputError, match=">= 1"):
+        replay(LineDrive(3), fake_service, every=0)
+
+
+def test_plot_replay_writes_a_png(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    drive = LineDrive(10)
+    rows = replay(drive, fake_service, every=1, progress=False)
+    map_ne = np.c_[5_735_000.0 + 10.0 * np.arange(12), np.full(12, 620_003.0)]
+    out = plot_replay(rows, tmp_path / "replay.png", map_ne=map_ne,
+                      trajectory_ne=drive.poses[:, [1, 0], 3], title="line")  # fmt: skip
+    data = out.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    assert not list(tmp_path.glob("*.tmp"))
+    # Without poses: the map panel only.
+    rows = replay(LineDrive(4, poses=False), fake_service, every=1, progress=False)
+    assert plot_replay(rows, tmp_path / "b.png").stat().st_size > 5_000
+
+
+# --------------------------------------------------------------------------------------------
+# `pnvlad localize --rosbag` against a real server on 127.0.0.1
+
+
+class FirstScans:
+    """The first ``n`` scans of a drive."""
+
+    def __init__(self, drive, n: int) -> None:
+        self.drive, self.name = drive, drive.name
+        self.timestamps, self.poses = drive.timestamps[:n], drive.poses[:n]
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def scan(self, i: int) -> np.ndarray:
+        return self.drive.scan(i)
+
+
+@pytest.fixture(scope="module")
+def city(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The tiny synthetic city, a (random) model's bundle of it, and run 0 as a ROS bag."""
+    pytest.importorskip("rosbags")
+    from pnvlad_service.data.rosbag_write import write_drive_bag
+    from pnvlad_service.index import build as ix
+    from pnvlad_service.synth.generate import generate, get_preset, simulated_drive
+    from tests.index.helpers import make_checkpoint
+
+    base = tmp_path_factory.mktemp("replay")
+    generate("tiny", base / "tree", seed=0, workers=1, progress=False)
+    ckpt = make_checkpoint(base / "ckpt")
+    ix.build_bundle(base / "map.index", ckpt, base / "tree", progress=False)
+    drive = simulated_drive(get_preset("tiny"), 0, 0, 0)
+    east, north = (float(v) for v in drive.world.origin)
+    bag = write_drive_bag(FirstScans(drive, 24), base / "run0.bag", origin_ne=(north, east))
+    return {"base": base, "bundle": base / "map.index", "ckpt": ckpt, "bag": bag,
+            "origin": f"{north!r},{east!r}", "drive": drive}  # fmt: skip
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def check_summary(line: str, rows: list[dict[str, str]]) -> None:
+    """The summary line's figures, recomputed from the CSV."""
+    errors = [float(r["error_m"]) for r in rows if r["error_m"]]
+    answered = sum(1 for r in rows if r["northing"])
+    expected = (
+        f"replay: {answered} of {len(rows)} queries answered, median error "
+        f"{float(np.median(errors)):.1f} m, {sum(e > 25.0 for e in errors)} beyond 25 m"
+    )
+    assert line == expected
+
+
+def test_replay_a_bag_against_a_real_server(city: dict, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+    from tests.index.helpers import free_port
+    from tests.server.test_app import start_server, stop_server
+
+    port = free_port()
+    proc = start_server(city["bundle"], port)
+    try:
+        out = tmp_path / "replay" / "run0"
+        args = ["localize", "--rosbag", str(city["bag"]), "--cloud-topic", "/points",
+                "--pose-topic", "/odom", "--origin", city["origin"], "--every", "5",
+                "--url", f"http://127.0.0.1:{port}", "--map", str(city["bundle"]),
+                "--out", str(out)]  # fmt: skip
+        res = CliRunner().invoke(app, args)
+    finally:
+        stop_server(proc)
+    assert res.exit_code == 0, res.output
+    lines = res.stdout.strip().splitlines()
+    assert lines[-2] == f"wrote {out}.csv, {out}.png"
+    rows = read_rows(Path(f"{out}.csv"))
+    drive = city["drive"]
+    assert [int(r["scan"]) for r in rows] == [0, 5, 10, 15, 20]
+    assert [int(r["timestamp"]) for r in rows] == drive.timestamps[[0, 5, 10, 15, 20]].tolist()
+    assert all(r["status"] == "ok" and r["submap"] for r in rows)
+    for r in rows:  # the bag's poses, placed back in UTM; errors from the columns
+        i = int(r["scan"])
+        assert float(r["true_northing"]) == pytest.approx(drive.poses[i, 1, 3], abs=1e-6)
+        assert float(r["true_easting"]) == pytest.approx(drive.poses[i, 0, 3], abs=1e-6)
+        dn = float(r["northing"]) - float(r["true_northing"])
+        de = float(r["easting"]) - float(r["true_easting"])
+        assert float(r["error_m"]) == pytest.approx(math.hypot(dn, de))
+    check_summary(lines[-1], rows)
+    png = Path(f"{out}.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+
+    # The same bag searched in this process (--index): the same top-1 answers.
+    local = tmp_path / "local"
+    args = [a for a in args if a != f"http://127.0.0.1:{port}"]
+    args = [*args[: args.index("--url")], *args[args.index("--url") + 1 :]]
+    args[args.index(str(out))] = str(local)
+    res = CliRunner().invoke(app, [*args, "--index", str(city["bundle"]), "-m", str(city["ckpt"])])
+    assert res.exit_code == 0, res.output
+    again = read_rows(Path(f"{local}.csv"))
+    assert [r["submap"] for r in again] == [r["submap"] for r in rows]
+    check_summary(res.stdout.strip().splitlines()[-1], again)
+
+
+def test_replay_without_poses_and_bad_options(city: dict, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    out = tmp_path / "noposes"
+    base = ["localize", "--rosbag", str(city["bag"]), "--index", str(city["bundle"])]
+    res = CliRunner().invoke(app, [*base, "--cloud-topic", "/points", "--every", "12",
+                                   "--out", str(out), "--no-plot"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    rows = read_rows(Path(f"{out}.csv"))
+    assert len(rows) == 2 and all(r["error_m"] == "" and r["true_northing"] == "" for r in rows)
+    assert not Path(f"{out}.png").exists()
+    assert res.stdout.strip().splitlines()[-1] == (
+        "replay: 2 of 2 queries answered (no poses in the bag: errors unknown)"
+    )
+    cases = [
+        ([*base], "--rosbag needs --cloud-topic"),
+        ([*base, "--cloud-topic", "/odom"], "holds nav_msgs/msg/Odometry"),
+        ([*base, "--cloud-topic", "/points", "--every", "0"], "--every: must be >= 1"),
+        ([*base, "--cloud-topic", "/points", "--preprocess"], "do not go with --rosbag"),
+        ([*base, "--cloud-topic", "/points", "--pose-topic", "/nope"], "'/nope' not found"),
+        (["localize", "--index", str(city["bundle"]), "--every", "3"], "--every: applies to"),
+        (["localize", "--index", str(city["bundle"])], "give a scan file (or --rosbag BAG"),
+        (["localize", "--index", str(city["bundle"]), "--out", "x"], "--out: applies to"),
+    ]
+    for args, message in cases:
+        bad = ["--out", str(tmp_path / "bad")] if "--rosbag" in args else []
+        res = CliRunner().invoke(app, [*args, *bad])
+        assert res.exit_code == 2, (args, res.output)
+        errors = [line for line in res.output.splitlines() if line.startswith("error: ")]
+        assert len(errors) == 1 and message in errors[0], (args, res.output)
+    assert not list(tmp_path.glob("bad*"))

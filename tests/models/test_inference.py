@@ -1,0 +1,176 @@
+"""models.inference: the folded Encoder equals the model, threads, input checks, bfloat16."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.inference import Encoder, bf16_supported, top1_agreement
+from pnvlad_service.models.pointnetvlad import build_model
+from tests.models.helpers import CONFIGS, clouds, trained_like
+
+
+@pytest.mark.parametrize(
+    ("name", "tile"),
+    [(name, 1024) for name in sorted(CONFIGS)] + [("paper-narrow", 100), ("max", 100)],
+)
+def test_encoder_matches_model(name: str, tile: int) -> None:
+    cfg = CONFIGS[name]
+    model = trained_like(cfg)
+    x = clouds(5, seed=2)
+    with torch.no_grad():
+        want = model(x).numpy()
+    enc = Encoder(model, cfg, batch_size=2, point_tile=tile)
+    got = enc.embed(x)
+    assert got.shape == (5, cfg.output_dim) and got.dtype == np.float32
+    assert np.abs(got - want).max() < 1e-5
+    assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-6)
+    assert enc.dim == cfg.output_dim
+    assert model.training is False  # the encoder leaves the model's mode as it was
+
+
+def test_encoder_cloud_workers_agree_and_leave_thread_count() -> None:
+    """Clouds run side by side on worker threads give the model's descriptors, in batch order,
+    and the workers' single intra-op thread does not leak into the calling thread."""
+    cfg = CONFIGS["paper-narrow"]
+    model = trained_like(cfg)
+    x = clouds(7, seed=4)
+    with torch.no_grad():
+        want = model(x).numpy()
+    threads = torch.get_num_threads()
+    serial = Encoder(model, cfg, cloud_workers=1)
+    side_by_side = Encoder(model, cfg, cloud_workers=3, batch_size=4)
+    try:
+        a, b = serial.embed(x), side_by_side.embed(x)
+        assert side_by_side._pool is not None and serial._pool is None
+        assert np.abs(a - want).max() < 1e-5 and np.abs(b - want).max() < 1e-5
+        assert torch.get_num_threads() == threads
+        side_by_side.close()
+        assert np.abs(side_by_side.embed(x.flip(0)) - want[::-1]).max() < 1e-5
+    finally:
+        side_by_side.close()
+    with pytest.raises(InputError, match="cloud_workers"):
+        Encoder(model, cfg, cloud_workers=0)
+
+
+def test_encoder_embeds_from_several_threads_at_once() -> None:
+    """The server's batcher lanes call embed concurrently: every call gets its own clouds'
+    descriptors, whether its clouds run on the workers or on the calling thread."""
+    import threading
+
+    cfg = CONFIGS["paper-narrow"]
+    model = trained_like(cfg)
+    batches = [clouds(b, seed=10 + b) for b in (1, 3, 2, 1, 5, 1)]
+    with torch.no_grad():
+        want = [model(x).numpy() for x in batches]
+    enc = Encoder(model, cfg, cloud_workers=2)
+    got: dict[int, np.ndarray] = {}
+    errors: list[BaseException] = []
+
+    def run(i: int) -> None:
+        try:
+            for _ in range(3):
+                got[i] = enc.embed(batches[i])
+        except BaseException as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(len(batches))]
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(60)
+    finally:
+        enc.close()
+    assert not errors
+    for i, w in enumerate(want):
+        assert np.abs(got[i] - w).max() < 1e-5, i
+    assert enc._embedding == 0
+
+
+def test_encoder_accepts_single_cloud_float64_and_other_sizes() -> None:
+    cfg = CONFIGS["compact"]
+    model = trained_like(cfg)
+    enc = Encoder(model, cfg)
+    x = clouds(1, n=300).double().numpy()
+    one = enc.embed(x[0])  # [N, 3] -> [1, D]
+    assert one.shape == (1, cfg.output_dim)
+    with torch.no_grad():
+        want = model(torch.from_numpy(x).float()).numpy()
+    assert np.abs(one - want).max() < 1e-5
+
+
+def test_encoder_rejects_bad_points() -> None:
+    cfg = CONFIGS["compact"]
+    enc = Encoder(trained_like(cfg), cfg)
+    with pytest.raises(InputError, match=r"\[B, N, 3\]"):
+        enc.embed(np.zeros((2, 10, 4), np.float32))
+    bad = np.zeros((1, 10, 3), np.float32)
+    bad[0, 3, 1] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        enc.embed(bad)
+    with pytest.raises(InputError, match="dtype"):
+        Encoder(trained_like(cfg), cfg, dtype="float16")
+
+
+def test_training_mode_model_is_folded_with_running_stats() -> None:
+    cfg = CONFIGS["compact"]
+    model = trained_like(cfg).train()
+    enc = Encoder(model, cfg)
+    assert model.training  # restored
+    with torch.no_grad():
+        want = model.eval()(clouds(2)).numpy()
+    assert np.abs(enc.embed(clouds(2)) - want).max() < 1e-5
+
+
+@pytest.mark.skipif(not bf16_supported(), reason="CPU without native bfloat16")
+def test_bfloat16_paper_head_at_batch_24() -> None:
+    """The paper head (65,536 -> 256) in bfloat16 for 24 clouds: torch 2.13's bfloat16 F.linear
+    of that shape dies with SIGFPE, so the encoder must not route bfloat16 through it."""
+    cfg = ModelConfig.paper()
+    torch.manual_seed(0)
+    enc = Encoder(build_model(cfg).eval(), cfg, dtype="bfloat16")
+    out = enc.embed(clouds(24, n=64, seed=1))
+    assert out.shape == (24, 256) and np.allclose(np.linalg.norm(out, axis=1), 1, atol=1e-3)
+
+
+@pytest.mark.skipif(not bf16_supported(), reason="CPU without native bfloat16")
+def test_bfloat16_path_and_auto_self_check() -> None:
+    cfg = CONFIGS["paper-narrow"]
+    model = trained_like(cfg)
+    x = clouds(6, seed=3)
+    ref = Encoder(model, cfg).embed(x)
+    low = Encoder(model, cfg, dtype="bfloat16").embed(x)
+    cos = (ref * low).sum(1)
+    assert cos.min() > 0.99 and np.abs(low - ref).max() > 0  # close, yet really bfloat16
+    auto = Encoder(model, cfg, dtype="auto", check_points=x)
+    assert auto.agreement == top1_agreement(ref, low)
+    assert auto.dtype == ("bfloat16" if auto.agreement >= 0.99 else "float32")
+    assert Encoder(model, cfg, dtype="auto").dtype == "float32"  # no clouds, no bfloat16
+
+
+def test_top1_agreement() -> None:
+    a = np.array([[0.0, 0], [1, 0], [3, 0], [10, 0]])
+    assert top1_agreement(a, a) == 1.0
+    b = np.array([[0.0, 0], [2.4, 0], [3, 0], [10, 0]])  # 0's neighbour: 1 -> 1 still; 1's: 0 -> 2
+    assert top1_agreement(a, b) == 0.75
+
+
+@pytest.mark.real_scans
+def test_real_scan_descriptor_is_order_independent(real_scans: Path) -> None:
+    pts = np.fromfile(real_scans / "kitti00_000000.bin", dtype=np.float32).reshape(-1, 4)[:, :3]
+    rng = np.random.default_rng(0)
+    sub = pts[rng.choice(len(pts), 4096, replace=False)].astype(np.float64)
+    sub -= sub.mean(0)
+    sub /= 2 * np.linalg.norm(sub, axis=1).mean()  # mean distance 0.5, as the benchmark's G
+    cfg = ModelConfig.compact()
+    enc = Encoder(trained_like(cfg), cfg)
+    e = enc.embed(sub)
+    e_perm = enc.embed(sub[rng.permutation(4096)])
+    assert np.abs(e - e_perm).max() < 1e-5
+    assert abs(float(np.linalg.norm(e)) - 1.0) < 1e-6
