@@ -52,6 +52,17 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
+def default_permissions(path: str | Path) -> None:
+    """Give ``path`` the mode a plain open() (or mkdir) would have, under the process's umask.
+
+    For files that a library writes itself with a tighter mode: safetensors' ``save_file``
+    creates them 0600, so a model trained by one user could not be read by another, such as the
+    container image's uid 10001 with the model mounted read-only.
+    """
+    path = Path(path)
+    path.chmod((0o777 if path.is_dir() else 0o666) & ~_UMASK)
+
+
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically."""
     with atomic_open(path, "wb") as fh:

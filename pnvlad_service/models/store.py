@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 from pydantic import ValidationError
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.fileio import atomic_directory, sha256_file
+from pnvlad_service.fileio import atomic_directory, default_permissions, sha256_file
 from pnvlad_service.models.config import ModelConfig, config_sha256
 
 if TYPE_CHECKING:
@@ -120,6 +120,7 @@ def write_model_files(
     directory = Path(directory)
     state = {k: v.detach().to("cpu").contiguous() for k, v in model.state_dict().items()}
     save_file(state, str(directory / WEIGHTS_FILE), metadata={"format": FORMAT})
+    default_permissions(directory / WEIGHTS_FILE)  # save_file makes it 0600
     doc: dict[str, Any] = dict(meta or {})
     doc.update(
         {

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -42,6 +43,15 @@ def test_model_dir_and_run_dir_name_the_same_model(model_dir: Path) -> None:
     assert a.weights_sha256 == want
     assert a.checkpoint == str(model_dir.resolve())
     assert a.to_json()["config"]["num_points"] == 64
+
+
+def test_model_files_get_the_umask_permissions(model_dir: Path) -> None:
+    """safetensors writes 0600; a model must be readable as any other output is (umask 022:
+    0644), e.g. by the container image's uid 10001 (scripts/image_test.sh)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    for f in ("model.safetensors", "model.json"):
+        assert (model_dir / f).stat().st_mode & 0o777 == 0o666 & ~umask, f
 
 
 def test_unfinished_run_and_other_folders_are_refused(tmp_path: Path) -> None:
