@@ -622,8 +622,8 @@ def test_cloud_without_xyz_and_with_integer_xyz(tmp_path: Path) -> None:
         RosbagDrive(bag, "/points", pose_topic="/odom")
 
 
-def test_poses_that_do_not_overlap_the_clouds(tmp_path: Path) -> None:
-    path = tmp_path / "late.bag"
+def write_late_poses_bag(path: Path, with_tf: bool = False) -> Path:
+    """Three clouds whose poses (Odometry, and /tf with ``with_tf``) all come a minute later."""
     t0 = EPOCH_US * 1000
     with BagWriter(path) as bag:
         for k in range(3):
@@ -631,7 +631,13 @@ def test_poses_that_do_not_overlap_the_clouds(tmp_path: Path) -> None:
             bag.write("/points", pointcloud2(bag.types, np.ones((3, 3), np.float32), ns, "l"), ns)
             late = ns + 60 * 10**9
             bag.write("/odom", odometry(bag.types, np.eye(4), late, "odom", "l"), late)
-            bag.write("/tf", tf_message(bag.types, [("odom", "l", np.eye(4), late)]), late)
+            if with_tf:
+                bag.write("/tf", tf_message(bag.types, [("odom", "l", np.eye(4), late)]), late)
+    return path
+
+
+def test_poses_that_do_not_overlap_the_clouds(tmp_path: Path) -> None:
+    path = write_late_poses_bag(tmp_path / "late.bag", with_tf=True)
     with bad(
         r"pose topic '/odom' does not overlap the clouds on '/points': poses "
         r"1700000060\.000\.\.1700000060\.200 s, clouds 1700000000\.000\.\.1700000000\.200 s",
@@ -785,14 +791,7 @@ def test_cli_bad_rosbag_input_exits_2_with_one_line(small_bag: Path, tmp_path: P
 
 
 def test_cli_poses_that_do_not_overlap_leave_nothing(tmp_path: Path) -> None:
-    path = tmp_path / "late.bag"
-    t0 = EPOCH_US * 1000
-    with BagWriter(path) as bag:
-        for k in range(3):
-            ns = t0 + k * 100_000_000
-            bag.write("/points", pointcloud2(bag.types, np.ones((3, 3), np.float32), ns, "l"), ns)
-            late = ns + 60 * 10**9
-            bag.write("/odom", odometry(bag.types, np.eye(4), late, "odom", "l"), late)
+    path = write_late_poses_bag(tmp_path / "late.bag")
     out = tmp_path / "run"
     res = run_cli("--rosbag", str(path), "--cloud-topic", "/points", "--pose-topic", "/odom",
                   "--out", str(out))  # fmt: skip
