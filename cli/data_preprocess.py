@@ -66,12 +66,11 @@ def preprocess(
     reader: str | None = typer.Option(
         None,
         "--reader",
-        "-r",
         help=f"Input format: {_READER_NAMES}. Default: by suffix; a raw .bin needs it "
         "(except a 98,304-byte benchmark submap).",
     ),
     points: int | None = typer.Option(
-        None, "--points", "-n", help="Points in the submap. Default: 4096."
+        None, "--points", help="Points in the submap. Default: 4096."
     ),
     seed: int = typer.Option(0, "--seed", help="Seed of the random refill/drop steps."),
     no_normalize: bool = typer.Option(

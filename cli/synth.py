@@ -14,7 +14,6 @@ def synth(
     preset: str = typer.Option(
         "demo",
         "--preset",
-        "-p",
         help="tiny (tests, seconds), demo (README, ~600 submaps, under 2 min) or benchmark "
         "(3 districts x 5 runs, quality figures, under 30 min).",
     ),

@@ -342,7 +342,7 @@ def test_cli_options_and_errors(tmp_path: Path) -> None:
     np.save(scan, _scene())
     out = tmp_path / "scene_out.npy"
     runner = CliRunner()
-    options = ["-n", "512", "--no-normalize", "--box", "-30,-30,-5,30,30,10"]
+    options = ["--points", "512", "--no-normalize", "--box", "-30,-30,-5,30,30,10"]
     options += ["--max-range", "35", "--seed", "4"]
     ok = runner.invoke(app, ["data", "preprocess", str(scan), "-o", str(out), *options])
     assert ok.exit_code == 0, ok.output
