@@ -272,6 +272,7 @@ def plot_replay(
                             label=label)  # fmt: skip
         ax2.axhline(far_m, c="0.4", ls="--", lw=0.8, label=f"{far_m:g} m")
         ax2.set_yscale("symlog", linthresh=1.0)
+        ax2.set_ylim(bottom=0.0)  # errors are distances: no negative half of the axis
         ax2.set_xlabel("time in the bag (s)")
         ax2.set_ylabel("error of the top-1 submap (m)")
         s = summarise(rows, far_m)
