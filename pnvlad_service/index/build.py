@@ -34,7 +34,7 @@ from pnvlad_service.index.keys import (
 from pnvlad_service.index.manifest import Manifest, ModelRecord
 from pnvlad_service.io.readers import read_points
 from pnvlad_service.models.embedding import Embedder, embed_in_chunks
-from pnvlad_service.models.store import model_identity, resolve_model_dir
+from pnvlad_service.models.store import ModelIdentity, model_identity, resolve_model_dir
 
 if TYPE_CHECKING:
     from pnvlad_service.data.tree import Submap
@@ -108,11 +108,15 @@ def embed_submaps(
     )
 
 
-def load_encoder(model: str | Path, device: str | None = None) -> Encoder:
-    """The encoder of a model directory or of the training run that made it."""
+def load_encoder(
+    model: str | Path, device: str | None = None, identity: ModelIdentity | None = None
+) -> Encoder:
+    """The encoder of a model directory or of the training run that made it; ``identity``,
+    when the caller has it, spares hashing the weights again."""
     from pnvlad_service.models.inference import Encoder
 
-    return Encoder.from_checkpoint(resolve_model_dir(model), device=device)
+    sha = identity.weights_sha256 if identity is not None else None
+    return Encoder.from_checkpoint(resolve_model_dir(model), device=device, weights_sha256=sha)
 
 
 def default_preprocess_config() -> dict[str, Any]:
@@ -233,8 +237,9 @@ def build_bundle(
     if out.exists() and not overwrite:
         raise InputError("bundle already exists (use --overwrite to replace it)", source=out)
     records = list_database_submaps(root, datasets, runs, layout)
-    record = ModelRecord.from_identity(model_identity(model))
-    enc = encoder if encoder is not None else load_encoder(model)
+    identity = model_identity(model)
+    record = ModelRecord.from_identity(identity)
+    enc = encoder if encoder is not None else load_encoder(model, identity=identity)
     with _maybe_distributed() as (rank, world):
         t0 = time.perf_counter()
         desc = _embed_sharded(enc, root, records, batch_size, progress, rank, world)
@@ -310,7 +315,8 @@ def add_to_bundle(
     bundle_dir = Path(bundle_dir)
     root = Path(root)
     bundle = IndexBundle.load(bundle_dir)
-    bundle.manifest.check_model(model_identity(model))
+    identity = model_identity(model)
+    bundle.manifest.check_model(identity)
     records = list_database_submaps(root, datasets, runs, layout)
     present = set(bundle.metadata.submap_id.tolist())
     dup = [r.submap_id for r in records if r.submap_id in present]
@@ -318,7 +324,7 @@ def add_to_bundle(
         raise InputError(
             f"{len(dup)} submaps are already in the bundle, e.g. {dup[0]}", source=bundle_dir
         )
-    enc = encoder if encoder is not None else load_encoder(model)
+    enc = encoder if encoder is not None else load_encoder(model, identity=identity)
     t0 = time.perf_counter()
     desc = embed_submaps(enc, root, records, batch_size, progress)
     t_embed = time.perf_counter() - t0

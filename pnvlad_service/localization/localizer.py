@@ -158,7 +158,9 @@ def checked_model(index: str | Path, model: str | Path | None = None) -> ModelId
     if model is None:
         model = manifest.model.checkpoint
         if not model:
-            raise InputError("the bundle records no checkpoint; pass --checkpoint", index)
+            raise InputError(
+                "the bundle records no model; pass one (-m/--model, or PNVLAD_CHECKPOINT)", index
+            )
     identity = model_identity(model)
     manifest.check_model(identity)
     return identity
@@ -247,7 +249,7 @@ class Localizer:
         ident = checked_model(index, model)
         t0 = time.perf_counter()
         bundle = IndexBundle.load(index, verify=verify)
-        encoder = load_encoder(ident.checkpoint, device=device)
+        encoder = load_encoder(ident.checkpoint, device=device, identity=ident)
         log.info(
             "loaded %s (%s, %d vectors) and model %s in %.2f s",
             index,

@@ -134,13 +134,21 @@ class Encoder:
 
     @classmethod
     def from_checkpoint(
-        cls, directory: str | Path, device: str | None = None, **kwargs: Any
+        cls,
+        directory: str | Path,
+        device: str | None = None,
+        *,
+        weights_sha256: str | None = None,
+        **kwargs: Any,
     ) -> Encoder:
-        """Load a model directory (``model.json`` + ``model.safetensors``) into an Encoder."""
-        from pnvlad_service.models.store import load_model, weights_sha256
+        """Load a model directory (``model.json`` + ``model.safetensors``) into an Encoder.
+        ``weights_sha256``: the weights' hash when the caller has just taken it (a
+        ``ModelIdentity``), so that the 64 MB file of the paper model is not hashed twice."""
+        from pnvlad_service.models import store
 
-        model, cfg = load_model(directory)
-        return cls(model, cfg, device=device, weights_sha256=weights_sha256(directory), **kwargs)
+        model, cfg = store.load_model(directory)
+        sha = weights_sha256 or store.weights_sha256(directory)
+        return cls(model, cfg, device=device, weights_sha256=sha, **kwargs)
 
     def _cast(self, dtype: str) -> dict[str, Any]:
         """The folded parameters on the device for ``dtype`` (made once, then reused)."""

@@ -253,3 +253,12 @@ def test_cli_takes_a_training_run_and_the_long_checkpoint_flag(
 
 RUNS_0 = ["--run", RUNS[0]]
 RUNS_1 = ["--run", RUNS[1]]
+
+
+def test_load_encoder_takes_the_known_weights_hash_or_hashes_itself(world) -> None:
+    from pnvlad_service.models.store import model_identity, weights_sha256
+
+    ident = model_identity(world["ckpt"])
+    want = weights_sha256(world["ckpt"])
+    assert ib.load_encoder(world["ckpt"]).weights_sha256 == want
+    assert ib.load_encoder(world["ckpt"], identity=ident).weights_sha256 == want
