@@ -25,6 +25,7 @@ submap, then write the locations CSVs.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import time
@@ -36,7 +37,8 @@ from typing import Any, Literal
 import numpy as np
 
 from pnvlad_service.data.drives import Drive, check_drive, snap_m
-from pnvlad_service.data.preprocess import GConfig, filter_g
+from pnvlad_service.data.frames import SubmapFrame, frames_path, read_frames_csv, write_frames_csv
+from pnvlad_service.data.preprocess import GConfig, GResult, apply_g
 from pnvlad_service.data.run_folder import claim_folders
 from pnvlad_service.data.tree import LAYOUTS, write_locations_csv
 from pnvlad_service.errors import InputError
@@ -412,9 +414,9 @@ def _window_submap(
     stamps: np.ndarray,
     use: np.ndarray,
     opts: _Options,
-) -> np.ndarray | None:
-    """The submap of one window (float64 [target_points, 3]), or ``None`` (logged) when G
-    cannot make one from its points."""
+) -> GResult | None:
+    """G's result for one window (its points: float64 [target_points, 3]), or ``None``
+    (logged) when G cannot make a submap from its points."""
     cut = window.cut
     cache.evict_before(cut.first)
     indices = [i for i in range(cut.first, cut.last + 1) if use[i]]
@@ -425,7 +427,7 @@ def _window_submap(
     try:
         if len(local) == 0:
             raise InputError("no points in the window", f"scan {cut.scan}")
-        return filter_g(local, opts.config, seed=opts.seed + cut.scan)
+        return apply_g(local, opts.config, seed=opts.seed + cut.scan)
     except InputError as exc:
         log.warning(
             "submap at %.1f m (timestamp %d) skipped: %s", cut.distance_m, stamps[cut.scan], exc
@@ -433,60 +435,187 @@ def _window_submap(
         return None
 
 
+def _true_poses(drive: Drive, n: int) -> np.ndarray | None:
+    """The drive's true sensor poses (float64 [T, 4, 4]) where it knows them (the simulator,
+    before its GNSS/INS error), else ``None``."""
+    true = getattr(drive, "true_poses", None)
+    if true is None:
+        return None
+    true = np.asarray(true, dtype=np.float64)
+    if true.shape != (n, 4, 4) or not np.isfinite(true).all():
+        raise InputError(f"true_poses must be finite [{n}, 4, 4], got {true.shape}", "drive")
+    return true
+
+
+def _frame(
+    scan: int, g: GResult, poses: np.ndarray, stamps: np.ndarray, true: np.ndarray | None
+) -> SubmapFrame:
+    """The sidecar row of the submap centred on ``scan`` (see :mod:`..frames`). The local
+    frame has UTM axes at the snapped centre-scan position (what :func:`accumulate` used);
+    its true pose is ``true[scan] @ inv(poses[scan]) @ translate(origin)``."""
+    origin = snap_m(poses[scan, :3, 3])
+    true_pos = true_yaw = None
+    if true is not None:
+        shift = np.eye(4)
+        shift[:3, 3] = origin
+        t = true[scan] @ np.linalg.inv(poses[scan]) @ shift
+        true_pos, true_yaw = t[:3, 3].copy(), math.degrees(math.atan2(t[1, 0], t[0, 0]))
+    return SubmapFrame(int(stamps[scan]), origin, g.centre, g.scale, "enu", true_pos, true_yaw)
+
+
+def _journal_path(res: LayoutResult) -> Path:
+    """Frame rows written so far, one JSON line each, so that a resumed run keeps them; the
+    name starts with ``.prepare-`` like the folder's manifest."""
+    return res.csv.with_name(f".prepare-{res.folder.name}.frames.jsonl")
+
+
+def _journal_line(f: SubmapFrame) -> str:
+    true = None if f.true_position is None else [*map(float, f.true_position), f.true_yaw_deg]
+    row = {"t": f.timestamp, "o": [*map(float, f.origin)], "c": [*map(float, f.centre)]}
+    return json.dumps({**row, "s": f.scale, "f": f.frame, "true": true}) + "\n"
+
+
+def _journal_rows(path: Path) -> list[SubmapFrame]:
+    rows = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            d = json.loads(line)
+            true = d["true"]
+            rows.append(
+                SubmapFrame(
+                    int(d["t"]),
+                    np.array(d["o"], dtype=np.float64),
+                    np.array(d["c"], dtype=np.float64),
+                    float(d["s"]),
+                    str(d["f"]),
+                    None if true is None else np.array(true[:3], dtype=np.float64),
+                    None if true is None else float(true[3]),
+                )
+            )
+        except (ValueError, KeyError, TypeError, IndexError):
+            break  # a line cut short by a crash: what follows it was not recorded
+    return rows
+
+
+def _known_frames(plans: list[_KindPlan]) -> dict[tuple[str, int], SubmapFrame]:
+    """(kind, timestamp) -> the frame rows an earlier run recorded: its sidecar, then the
+    journal of an interrupted run (for ``resume``)."""
+    known: dict[tuple[str, int], SubmapFrame] = {}
+    for plan in plans:
+        res = plan.result
+        side = frames_path(res.csv)
+        rows: list[SubmapFrame] = []
+        if side.is_file():
+            try:
+                rows = read_frames_csv(side)
+            except InputError as exc:
+                log.warning("ignoring the old frame sidecar: %s", exc)
+        if _journal_path(res).is_file():
+            rows += _journal_rows(_journal_path(res))
+        known.update(((res.kind, f.timestamp), f) for f in rows)
+    return known
+
+
+@dataclass
+class _Made:
+    """What :func:`_make_submaps` made: the (kind, centre scan) that failed, and the frame
+    row of every submap that exists (kind, centre scan) -> row."""
+
+    failed: set[tuple[str, int]] = field(default_factory=set)
+    frames: dict[tuple[str, int], SubmapFrame] = field(default_factory=dict)
+
+
 def _make_submaps(
     windows: list[_Window],
     cache: _ScanCache,
-    poses: np.ndarray,
-    stamps: np.ndarray,
+    drive: tuple[np.ndarray, np.ndarray, np.ndarray | None],
     use: np.ndarray,
     opts: _Options,
     *,
-    resume: bool,
+    known: dict[tuple[str, int], SubmapFrame],
     progress: bool,
     desc: str,
-) -> set[tuple[str, int]]:
-    """Make and write every window's submap; returns the (kind, centre scan) that failed.
+) -> _Made:
+    """Make and write every window's submap and its frame row.
 
-    With ``resume`` a target already on disk with the size of a whole submap is kept.
+    ``drive``: (poses, timestamps, true poses or None). A target in ``known`` (resume) already
+    on disk with the size of a whole submap is kept, with its recorded frame row.
     """
     from tqdm.auto import tqdm
 
-    whole = opts.config.target_points * 3 * 8  # bytes of a finished .bin (float64 x, y, z)
-    failed: set[tuple[str, int]] = set()
+    made = _Made()
+    journals = {}
+    for res in {id(r): r for w in windows for r, _ in w.targets}.values():
+        # Rewritten with what is known, so that a crash now loses none of it either.
+        journals[res.kind] = _journal_path(res).open("w", encoding="utf-8")
+        journals[res.kind].writelines(
+            _journal_line(f) for (k, _), f in known.items() if k == res.kind
+        )
     bar = tqdm(windows, desc=desc, unit="submap", disable=None if progress else True)
-    for window in bar:
-        todo = []
-        for res, path in window.targets:
-            if resume and path.is_file() and path.stat().st_size == whole:
-                res.resumed += 1
-            else:
-                todo.append((res, path))
-        if not todo:
+    try:
+        for window in bar:
+            _make_window(window, cache, drive, use, opts, known, made, journals)
+    finally:
+        bar.close()
+        for j in journals.values():
+            j.close()
+    return made
+
+
+def _make_window(
+    window: _Window,
+    cache: _ScanCache,
+    drive: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+    use: np.ndarray,
+    opts: _Options,
+    known: dict[tuple[str, int], SubmapFrame],
+    made: _Made,
+    journals: dict[str, Any],
+) -> None:
+    """One window of :func:`_make_submaps`: its submap written to each target folder that
+    lacks it, each frame row recorded in ``made`` and in the kind's journal."""
+    poses, stamps, true = drive
+    whole = opts.config.target_points * 3 * 8  # bytes of a finished .bin (float64 x, y, z)
+    scan = window.cut.scan
+    todo = []
+    for res, path in window.targets:
+        old = known.get((res.kind, int(stamps[scan])))
+        if old is not None and path.is_file() and path.stat().st_size == whole:
+            res.resumed += 1
+            made.frames[(res.kind, scan)] = old
+        else:
+            todo.append((res, path))
+    if not todo:
+        return
+    g = _window_submap(window, cache, poses, stamps, use, opts)
+    for res, path in todo:
+        if g is None:
+            res.failed += 1
+            made.failed.add((res.kind, scan))
             continue
-        submap = _window_submap(window, cache, poses, stamps, use, opts)
-        for res, path in todo:
-            if submap is None:
-                res.failed += 1
-                failed.add((res.kind, window.cut.scan))
-            else:
-                write_submap(path, submap)
-                res.written += 1
-    bar.close()
-    return failed
+        write_submap(path, g.points)
+        row = _frame(scan, g, poses, stamps, true)
+        journals[res.kind].write(_journal_line(row))
+        journals[res.kind].flush()
+        made.frames[(res.kind, scan)] = row
+        res.written += 1
 
 
 def _write_locations(
-    plans: list[_KindPlan], stamps: np.ndarray, poses: np.ndarray, failed: set[tuple[str, int]]
+    plans: list[_KindPlan], stamps: np.ndarray, poses: np.ndarray, made: _Made
 ) -> None:
-    """Each kind's locations CSV (its submaps that were made, in cut order), written last."""
+    """Each kind's frame sidecar and locations CSV (its submaps that were made, in cut
+    order), written last, the CSV after its sidecar."""
     for plan in plans:
         res = plan.result
+        cuts = [c for c in plan.cuts if (res.kind, c.scan) not in made.failed]
         rows = [
             (int(stamps[c.scan]), float(poses[c.scan, 1, 3]), float(poses[c.scan, 0, 3]))
-            for c in plan.cuts
-            if (res.kind, c.scan) not in failed
+            for c in cuts
         ]
+        write_frames_csv(frames_path(res.csv), [made.frames[(res.kind, c.scan)] for c in cuts])
         write_locations_csv(res.csv, rows)
+        _journal_path(res).unlink(missing_ok=True)
         log.info(
             "%s: %d submaps (%d written, %d already there, %d failed) -> %s",
             res.folder,
@@ -565,22 +694,22 @@ def prepare_drive(
     # Only now, with every argument checked, touch the output folders.
     manifests = [_manifest(drive, len(stamps), layout, plan, opts) for plan in plans]
     targets = [(p.result.folder, p.result.csv) for p in plans]
+    known = _known_frames(plans) if resume else {}  # before claiming: that drops old sidecars
     claim_folders(targets, manifests, out, resume=resume, overwrite=overwrite)
     cache = _ScanCache(
         drive, seed=seed, max_points_per_scan=max_points_per_scan, max_range_m=max_range_m
     )
-    failed = _make_submaps(
+    made = _make_submaps(
         windows,
         cache,
-        poses,
-        stamps,
+        (poses, stamps, _true_poses(drive, len(stamps))),
         use,
         opts,
-        resume=resume,
+        known=known,
         progress=progress,
         desc=f"prepare {out.name}",
     )
-    _write_locations(plans, stamps, poses, failed)
+    _write_locations(plans, stamps, poses, made)
     return PrepareResult(
         out_run_dir=out,
         layouts=[p.result for p in plans],

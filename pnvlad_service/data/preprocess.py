@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -147,6 +147,11 @@ class GResult:
     ``points``: float64 [target_points, 3]; ``leaf_size``: metres (0 when the cloud was smaller
     than the target and only refilled); ``up``: unit normal of the ground plane, float64 [3],
     pointing up (``None`` when ground removal is off).
+
+    ``centre`` (float64 [3], input frame and units) and ``scale`` (input units per output unit,
+    negative when ``negate`` flipped the cloud) map the output back to where it came from:
+    ``input ≈ centre + scale * points`` (exactly, up to the voxel averaging and the crop to
+    [-1, 1]); without ``normalize`` they are 0 and 1 (or -1).
     """
 
     points: np.ndarray
@@ -156,6 +161,8 @@ class GResult:
     n_voxels: int
     leaf_size: float
     up: np.ndarray | None
+    centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    scale: float = 1.0
 
 
 def _col_mean(a: np.ndarray) -> np.ndarray:
@@ -443,6 +450,23 @@ def remove_ground(
 # --- 4. normalisation ------------------------------------------------------------------------
 
 
+def normalization(points: np.ndarray, mean_distance: float = 0.5) -> tuple[np.ndarray, float]:
+    """What :func:`normalize` does to ``points``: its centre (the centroid, float64 [3]) and
+    scale (input units per output unit, so that the mean distance from the centre becomes
+    ``mean_distance``). ``InputError`` when all points coincide."""
+    centre, spread = _centre_spread(points)
+    return centre, spread / mean_distance
+
+
+def _centre_spread(points: np.ndarray) -> tuple[np.ndarray, float]:
+    centre = _col_mean(points)
+    centred = points - centre
+    spread = float(np.sqrt(np.einsum("ij,ij->i", centred, centred)).mean())
+    if spread <= 0.0:
+        raise InputError("all points coincide; the cloud cannot be normalised", "points")
+    return centre, spread
+
+
 def normalize(
     points: np.ndarray,
     target: int | None = None,
@@ -455,11 +479,8 @@ def normalize(
     (default: the input count). ``points`` float64 [M, 3]; returns float64 [target, 3].
     """
     target = points.shape[0] if target is None else target
-    centred = points - _col_mean(points)
-    spread = float(np.sqrt(np.einsum("ij,ij->i", centred, centred)).mean())
-    if spread <= 0.0:
-        raise InputError("all points coincide; the cloud cannot be normalised", "points")
-    scaled = centred * (mean_distance / spread)
+    centre, spread = _centre_spread(points)
+    scaled = (points - centre) * (mean_distance / spread)
     a = np.abs(scaled)
     inside = scaled[(a[:, 0] <= 1.0) & (a[:, 1] <= 1.0) & (a[:, 2] <= 1.0)]
     return resample_to(inside, target, rng=rng)
@@ -502,10 +523,13 @@ def apply_g(points: np.ndarray, config: GConfig | None = None, *, seed: int = 0)
     out, leaf, n_voxels = adaptive_voxel_downsample(
         pts, cfg.target_points, rng=rng, iterations=cfg.voxel_iterations
     )
+    centre, scale = np.zeros(3), 1.0
     if cfg.normalize:
+        centre, scale = normalization(out, cfg.mean_distance)
         out = normalize(out, cfg.target_points, rng=rng, mean_distance=cfg.mean_distance)
     if cfg.negate:
         out = -out
+        scale = -scale
     return GResult(
         points=np.ascontiguousarray(out, dtype=np.float64),
         n_input=n_input,
@@ -514,6 +538,8 @@ def apply_g(points: np.ndarray, config: GConfig | None = None, *, seed: int = 0)
         n_voxels=n_voxels,
         leaf_size=leaf,
         up=up,
+        centre=centre,
+        scale=scale,
     )
 
 

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from pnvlad_service.data.frames import frames_path
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_write_text
 
@@ -97,5 +98,6 @@ def claim_folder(
             f.unlink()
     if csv.exists():  # rewritten at the end; until then no CSV describes the folder
         csv.unlink()
+    frames_path(csv).unlink(missing_ok=True)  # its frame sidecar likewise
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write_text(record, json.dumps(manifest, indent=2, sort_keys=True) + "\n")

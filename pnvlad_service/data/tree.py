@@ -28,6 +28,7 @@ from typing import Literal
 
 import numpy as np
 
+from pnvlad_service.data.frames import SubmapFrame, check_frames, frames_path
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_write_text
 from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_BYTES, SUBMAP_POINTS, read_submap
@@ -301,6 +302,15 @@ class BenchmarkTree:
             for k, (t, n, e) in enumerate(loc.rows())
         ]
 
+    def frames(self, dataset: str, run: str, kind: Kind) -> list[SubmapFrame] | None:
+        """The rows of the run's frame sidecar for ``kind`` (:mod:`.frames`), one per submap in
+        CSV order, or ``None`` when the run has no sidecar (e.g. the published Oxford files).
+        ``InputError`` when the sidecar is bad or does not list the CSV's submaps."""
+        side = frames_path(self.csv_path(dataset, run, kind))
+        if not side.is_file():
+            return None
+        return check_frames(side, [int(t) for t in self.locations(dataset, run, kind).timestamp])
+
 
 # --------------------------------------------------------------------------------------------
 # check_tree
@@ -413,6 +423,12 @@ class _TreeChecker:
         uniq, counts = np.unique(loc.timestamp, return_counts=True)
         for t in uniq[counts > 1][:10]:
             self.add(csv_path, f"duplicate timestamp {int(t)}")
+        side = frames_path(csv_path)
+        if side.is_file():
+            try:
+                check_frames(side, [int(t) for t in loc.timestamp])
+            except InputError as exc:
+                self.add(side, exc.detail)
         if not folder.is_dir():
             self.add(csv_path, f"CSV without folder {layout.folder(kind)}")
             return

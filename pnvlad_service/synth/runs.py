@@ -434,6 +434,20 @@ class SimulatedDrive:
     def __len__(self) -> int:
         return len(self.timestamps)
 
+    @property
+    def true_poses(self) -> np.ndarray:
+        """float64 [T, 4, 4] sensor→UTM world as the scans were really cast (no GNSS/INS
+        error); ``prepare_drive`` records from it each submap's true frame pose."""
+        out = np.zeros((len(self), 4, 4))
+        c, s = np.cos(self.true_yaw), np.sin(self.true_yaw)
+        out[:, 0, 0], out[:, 0, 1] = c, -s
+        out[:, 1, 0], out[:, 1, 1] = s, c
+        out[:, 2, 2] = out[:, 3, 3] = 1.0
+        out[:, 0, 3] = self.world.origin[0] + self.true_xy[:, 0]
+        out[:, 1, 3] = self.world.origin[1] + self.true_xy[:, 1]
+        out[:, 2, 3] = self.true_z
+        return out
+
     def scan(self, i: int) -> np.ndarray:
         """Points float32 [N, 3] of scan ``i`` in the sensor frame, metres."""
         pos = np.array([self.true_xy[i, 0], self.true_xy[i, 1], self.true_z[i]])

@@ -171,7 +171,8 @@ def test_single_kind_gives_the_same_bytes(reference_run, tmp_path: Path) -> None
     out = tmp_path / "run"
     prepare_drive(KittiSequence(seq), out, kinds=("test",), **FAST)
     ref = {k: v for k, v in tree_bytes(run).items() if k.startswith("pointcloud_20m/")}
-    ref["pointcloud_locations_20m.csv"] = (run / "pointcloud_locations_20m.csv").read_bytes()
+    for name in ("pointcloud_locations_20m.csv", "pointcloud_locations_20m.frames.csv"):
+        ref[name] = (run / name).read_bytes()
     assert tree_bytes(out) == ref
     # A test submap shares its window (and seed) with the train submap at the same place.
     for name, data in ref.items():
@@ -260,7 +261,9 @@ def test_inhouse_layout_crops_to_the_box(reference_run, tmp_path: Path) -> None:
         "pointcloud_25m_10",
         "pointcloud_25m_25",
         "pointcloud_centroids_10.csv",
+        "pointcloud_centroids_10.frames.csv",
         "pointcloud_centroids_25.csv",
+        "pointcloud_centroids_25.frames.csv",
     ]
     # 58.5 m of travel, 25 m windows: train centres 12.5, 22.5, 32.5, 42.5; test 12.5, 37.5.
     assert [r.submaps for r in result.layouts] == [4, 2]

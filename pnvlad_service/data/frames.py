@@ -1,0 +1,192 @@
+"""The frame sidecar: where each submap's normalised points sit in metres, and (for the
+simulator) where that frame truly is.
+
+A benchmark ``.bin`` holds the filter G's output: 4096 points centred, scaled to a mean
+distance of 0.5 and clipped to [-1, 1]. That is what the network wants, and all that the
+published layout keeps. Geometric verification needs the points back in metres, so
+``pnvlad data prepare`` and ``pnvlad synth`` write, beside each locations CSV, a sidecar
+``<csv stem>.frames.csv`` with one row per submap (same timestamps, same order):
+
+``timestamp``
+    the submap's timestamp, as in the locations CSV.
+``origin_easting, origin_northing, origin_height``
+    UTM metres of the local frame's origin (the submap's centre scan position, snapped to the
+    millimetre grid the accumulation used).
+``centre_x, centre_y, centre_z, scale``
+    what G did: ``local = centre + scale * bin`` in metres (``scale`` is metres per
+    normalised unit, negative where G negated the cloud).
+``frame``
+    the axes of the local frame: ``enu`` (x east, y north, z up; the accumulated submaps).
+``true_easting, true_northing, true_height, true_yaw_deg`` (optional, ``pnvlad synth``)
+    the simulator's true pose of that local frame in UTM, before the simulated GNSS/INS
+    error: a local point ``p`` truly lies at ``R(true_yaw) p + true_position``. Empty when
+    unknown.
+
+Tools that read the published layout ignore the file; ``pnvlad data check`` validates it.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.fileio import atomic_write_text
+
+FRAMES_SUFFIX = ".frames.csv"
+FRAME_KINDS = ("enu",)
+_BASE = (
+    "timestamp",
+    "origin_easting",
+    "origin_northing",
+    "origin_height",
+    "centre_x",
+    "centre_y",
+    "centre_z",
+    "scale",
+    "frame",
+)
+_TRUE = ("true_easting", "true_northing", "true_height", "true_yaw_deg")
+COLUMNS = _BASE + _TRUE
+
+
+@dataclass(frozen=True)
+class SubmapFrame:
+    """One sidecar row (see the module docstring). Vectors are float64 [3]."""
+
+    timestamp: int
+    origin: np.ndarray
+    centre: np.ndarray
+    scale: float
+    frame: str = "enu"
+    true_position: np.ndarray | None = None
+    true_yaw_deg: float | None = None
+
+    def local_m(self, normalised: np.ndarray) -> np.ndarray:
+        """The submap's points in metres in its local frame: float64 [N, 3]."""
+        return self.centre + self.scale * np.asarray(normalised, dtype=np.float64)
+
+    @property
+    def true_pose(self) -> np.ndarray | None:
+        """float64 [4, 4]: local frame -> true UTM (easting, northing, height), or ``None``."""
+        if self.true_position is None or self.true_yaw_deg is None:
+            return None
+        return pose_matrix(self.true_position, self.true_yaw_deg)
+
+    @property
+    def map_pose(self) -> np.ndarray:
+        """float64 [4, 4]: local frame -> UTM as the map records it (axes UTM, at ``origin``)."""
+        out = np.eye(4)
+        out[:3, 3] = self.origin
+        return out
+
+
+def pose_matrix(position: np.ndarray, yaw_deg: float) -> np.ndarray:
+    """float64 [4, 4]: rotation about z (up) by ``yaw_deg``, then ``position``."""
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    out = np.eye(4)
+    out[:2, :2] = [[c, -s], [s, c]]
+    out[:3, 3] = position
+    return out
+
+
+def frames_path(locations_csv: str | Path) -> Path:
+    """The sidecar beside a locations CSV: ``<stem>.frames.csv``."""
+    p = Path(locations_csv)
+    return p.with_name(p.stem + FRAMES_SUFFIX)
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+def write_frames_csv(path: str | Path, frames: list[SubmapFrame]) -> None:
+    """Write a sidecar atomically; floats with ``repr``, so a round trip is exact."""
+    lines = [",".join(COLUMNS)]
+    for k, f in enumerate(frames):
+        nums = [*f.origin, *f.centre, f.scale]
+        has_true = f.true_position is not None and f.true_yaw_deg is not None
+        if has_true:
+            nums += [*f.true_position, f.true_yaw_deg]
+        if not all(math.isfinite(float(v)) for v in nums):
+            raise InputError(f"row {k}: non-finite value in the frame record", source=path)
+        row = [str(int(f.timestamp)), *map(_fmt, [*f.origin, *f.centre, f.scale]), f.frame]
+        if has_true:
+            row += [*map(_fmt, f.true_position), _fmt(f.true_yaw_deg)]
+        else:
+            row += [""] * len(_TRUE)
+        lines.append(",".join(row))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def _floats(row: dict[str, str], names: tuple[str, ...], where: str, path: Path) -> list[float]:
+    out = []
+    for name in names:
+        try:
+            v = float(row[name])
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: {name} {row.get(name)!r} is not a number", path) from None
+        if not math.isfinite(v):
+            raise InputError(f"{where}: {name} is not finite", path)
+        out.append(v)
+    return out
+
+
+def _row(row: dict[str, str], line: int, path: Path) -> SubmapFrame:
+    where = f"line {line}"
+    try:
+        ts = int(row["timestamp"])
+    except (TypeError, ValueError):
+        bad = row.get("timestamp")
+        raise InputError(f"{where}: timestamp {bad!r} is not an integer", path) from None
+    v = _floats(row, _BASE[1:8], where, path)
+    if v[6] == 0.0:
+        raise InputError(f"{where}: scale is 0", path)
+    frame = (row.get("frame") or "").strip()
+    if frame not in FRAME_KINDS:
+        raise InputError(f"{where}: frame {frame!r} is not one of {list(FRAME_KINDS)}", path)
+    given = [bool((row.get(n) or "").strip()) for n in _TRUE]
+    if any(given) and not all(given):
+        raise InputError(f"{where}: the true pose needs all of {', '.join(_TRUE)}", path)
+    true_pos = true_yaw = None
+    if all(given):
+        t = _floats(row, _TRUE, where, path)
+        true_pos, true_yaw = np.array(t[:3]), t[3]
+    return SubmapFrame(ts, np.array(v[:3]), np.array(v[3:6]), v[6], frame, true_pos, true_yaw)
+
+
+def read_frames_csv(path: str | Path) -> list[SubmapFrame]:
+    """Read a sidecar, in file order. ``InputError`` naming the file and line for a missing
+    column, a bad number, a zero scale, an unknown frame or a half-given true pose."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("frame sidecar not found", source=path) from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not a text CSV ({exc.reason})", source=path) from None
+    reader = csv.DictReader(text.splitlines())
+    missing = [c for c in _BASE if c not in (reader.fieldnames or [])]
+    if missing:
+        raise InputError(f"missing column(s) {', '.join(missing)}", source=path)
+    return [_row(row, k + 2, path) for k, row in enumerate(reader)]
+
+
+def check_frames(path: str | Path, timestamps: list[int]) -> list[SubmapFrame]:
+    """Read a sidecar and check it lists exactly ``timestamps`` (the locations CSV's), in
+    order. ``InputError`` naming the first disagreement."""
+    frames = read_frames_csv(path)
+    if len(frames) != len(timestamps):
+        raise InputError(
+            f"{len(frames)} rows where the locations CSV has {len(timestamps)} submaps", path
+        )
+    for k, (f, t) in enumerate(zip(frames, timestamps, strict=True)):
+        if f.timestamp != t:
+            raise InputError(
+                f"line {k + 2}: timestamp {f.timestamp} where the locations CSV has {t}", path
+            )
+    return frames
