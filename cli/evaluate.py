@@ -34,6 +34,27 @@ _JOINT = typer.Option(
     help="Also evaluate one database of every run and area together.",
     rich_help_panel=_WHAT,
 )
+_VERIFY = "Verification (re-ranking)"
+_RERANK = typer.Option(
+    None,
+    "--rerank",
+    help="Register each query's top K candidates and re-rank them by score: reports recall "
+    "before and after, the metric success rate against the true poses, and the precision and "
+    "recall of 'verified' (needs the tree's frame sidecars).",
+    rich_help_panel=_VERIFY,
+)
+_THRESHOLD = typer.Option(
+    None,
+    "--verify-threshold",
+    help="Score a best match needs to be verified (default: chosen on the training layout).",
+    rich_help_panel=_VERIFY,
+)
+_CAL_QUERIES = typer.Option(
+    60,
+    "--calibration-queries",
+    help="Training-layout queries a run that choose the threshold.",
+    rich_help_panel=_VERIFY,
+)
 _OUT_OPT = typer.Option(
     None,
     "--out",
@@ -76,6 +97,9 @@ def evaluate(
     figures: Path = _FIGURES,
     plot: list[Path] = _PLOT,
     num_points: int = _NUM_POINTS,
+    rerank: int = _RERANK,
+    verify_threshold: float = _THRESHOLD,
+    calibration_queries: int = _CAL_QUERIES,
     device: str = typer.Option(None, "--device", help="cpu | cuda (default: cpu)."),
     workers: int = typer.Option(4, "--workers", help="Threads reading submaps."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
@@ -94,6 +118,8 @@ def evaluate(
       pnvlad eval --baseline --root benchmark_datasets/ --pickles pickles/ -o b.json --figures f/
 
       pnvlad eval --plot a.json --plot base.json --figures figs/
+
+      pnvlad eval -m runs/a --root city/ --splits city/splits.json --rerank 10 --figures f/
     """
     with user_errors():
         from pnvlad_service.errors import InputError
@@ -113,21 +139,53 @@ def evaluate(
             raise InputError(f"must be >= 1, got {num_points}", "--num-points")
         from pnvlad_service.data.dataset import load_eval_runs
 
+        if rerank is not None and not 1 <= rerank <= 100:
+            raise InputError(f"must be 1..100, got {rerank}", "--rerank")
+        if rerank is not None and root is None:
+            raise InputError("re-ranking reads the tree's frame sidecars: give --root", "--root")
+        if rerank is None and verify_threshold is not None:
+            raise InputError("applies with --rerank only", "--verify-threshold")
         enc = ev.baseline_encoder() if baseline else ev.model_encoder(model, device)
         runs = load_eval_runs(root, splits, pickles, sets)
-        rep = ev.evaluate_runs(
-            enc.embed,
+        points = enc.num_points if num_points is None else num_points
+        if len(runs) < 2:
+            raise InputError(f"need at least 2 runs to evaluate, got {len(runs)}", "evaluation set")
+        n_unique, db_desc, q_desc = ev.embed_runs(enc.embed, runs, points, workers, progress)
+        rep = ev.evaluate_embedded(
             runs,
-            enc.num_points if num_points is None else num_points,
+            db_desc,
+            q_desc,
             joint=joint,
-            workers=workers,
-            progress=progress,
             encoder_info=enc.info,
+            num_points=points,
+            n_unique=n_unique,
         )
+        if rerank is not None:
+            from pnvlad_service.data.dataset import load_splits_any
+            from pnvlad_service.localization import rerank_eval
+
+            rep["rerank"] = rerank_eval.evaluate_rerank(
+                enc.embed,
+                points,
+                runs,
+                (db_desc, q_desc),
+                root,
+                load_splits_any(root, splits, pickles).training,
+                candidates=rerank,
+                threshold=verify_threshold,
+                calibration_queries=calibration_queries,
+                workers=workers,
+                progress=progress,
+            )
         if out is not None:
             ev.write_report(rep, out)
         for line in ev.summary_lines(enc.label, rep):
             typer.echo(line)
+        if rerank is not None:
+            for line in rerank_eval.summary_lines(rep["rerank"]):
+                typer.echo(line)
         if figures is not None:
             ev.write_figures(enc.label, rep, figures, others)
+            if rerank is not None:
+                rerank_eval.write_figures(rep["rerank"], figures)
             typer.echo(f"figures in {figures}")

@@ -37,9 +37,25 @@ def serve(
     batch_wait_ms: float = typer.Option(
         None, "--batch-wait-ms", help="Micro-batcher wait for requests being parsed (default 2)."
     ),
+    rerank: int = typer.Option(
+        None,
+        "--rerank",
+        help="Candidates registered to each query and re-ranked, when the bundle carries "
+        "geometry (default 10). A request turns it off with verify=false.",
+    ),
+    verify_threshold: float = typer.Option(
+        None,
+        "--verify-threshold",
+        help="Score (share of query points registered, 0-1) a best match needs to be verified "
+        "(default: the one chosen on training-layout submaps, docs/VERIFY.md).",
+    ),
     log_level: str = typer.Option("info", "--log-level", help="uvicorn log level."),
 ) -> None:
     """Serve POST /localize over HTTP: a point cloud in, the nearest map places out.
+
+    When the bundle carries geometry (built from a tree with frame sidecars), the top
+    candidates are registered to the query and re-ranked, and each answer says whether its
+    best match is verified and gives the query's pose on the map.
 
     Loads the model and the index once. Refuses to start when the bundle was built with other
     weights than the checkpoint. Every setting can also come from the environment (PNVLAD_INDEX,
@@ -56,6 +72,8 @@ def serve(
         "WORKERS": workers,
         "TORCH_THREADS": torch_threads,
         "BATCH_WAIT_MS": batch_wait_ms,
+        "RERANK": rerank,
+        "VERIFY_THRESHOLD": verify_threshold,
     }
     for name, value in options.items():
         if value is not None:
@@ -87,8 +105,9 @@ def serve(
 
 
 def format_matches(answer: dict[str, Any]) -> str:
-    """The table `pnvlad localize` prints: rank, submap, run, northing, easting, distance."""
-    header = ("rank", "submap", "run", "northing", "easting", "distance")
+    """The table `pnvlad localize` prints: rank, submap, run, northing, easting, distance,
+    the verification score; then the verdict and the pose, and the stage times."""
+    header = ("rank", "submap", "run", "northing", "easting", "distance", "score")
     rows = [
         (
             str(m["rank"]),
@@ -97,11 +116,12 @@ def format_matches(answer: dict[str, Any]) -> str:
             f"{m['northing']:.2f}",
             f"{m['easting']:.2f}",
             "-" if m["distance"] is None else f"{m['distance']:.4f}",
+            "-" if m.get("score") is None else f"{m['score']:.3f}",
         )
         for m in answer["matches"]
     ]
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
-    right = {0, 3, 4, 5}
+    right = {0, 3, 4, 5, 6}
 
     def line(r: tuple[str, ...]) -> str:
         return "  ".join(
@@ -112,23 +132,55 @@ def format_matches(answer: dict[str, Any]) -> str:
     t = answer.get("timings_ms", {})
     footer = (
         f"preprocess {t.get('preprocess', 0):.1f} ms, embed {t.get('embed', 0):.1f} ms, "
-        f"search {t.get('search', 0):.2f} ms, total {t.get('total', 0):.1f} ms"
+        f"search {t.get('search', 0):.2f} ms, verify {t.get('verify', 0):.1f} ms, "
+        f"total {t.get('total', 0):.1f} ms"
     )
-    return "\n".join([line(header), *(line(r) for r in rows), footer])
+    return "\n".join([line(header), *(line(r) for r in rows), verdict(answer), footer])
+
+
+def verdict(answer: dict[str, Any]) -> str:
+    """One line: verified or not (and why), and the pose of a verified answer."""
+    v = answer.get("verification")
+    if answer.get("verified") is None or v is None:
+        return "not verified: verification off (or the index carries no geometry)"
+    if not answer["verified"]:
+        why = v.get("reason") or f"best score {v['best_score']:.3f} < {v['threshold']:.3f}"
+        return f"not verified: {why}"
+    p = answer["pose"]
+    return (
+        f"verified (score {p['fitness']:.3f} >= {v['threshold']:.3f}): "
+        f"northing {p['northing']:.2f}, easting {p['easting']:.2f}, height {p['height']:.2f}, "
+        f"yaw {p['yaw_deg']:.2f} deg ({p['frame']} frame, scale {p['scale']})"
+    )
 
 
 def _localize_here(
-    index: Path, model: Path | None, points: Any, preprocess: bool, top_n: int
+    index: Path,
+    model: Path | None,
+    points: Any,
+    preprocess: bool,
+    top_n: int,
+    check: dict[str, Any],
 ) -> dict[str, Any]:
-    """Search the bundle in this process: the same answer as the server's."""
+    """Search the bundle in this process: the same answer as the server's. ``check``:
+    ``verify``, ``scale`` and ``rerank`` as the command line gave them."""
     from pnvlad_service.localization.limits import Limits
     from pnvlad_service.localization.localizer import Localizer
+    from pnvlad_service.localization.verify import VerifyConfig
 
     top_n = max(top_n, 1)
     # A local query is bounded by the bundle, not by the server's request limits.
     limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)), max_top_n=top_n)
-    with Localizer.load(index, model) as loc:
-        answer = loc.localize(points, preprocess=preprocess, top_n=top_n, limits=limits)
+    config = VerifyConfig() if check["rerank"] is None else VerifyConfig(candidates=check["rerank"])
+    with Localizer.load(index, model, verify_config=config) as loc:
+        answer = loc.localize(
+            points,
+            preprocess=preprocess,
+            top_n=top_n,
+            limits=limits,
+            verify=check["verify"],
+            scale=check["scale"],
+        )
         return {**answer.to_json(), **loc.info.to_json()}
 
 
@@ -148,6 +200,21 @@ def localize(
         False, "--preprocess", help="The scan is raw: run the filter G (as the map was) first."
     ),
     top_n: int = typer.Option(5, "--top-n", "-n", help="Matches to print."),
+    verify: bool = typer.Option(
+        None,
+        "--verify/--no-verify",
+        help="Register the top candidates and re-rank them (default: when the bundle carries "
+        "geometry; --verify with a bundle without it exits 2).",
+    ),
+    scale: float = typer.Option(
+        None,
+        "--scale",
+        help="Metres per unit of a preprocessed submap (its frame sidecar's scale), for a "
+        "metric pose; estimated from the candidates when not given.",
+    ),
+    rerank: int = typer.Option(
+        None, "--rerank", help="With --index: candidates to verify (default 10)."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print the whole answer as JSON."),
     api_key: str = typer.Option(
         None, "--api-key", envvar="PNVLAD_API_KEY", help="Bearer token of the server."
@@ -168,6 +235,9 @@ def localize(
 
     Asks a running `pnvlad serve` (--url) or searches a bundle locally (--index). A benchmark
     submap (4096 points in [-1, 1]) goes as it is; a raw sensor scan needs --preprocess.
+    When the bundle carries geometry the top candidates are registered to the scan and
+    re-ranked: the table gives each one's score, then whether the best is verified and the
+    scan's pose on the map (for a raw scan, the sensor's).
 
     With --rosbag, replays a bag instead: every Nth scan of --cloud-topic goes as a raw scan
     and the answers are written to OUT.csv and OUT.png (the map, the answers, and with
@@ -226,10 +296,15 @@ def localize(
         if url is not None:
             from pnvlad_service.localization.client import LocalizeClient
 
+            if rerank is not None:
+                raise InputError(
+                    "applies to --index; the server sets its own (--rerank)", "--rerank"
+                )
             with LocalizeClient(url, api_key=api_key) as client:
-                answer = client.localize(points, top_n, preprocess)
+                answer = client.localize(points, top_n, preprocess, verify=verify, scale=scale)
         else:
-            answer = _localize_here(index, model, points, preprocess, top_n)
+            check = {"verify": verify, "scale": scale, "rerank": rerank}
+            answer = _localize_here(index, model, points, preprocess, top_n, check)
     if as_json:
         json.dump(answer, sys.stdout, indent=2)
         sys.stdout.write("\n")

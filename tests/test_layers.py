@@ -16,7 +16,7 @@ ALLOWED: dict[str, set[str]] = {
     "evaluation": {"io", "data", "models"},
     "training": {"io", "data", "models", "evaluation"},
     "index": {"io", "data", "models"},
-    "localization": {"io", "data", "models", "index"},
+    "localization": {"io", "data", "models", "evaluation", "index"},
     "server": {"io", "localization"},
 }
 SHARED = {"errors", "fileio", "extras", "configs"}

@@ -302,6 +302,24 @@ class BenchmarkTree:
             for k, (t, n, e) in enumerate(loc.rows())
         ]
 
+    def frames_by_path(self) -> dict[str, SubmapFrame]:
+        """Every submap with a frame sidecar row: its absolute ``.bin`` path -> the row."""
+        out: dict[str, SubmapFrame] = {}
+        for dataset in self.datasets():
+            for run in self.runs(dataset):
+                for kind in ("train", "test"):
+                    if not self.has(dataset, run, kind):
+                        continue
+                    rows = self.frames(dataset, run, kind)
+                    if rows is None:
+                        continue
+                    subs = self.submaps(dataset, run, kind)
+                    out.update(
+                        (str((self.root / s.path).resolve()), f)
+                        for s, f in zip(subs, rows, strict=True)
+                    )
+        return out
+
     def frames(self, dataset: str, run: str, kind: Kind) -> list[SubmapFrame] | None:
         """The rows of the run's frame sidecar for ``kind`` (:mod:`.frames`), one per submap in
         CSV order, or ``None`` when the run has no sidecar (e.g. the published Oxford files).

@@ -225,8 +225,35 @@ def evaluate_runs(
     if len(runs) < 2:
         raise InputError(f"need at least 2 runs to evaluate, got {len(runs)}", "evaluation set")
     t0 = time.monotonic()
-    n_unique, db_desc, q_desc = _embed_runs(embed, runs, num_points, workers, progress)
-    t_embed = time.monotonic() - t0
+    n_unique, db_desc, q_desc = embed_runs(embed, runs, num_points, workers, progress)
+    return evaluate_embedded(
+        runs,
+        db_desc,
+        q_desc,
+        joint=joint,
+        thresholds=thresholds,
+        encoder_info=encoder_info,
+        num_points=num_points,
+        n_unique=n_unique,
+        seconds_embedding=time.monotonic() - t0,
+    )
+
+
+def evaluate_embedded(
+    runs: list[EvalRun],
+    db_desc: list[np.ndarray],
+    q_desc: list[np.ndarray],
+    *,
+    joint: bool = False,
+    thresholds: Sequence[float] = DEFAULT_THRESHOLDS,
+    encoder_info: dict[str, Any] | None = None,
+    num_points: int = SUBMAP_POINTS,
+    n_unique: int = 0,
+    seconds_embedding: float = 0.0,
+) -> dict[str, Any]:
+    """:func:`evaluate_runs` from descriptors already made (:func:`embed_runs`)."""
+    t0 = time.monotonic() - seconds_embedding
+    t_embed = seconds_embedding
     query_hits = [np.zeros(len(r.query_paths)) for r in runs]
     query_counts = [np.zeros(len(r.query_paths)) for r in runs]
     areas: dict[str, list[int]] = {}
@@ -268,7 +295,7 @@ def evaluate_runs(
     return report
 
 
-def _embed_runs(
+def embed_runs(
     embed: EmbedFn, runs: list[EvalRun], num_points: int, workers: int, progress: bool
 ) -> tuple[int, list[np.ndarray], list[np.ndarray]]:
     """Embed every unique submap of the runs once (a query is also in its run's database):

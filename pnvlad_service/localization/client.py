@@ -70,16 +70,31 @@ class LocalizeClient:
 
     # the API ----------------------------------------------------------------------------
     def localize(
-        self, points: np.ndarray, top_n: int = 5, preprocess: bool = False
+        self,
+        points: np.ndarray,
+        top_n: int = 5,
+        preprocess: bool = False,
+        *,
+        verify: bool | None = None,
+        scale: float | None = None,
     ) -> dict[str, Any]:
         """The server's answer for one cloud float [N, 3] (a raw scan with ``preprocess``):
-        ``{"matches": [...], "batch_size", "timings_ms", "model", "index"}``."""
+        ``{"matches": [...], "verified", "pose", "verification", "batch_size", "timings_ms",
+        "model", "index"}``. ``verify``: ask for (true) or skip (false) the verification
+        (default: the server's); ``scale``: metres per unit of a preprocessed cloud."""
         arr = np.asarray(points)
         dtype = "float64" if arr.dtype == np.float64 else "float32"
         body = np.ascontiguousarray(arr, dtype="<f8" if dtype == "float64" else "<f4")
-        query = urllib.parse.urlencode(
-            {"top_n": top_n, "preprocess": str(preprocess).lower(), "dtype": dtype}
-        )
+        params: dict[str, Any] = {
+            "top_n": top_n,
+            "preprocess": str(preprocess).lower(),
+            "dtype": dtype,
+        }
+        if verify is not None:
+            params["verify"] = str(verify).lower()
+        if scale is not None:
+            params["scale"] = repr(float(scale))
+        query = urllib.parse.urlencode(params)
         return self.call("POST", f"/localize?{query}", body.tobytes(), "application/octet-stream")
 
     def ready(self) -> bool:

@@ -10,6 +10,7 @@ binary bodies and a library or CLI caller. The server's request models and their
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,6 +46,8 @@ class Limits:
     max_raw_coord: float = 100_000.0
     #: Fewest points of a raw scan.
     min_raw_points: int = 1
+    #: Largest ``scale`` (metres per normalised unit) a preprocessed query may give.
+    max_scale: float = 1000.0
 
     def to_json(self) -> dict[str, int]:
         """The configurable counts and the cloud size, as ``GET /info`` reports them."""
@@ -54,6 +57,17 @@ class Limits:
             "max_batch_queries": self.max_batch_queries,
             "points_per_cloud": self.points_per_cloud,
         }
+
+    def check_scale(self, scale: Any, field: str = "scale") -> float | None:
+        """``scale`` (metres per unit of a preprocessed cloud) as a float in (0, max_scale],
+        or ``None``; :class:`InputError` naming ``field`` else."""
+        if scale is None:
+            return None
+        if isinstance(scale, bool) or not isinstance(scale, int | float):
+            raise InputError(f"expected a number, got {show_value(scale)}", field)
+        if not (math.isfinite(scale) and 0.0 < scale <= self.max_scale):
+            raise InputError(f"must be > 0 and <= {self.max_scale:g} metres, got {scale}", field)
+        return float(scale)
 
     def check_top_n(self, top_n: Any, field: str = "top_n") -> int:
         """``top_n`` as an int in 1..max_top_n; :class:`InputError` naming ``field`` else."""

@@ -2,17 +2,22 @@
 matches out. No HTTP here; the server (``pnvlad_service.server``) and ``pnvlad localize``
 are two callers of the same path.
 
-One query goes through four steps, whoever drives them:
+One query goes through five steps, whoever drives them:
 
 1. ``Limits.check_points`` (:mod:`pnvlad_service.localization.limits`) validates the array;
-2. :meth:`Localizer.prepare` runs the filter G on a raw scan, with the bundle's G config;
+2. :meth:`Localizer.prepare` runs the filter G on a raw scan, with the bundle's G config,
+   and keeps what G did (centre, scale) for the pose;
 3. :meth:`Localizer.submit` embeds and searches (queued to the micro-batcher when the
    localizer was loaded with :class:`Batching`, else at once in the caller's thread);
-4. :meth:`Localizer.answer` turns the batch result into an :class:`Answer`.
+4. :meth:`Localizer.verify` registers the query to the top candidates and re-ranks them
+   (:mod:`pnvlad_service.localization.verify`), when the bundle carries geometry and the
+   query asks for it (the default then);
+5. :meth:`Localizer.answer` turns the batch result into an :class:`Answer`.
 
-:meth:`Localizer.localize` runs the four in a row (the CLI, scripts); the server runs them
-from its event loop, awaiting step 3. Errors are the library's own: ``InputError`` (bad cloud,
-a bundle built with other weights), ``NotReadyError`` (used after :meth:`Localizer.close`).
+:meth:`Localizer.localize` runs them in a row (the CLI, scripts); the server runs them
+from its event loop, awaiting step 3 and running step 4 in its thread pool. Errors are the
+library's own: ``InputError`` (bad cloud, a bundle built with other weights, verification
+asked of a bundle without geometry), ``NotReadyError`` (used after :meth:`Localizer.close`).
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import math
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +40,13 @@ from pnvlad_service.index.bundle import IndexBundle, Match
 from pnvlad_service.index.manifest import Manifest
 from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
 from pnvlad_service.localization.limits import Limits
+from pnvlad_service.localization.verify import (
+    Candidate,
+    QueryCloud,
+    Verification,
+    VerifyConfig,
+    verify,
+)
 from pnvlad_service.models.store import ModelIdentity, model_identity
 
 log = logging.getLogger(__name__)
@@ -47,7 +59,9 @@ __all__ = [
     "LocalizerInfo",
     "Match",
     "ModelInfo",
+    "PreparedCloud",
     "Timings",
+    "VerifyConfig",
     "checked_model",
     "set_threads",
 ]
@@ -67,6 +81,7 @@ class Timings:
     queue: float = 0.0
     embed: float = 0.0
     search: float = 0.0
+    verify: float = 0.0
     total: float = 0.0
 
     def seconds(self) -> dict[str, float]:
@@ -83,10 +98,15 @@ def milliseconds(seconds: float) -> float:
     return round(seconds * 1000.0, 3)
 
 
-def match_json(m: Match) -> dict[str, Any]:
-    """One match as the HTTP answer has it: no zone and a non-finite distance are ``null``."""
+def match_json(
+    m: Match, score: float | None = None, retrieval_rank: int | None = None
+) -> dict[str, Any]:
+    """One match as the HTTP answer has it: no zone and a non-finite distance are ``null``;
+    ``score``: its verification score (``null`` when it was not verified); ``retrieval_rank``:
+    its rank by descriptor distance (``rank`` is its place in the answer)."""
     return {
         "rank": m.rank,
+        "retrieval_rank": m.rank if retrieval_rank is None else retrieval_rank,
         "submap_id": m.submap_id,
         "dataset": m.dataset,
         "run": m.run,
@@ -95,26 +115,77 @@ def match_json(m: Match) -> dict[str, Any]:
         "easting": m.easting,
         "utm_zone": m.utm_zone or None,
         "distance": m.distance if math.isfinite(m.distance) else None,
+        "score": score,
     }
 
 
 @dataclass(frozen=True)
 class Answer:
-    """The nearest map places of one cloud, nearest first (``rank`` 1), and how long it took.
+    """The map places of one cloud, best first (``rank`` 1), and how long it took.
 
-    ``batch_size``: clouds embedded together with this one.
+    Without ``verification`` the order is the descriptor distance's. With it the verified
+    candidates come first, best score first, then the rest in distance order;
+    ``retrieval_ranks[i]`` is match ``i``'s rank by distance. ``batch_size``: clouds embedded
+    together with this one.
     """
 
     matches: tuple[Match, ...]
     batch_size: int
     timings: Timings
+    verification: Verification | None = None
+    retrieval_ranks: tuple[int, ...] = ()
+
+    @property
+    def verified(self) -> bool | None:
+        """Whether the best match is verified; ``None`` when verification did not run."""
+        return None if self.verification is None else self.verification.verified
 
     def to_json(self) -> dict[str, Any]:
+        v = self.verification
+        scores = {} if v is None else {c.rank: c.score for c in v.checks}
+        ranks = self.retrieval_ranks or tuple(m.rank for m in self.matches)
         return {
-            "matches": [match_json(m) for m in self.matches],
+            "matches": [
+                match_json(m, scores.get(r), r) for m, r in zip(self.matches, ranks, strict=True)
+            ],
+            "verified": self.verified,
+            "pose": None if v is None or v.pose is None else v.pose.to_json(),
+            "verification": None if v is None else verification_json(v),
             "batch_size": self.batch_size,
             "timings_ms": self.timings.to_json(),
         }
+
+
+def verification_json(v: Verification) -> dict[str, Any]:
+    """What the answer says of its verification besides ``verified`` and ``pose``."""
+    return {
+        "candidates": len(v.checks),
+        "threshold": v.threshold,
+        "best_score": v.best_score,
+        "reason": v.reason,
+    }
+
+
+@dataclass(frozen=True)
+class PreparedCloud:
+    """The encoder's input float32 [4096, 3] and what is known of its metres: for a raw scan
+    G's ``centre`` and ``scale`` (sensor frame); for a preprocessed cloud the caller's
+    ``scale`` or ``None``."""
+
+    cloud: np.ndarray
+    centre: np.ndarray | None = None
+    scale: float | None = None
+    sensor: bool = False
+
+    def query(self, candidate_scales: list[float]) -> QueryCloud:
+        """The query's points in metres (:meth:`QueryCloud.from_normalised`)."""
+        return QueryCloud.from_normalised(
+            self.cloud,
+            centre=self.centre,
+            scale=self.scale,
+            candidate_scales=candidate_scales,
+            sensor=self.sensor,
+        )
 
 
 @dataclass(frozen=True)
@@ -197,6 +268,7 @@ class Localizer:
         identity: ModelIdentity,
         batching: Batching | None = None,
         on_batch: Callable[[int], None] | None = None,
+        verify_config: VerifyConfig | None = None,
     ) -> None:
         if getattr(encoder, "dim", bundle.dim) != bundle.dim:
             raise InputError(
@@ -208,6 +280,7 @@ class Localizer:
         self.bundle = bundle
         self.encoder = encoder
         self.identity = identity
+        self.verify_config = verify_config or VerifyConfig()
         recorded = bundle.manifest.preprocess
         self._gconfig = GConfig.model_validate(dict(recorded)) if recorded else GConfig()
         self.info = LocalizerInfo(
@@ -242,10 +315,12 @@ class Localizer:
         verify: bool = True,
         batching: Batching | None = None,
         on_batch: Callable[[int], None] | None = None,
+        verify_config: VerifyConfig | None = None,
     ) -> Localizer:
         """Load the bundle at ``index`` and ``model`` (default: the one the bundle records),
         after checking that the bundle was built with these weights (:func:`checked_model`);
-        ``verify``: check the bundle's files against their sha256."""
+        ``verify``: check the bundle's files against their sha256; ``verify_config``: how
+        candidates are verified (:class:`VerifyConfig`)."""
         ident = checked_model(index, model)
         t0 = time.perf_counter()
         bundle = IndexBundle.load(index, verify=verify)
@@ -258,7 +333,14 @@ class Localizer:
             ident.checkpoint,
             time.perf_counter() - t0,
         )
-        return cls(bundle, encoder, ident, batching=batching, on_batch=on_batch)
+        return cls(
+            bundle,
+            encoder,
+            ident,
+            batching=batching,
+            on_batch=on_batch,
+            verify_config=verify_config,
+        )
 
     def close(self) -> None:
         """Finish queued batches, then stop the encoder's cloud worker threads."""
@@ -291,19 +373,49 @@ class Localizer:
         with self._batcher.announce(count):
             yield
 
-    def prepare(self, points: np.ndarray, preprocess: bool) -> np.ndarray:
-        """The encoder's input: ``points`` as they are, or a raw scan float [N, 3] metres
-        through the bundle's filter G -> float32 [4096, 3]."""
+    @property
+    def can_verify(self) -> bool:
+        """Whether the bundle carries the geometry verification needs."""
+        return self.bundle.geometry is not None
+
+    def wants_verify(self, verify: bool | None, field: str = "verify") -> bool:
+        """Whether a query runs verification: ``None`` means "when the bundle can". Asking for
+        it of a bundle without geometry is an :class:`InputError` naming ``field``."""
+        if verify is None:
+            return self.can_verify
+        if verify and not self.can_verify:
+            raise InputError(
+                f"the index {self.bundle.path} carries no geometry to verify against: build it "
+                "from a tree with frame sidecars (pnvlad synth / pnvlad data prepare write them), "
+                "or send verify=false",
+                field,
+            )
+        return bool(verify)
+
+    def search_k(self, top_n: int, verify: bool) -> int:
+        """How many neighbours to search for: ``top_n``, or the candidates to verify."""
+        return max(top_n, self.verify_config.candidates) if verify else top_n
+
+    def prepare(
+        self, points: np.ndarray, preprocess: bool, scale: float | None = None
+    ) -> PreparedCloud:
+        """The encoder's input: ``points`` as they are (``scale``: metres per unit, when the
+        caller knows it), or a raw scan float [N, 3] metres through the bundle's filter G ->
+        float32 [4096, 3], with G's centre and scale (sensor frame)."""
         if not preprocess:
-            return points
-        from pnvlad_service.data.preprocess import filter_g
+            return PreparedCloud(points, None, scale, False)
+        from pnvlad_service.data.preprocess import apply_g
 
-        out = filter_g(points, self._gconfig, seed=0)
-        return np.ascontiguousarray(out, dtype=np.float32)
+        g = apply_g(points, self._gconfig, seed=0)
+        cloud = np.ascontiguousarray(g.points, dtype=np.float32)
+        return PreparedCloud(cloud, g.centre, g.scale if self._gconfig.normalize else None, True)
 
-    def submit(self, cloud: np.ndarray, top_n: int) -> Future[BatchResult]:
-        """Embed and search one prepared cloud float32 [4096, 3]; the future resolves to its
+    def submit(self, cloud: np.ndarray | PreparedCloud, top_n: int) -> Future[BatchResult]:
+        """Embed and search one prepared cloud float32 [4096, 3] for its ``top_n`` neighbours
+        (:meth:`search_k` when it is to be verified); the future resolves to its
         :class:`BatchResult` (already resolved without batching)."""
+        if isinstance(cloud, PreparedCloud):
+            cloud = cloud.cloud
         if self._closed:
             raise NotReadyError("the localizer is closed")
         if self._batcher is not None:
@@ -313,20 +425,49 @@ class Localizer:
         fut.set_result(BatchResult(distances[0], ids[0], 0.0, embed_s, search_s, 1))
         return fut
 
+    def verify(self, prepared: PreparedCloud, result: BatchResult) -> Verification:
+        """Register the query to its nearest ``verify_config.candidates`` and re-rank them."""
+        geometry = self.bundle.geometry
+        if geometry is None:
+            raise InputError("the bundle carries no geometry", "verify")
+        k = self.verify_config.candidates
+        ids = [int(i) for i in result.ids[:k] if i >= 0]
+        cands = [
+            Candidate(rank, points, geometry.map_pose(i))
+            for rank, (i, points) in enumerate(zip(ids, geometry.metres_many(ids), strict=True), 1)
+        ]
+        query = prepared.query([geometry.scale(i) for i in ids])
+        return verify(query, cands, self.verify_config)
+
     def answer(
-        self, result: BatchResult, *, parse_s: float, preprocess_s: float, total_s: float
+        self,
+        result: BatchResult,
+        *,
+        parse_s: float,
+        preprocess_s: float,
+        total_s: float,
+        top_n: int | None = None,
+        verification: Verification | None = None,
     ) -> Answer:
-        """One cloud's :class:`Answer` from its batch result and its earlier stage times."""
+        """One cloud's :class:`Answer` from its batch result, its verification (re-ranked) and
+        its earlier stage times; ``top_n``: matches to keep (default: all searched)."""
         (matches,) = self.bundle.matches(result.distances[None], result.ids[None])
+        ranks = [m.rank for m in matches]
+        if verification is not None:
+            head = [r for r in verification.order if r <= len(matches)]
+            ranks = head + [r for r in ranks if r not in set(head)]
+        ranks = ranks[: top_n or len(ranks)]
+        ordered = tuple(replace(matches[r - 1], rank=k) for k, r in enumerate(ranks, 1))
         timings = Timings(
             parse=parse_s,
             preprocess=preprocess_s,
             queue=result.queue_s,
             embed=result.embed_s,
             search=result.search_s,
+            verify=0.0 if verification is None else verification.seconds,
             total=total_s,
         )
-        return Answer(tuple(matches), result.batch_size, timings)
+        return Answer(ordered, result.batch_size, timings, verification, tuple(ranks))
 
     def localize(
         self,
@@ -335,20 +476,34 @@ class Localizer:
         preprocess: bool = False,
         top_n: int = 5,
         limits: Limits | None = None,
+        verify: bool | None = None,
+        scale: float | None = None,
     ) -> Answer:
         """The ``top_n`` map places nearest to one cloud: exactly 4096 points in [-1, 1]
         float [4096, 3], or with ``preprocess`` a raw scan float [N, 3] in metres (checked
-        against ``limits``, default :class:`Limits`)."""
+        against ``limits``, default :class:`Limits`). ``verify``: register the top candidates
+        and re-rank them (default: when the bundle carries geometry); ``scale``: metres per
+        unit of a preprocessed cloud, for a metric pose (estimated when not given)."""
         t0 = time.perf_counter()
         limits = limits or Limits()
         pts = limits.check_points(np.asarray(points), preprocess, "points")
         top_n = limits.check_top_n(top_n)
+        scale = limits.check_scale(scale)
+        if preprocess and scale is not None:
+            raise InputError("a raw scan (preprocess) is in metres already: no scale", "scale")
+        verify = self.wants_verify(verify)
         t1 = time.perf_counter()
-        cloud = self.prepare(pts, preprocess)
+        prepared = self.prepare(pts, preprocess, scale)
         t2 = time.perf_counter()
-        result = self.submit(cloud, top_n).result()
+        result = self.submit(prepared, self.search_k(top_n, verify)).result()
+        verification = self.verify(prepared, result) if verify else None
         return self.answer(
-            result, parse_s=t1 - t0, preprocess_s=t2 - t1, total_s=time.perf_counter() - t0
+            result,
+            parse_s=t1 - t0,
+            preprocess_s=t2 - t1,
+            total_s=time.perf_counter() - t0,
+            top_n=top_n,
+            verification=verification,
         )
 
     def _embed_and_search(

@@ -52,6 +52,7 @@ def load_localizer(
         verify=settings.verify_bundle,
         batching=settings.batching(),
         on_batch=on_batch,
+        verify_config=settings.verify_config(),
     )
 
 

@@ -14,7 +14,7 @@ import io
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.server.contract import BatchQueries, Contract, Query
+from pnvlad_service.server.contract import SCALE_RAW, BatchQueries, Contract, Query
 
 JSON = "application/json"
 OCTET = "application/octet-stream"
@@ -61,22 +61,35 @@ def read_query(
     top_n: int | None,
     preprocess: bool | None,
     dtype: str,
+    verify: bool | None = None,
+    scale: float | None = None,
 ) -> Query:
     """The cloud of a ``/localize`` body of content type ``ctype`` (JSON, raw xyz or .npy);
-    ``top_n``, ``preprocess`` and ``dtype`` are the query's, for binary bodies."""
+    ``top_n``, ``preprocess``, ``dtype``, ``verify`` and ``scale`` are the query's, for binary
+    bodies."""
     if ctype == JSON:
         return contract.parse_query(body)
+    limits = contract.limits
     pre = bool(preprocess)
     raw = parse_npy(body, 2) if ctype == NPY else parse_binary_points(body, dtype)
-    points = contract.limits.check_points(raw, pre, "body")
-    return Query(points, pre, top_n if top_n is not None else contract.limits.default_top_n)
+    points = limits.check_points(raw, pre, "body")
+    scale = limits.check_scale(scale)
+    if pre and scale is not None:
+        raise InputError(SCALE_RAW, "scale")
+    n = top_n if top_n is not None else limits.default_top_n
+    return Query(points, pre, n, verify, scale)
 
 
 def read_batch(
-    contract: Contract, ctype: str, body: bytes, top_n: int | None, preprocess: bool | None
+    contract: Contract,
+    ctype: str,
+    body: bytes,
+    top_n: int | None,
+    preprocess: bool | None,
+    verify: bool | None = None,
 ) -> BatchQueries:
     """The clouds of a ``/localize/batch`` body: JSON, or .npy [B, N, 3] with the query's
-    ``top_n`` and ``preprocess``."""
+    ``top_n``, ``preprocess`` and ``verify``."""
     if ctype == JSON:
         return contract.parse_batch(body)
     limits = contract.limits
@@ -85,6 +98,6 @@ def read_batch(
     arr = parse_npy(body, 3)
     limits.check_count(len(arr), "body")
     queries = tuple(
-        Query(limits.check_points(a, pre, f"body[{i}]"), pre, n) for i, a in enumerate(arr)
+        Query(limits.check_points(a, pre, f"body[{i}]"), pre, n, verify) for i, a in enumerate(arr)
     )
-    return BatchQueries(queries, n)
+    return BatchQueries(queries, n, verify)

@@ -48,6 +48,8 @@ Point = Annotated[
     WithJsonSchema({"type": "array", "minItems": 3, "maxItems": 3, "items": {"type": "number"}}),
 ]
 
+SCALE_RAW = "scale is for preprocessed clouds; a raw scan (preprocess=true) is in metres already"
+
 POINTS_DOC = (
     "Exactly 4096 preprocessed points in the benchmark's normalised frame ([-1, 1]), or with "
     "preprocess=true a raw scan (sensor frame, metres) of any size up to the server's limit."
@@ -56,17 +58,22 @@ POINTS_DOC = (
 
 @dataclass(frozen=True)
 class Query:
-    """A validated cloud: float32 [4096, 3], or float64 [N, 3] when ``preprocess``."""
+    """A validated cloud: float32 [4096, 3], or float64 [N, 3] when ``preprocess``;
+    ``verify``: ``None`` (when the bundle can), true or false; ``scale``: metres per unit of a
+    preprocessed cloud, when the caller knows it."""
 
     points: np.ndarray
     preprocess: bool
     top_n: int
+    verify: bool | None = None
+    scale: float | None = None
 
 
 @dataclass(frozen=True)
 class BatchQueries:
     queries: tuple[Query, ...]
     top_n: int
+    verify: bool | None = None
 
 
 class Contract:
@@ -82,7 +89,7 @@ class Contract:
             req = self.query_model.model_validate_json(_utf8(body))
         except ValidationError as exc:
             raise _query_error(exc.errors(), self.limits) from None
-        return Query(req._array, req.preprocess, req.top_n)
+        return Query(req._array, req.preprocess, req.top_n, req.verify, req.scale)
 
     def parse_batch(self, body: bytes) -> BatchQueries:
         """``{"queries": [{"points": ..., "preprocess": false}, ...], "top_n": 5}``."""
@@ -90,9 +97,10 @@ class Contract:
             req = self.batch_model.model_validate_json(_utf8(body))
         except ValidationError as exc:
             raise _batch_error(exc.errors(), self.limits) from None
-        return BatchQueries(
-            tuple(Query(q._array, q.preprocess, req.top_n) for q in req.queries), req.top_n
+        queries = tuple(
+            Query(q._array, q.preprocess, req.top_n, req.verify, q.scale) for q in req.queries
         )
+        return BatchQueries(queries, req.top_n, req.verify)
 
     def query_schema(self) -> dict[str, Any]:
         """JSON Schema of the ``/localize`` JSON body (no ``$ref``: it sits in the OpenAPI)."""
@@ -132,12 +140,21 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
 
         points: list[Point] = Field(..., min_length=1, description=POINTS_DOC)
         preprocess: bool = Field(False, description="Run the filter G on a raw scan first.")
+        scale: float | None = Field(
+            None,
+            gt=0,
+            le=limits.max_scale,
+            description="Metres per unit of a preprocessed cloud (its frame sidecar's scale), "
+            "for a metric pose; estimated from the candidates when absent. Not for raw scans.",
+        )
         _array: np.ndarray = PrivateAttr()
 
         @model_validator(mode="after")
         def _check_points(self) -> Cloud:
             pts = np.asarray(self.points, dtype=np.float64)
             self._array = limits.check_points(pts, self.preprocess, "points")
+            if self.preprocess and self.scale is not None:
+                raise InputError(SCALE_RAW, "scale")
             return self
 
     def top_n_field() -> Any:
@@ -148,10 +165,18 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
             description=f"Matches to return (at most {limits.max_top_n}).",
         )
 
+    def verify_field() -> Any:
+        return Field(
+            None,
+            description="Register the top candidates and re-rank them (default: when the index "
+            "carries geometry; true with an index without it is refused).",
+        )
+
     class LocalizeRequest(Cloud):
         """One query cloud."""
 
         top_n: int = top_n_field()
+        verify: bool | None = verify_field()
 
     class BatchQuery(Cloud):
         """One cloud of a batch."""
@@ -163,6 +188,7 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
 
         queries: list[BatchQuery] = Field(..., min_length=1, max_length=limits.max_batch_queries)
         top_n: int = top_n_field()
+        verify: bool | None = verify_field()
 
     return LocalizeRequest, BatchRequest
 
@@ -184,6 +210,7 @@ def cloud_variants(schema: dict[str, Any], limits: Limits) -> None:
         points["items"]["items"].update(minimum=-bound, maximum=bound)
         form["properties"]["preprocess"]["enum"] = [flag]
     del raw["properties"]["preprocess"]["default"]
+    del raw["properties"]["scale"]  # a raw scan is in metres
     raw["required"] = [*schema.get("required", []), "preprocess"]
     schema.clear()
     schema.update(head, oneOf=[pre, raw])
@@ -228,7 +255,7 @@ def _cloud_rank(err: dict[str, Any], loc: Loc) -> tuple[Any, ...]:
         if len(loc) == 2:
             return (6, loc[1], 0, 0)
         return (6, loc[1], int(kind == "float_type"), loc[2])
-    return {"top_n": (4,), "preprocess": (5,)}.get(loc[0], (8,))
+    return {"top_n": (4,), "preprocess": (5,), "verify": (5, 1), "scale": (5, 2)}.get(loc[0], (8,))
 
 
 def _cloud_error(
@@ -238,6 +265,7 @@ def _cloud_error(
     where: str,
     prefix: str,
     allowed: list[str],
+    limits: Limits,
 ) -> InputError:
     """The :class:`InputError` of the first error ``err`` of one cloud (``loc`` relative to it;
     ``errors``: the errors of its fields); ``where`` names the cloud's object, ``prefix`` its
@@ -268,8 +296,14 @@ def _cloud_error(
             return InputError(f"point {i} has a non-numeric coordinate {value!r}", field)
         what = f"{len(value)} values" if isinstance(value, list) else type(value).__name__
         return InputError(f"point {i} must be [x, y, z], got {what}", field)
-    if loc == ("preprocess",):
-        return InputError(f"expected true or false, got {show_value(value)}", "preprocess")
+    if loc in (("preprocess",), ("verify",)):
+        return InputError(f"expected true or false, got {show_value(value)}", loc[0])
+    if loc == ("scale",):
+        try:
+            limits.check_scale(value)
+        except InputError as exc:
+            return InputError(exc.detail, f"{prefix}scale")
+        return InputError(f"invalid scale {show_value(value)}", f"{prefix}scale")
     return InputError(err.get("msg", "invalid value"), ".".join(map(str, loc)))
 
 
@@ -299,7 +333,8 @@ def _query_error(errors: list[dict[str, Any]], limits: Limits) -> InputError:
     if loc == ("top_n",):
         return _top_n_error(err.get("input"), limits)
     top = [e for e in errors if len(e["loc"]) == 1]
-    return _cloud_error(err, loc, top, "body", "", ["points", "preprocess", "top_n"])
+    allowed = ["points", "preprocess", "scale", "top_n", "verify"]
+    return _cloud_error(err, loc, top, "body", "", allowed, limits)
 
 
 def _batch_rank(err: dict[str, Any]) -> tuple[Any, ...]:
@@ -312,7 +347,7 @@ def _batch_rank(err: dict[str, Any]) -> tuple[Any, ...]:
         if len(loc) == 1:
             return (3,) if kind == "missing" else (5,)
         return (6, loc[1], *_cloud_rank(err, loc[2:]))
-    return (4,) if loc[0] == "top_n" else (8,)
+    return {"top_n": (4,), "verify": (4, 1)}.get(loc[0], (8,))
 
 
 def _batch_error(errors: list[dict[str, Any]], limits: Limits) -> InputError:
@@ -327,11 +362,15 @@ def _batch_error(errors: list[dict[str, Any]], limits: Limits) -> InputError:
         return InputError(f"expected a JSON object, got {type(value).__name__}", "body")
     if rank == (2,):
         extra = sorted(str(e["loc"][0]) for e in errors if len(e["loc"]) == 1 and e["type"] == kind)
-        return InputError(f"unknown fields {extra}; allowed: ['queries', 'top_n']", "body")
+        return InputError(
+            f"unknown fields {extra}; allowed: ['queries', 'top_n', 'verify']", "body"
+        )
     if rank == (3,):
         return InputError("field required", "queries")
     if rank == (4,):
         return _top_n_error(value, limits)
+    if rank == (4, 1):
+        return InputError(f"expected true or false, got {show_value(value)}", "verify")
     if rank == (5,):
         n = len(value) if isinstance(value, list) else type(value).__name__
         return InputError(
@@ -340,7 +379,6 @@ def _batch_error(errors: list[dict[str, Any]], limits: Limits) -> InputError:
     if rank[0] == 6:
         i = loc[1]
         same = [e for e in errors if tuple(e["loc"][:2]) == ("queries", i) and len(e["loc"]) == 3]
-        return _cloud_error(
-            err, loc[2:], same, f"queries[{i}]", f"queries[{i}].", ["points", "preprocess"]
-        )
+        allowed = ["points", "preprocess", "scale"]
+        return _cloud_error(err, loc[2:], same, f"queries[{i}]", f"queries[{i}].", allowed, limits)
     return InputError(err.get("msg", "invalid value"), ".".join(map(str, loc)))

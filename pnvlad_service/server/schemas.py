@@ -41,6 +41,31 @@ class MatchOut(BaseModel):
     easting: float = Field(..., description="UTM metres.")
     utm_zone: str | None = None
     distance: float | None
+    retrieval_rank: int = Field(..., description="Rank by descriptor distance (1 = nearest).")
+    score: float | None = Field(
+        None, description="Verification score (share of query points registered), or null."
+    )
+
+
+class PoseOut(BaseModel):
+    """The query's pose on the map from its best verified match."""
+
+    northing: float = Field(..., description="UTM metres.")
+    easting: float = Field(..., description="UTM metres.")
+    height: float = Field(..., description="Metres, as the map's poses have it.")
+    yaw_deg: float = Field(..., description="Heading of the query frame's x axis, from east.")
+    transform: list[list[float]] = Field(..., description="4x4, query frame -> UTM.")
+    fitness: float = Field(..., description="Share of query points within the inlier distance.")
+    rmse_m: float = Field(..., description="RMS distance of those points, metres.")
+    frame: str = Field(..., description="sensor (a raw scan) or centroid (a preprocessed cloud).")
+    scale: str = Field(..., description="measured, or estimated from the candidates.")
+
+
+class VerificationOut(BaseModel):
+    candidates: int = Field(..., description="Candidates registered (K).")
+    threshold: float = Field(..., description="Score a best match needs to count as verified.")
+    best_score: float
+    reason: str | None = Field(None, description="Why nothing could be verified, if so.")
 
 
 #: ``Timings.to_json``: milliseconds per stage.
@@ -51,6 +76,11 @@ IndexOut = _json_model(localizer.IndexInfo, "IndexOut")
 
 class LocalizeResponse(BaseModel):
     matches: list[MatchOut]
+    verified: bool | None = Field(
+        None, description="Whether the best match is verified; null when verification was off."
+    )
+    pose: PoseOut | None = None
+    verification: VerificationOut | None = None
     timings_ms: Timings
     batch_size: int = Field(..., description="Clouds embedded together with this one.")
     model: ModelOut
@@ -59,6 +89,9 @@ class LocalizeResponse(BaseModel):
 
 class BatchItem(BaseModel):
     matches: list[MatchOut]
+    verified: bool | None = None
+    pose: PoseOut | None = None
+    verification: VerificationOut | None = None
     timings_ms: Timings
     batch_size: int
 

@@ -14,6 +14,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from pnvlad_service.io.submap import SUBMAP_POINTS
 from pnvlad_service.localization.batching import Batching
 from pnvlad_service.localization.limits import Limits
+from pnvlad_service.localization.verify import DEFAULT_CANDIDATES, VerifyConfig
 
 
 class ServerSettings(BaseSettings):
@@ -72,6 +73,23 @@ class ServerSettings(BaseSettings):
     )
     device: str | None = Field(None, description="torch device for the encoder (default cpu).")
     verify_bundle: bool = Field(True, description="Check the bundle's sha256s at start-up.")
+    rerank: int = Field(
+        DEFAULT_CANDIDATES,
+        ge=1,
+        le=100,
+        description="Candidates registered to each query and re-ranked (bundles with geometry).",
+    )
+    verify_threshold: float = Field(
+        VerifyConfig.threshold,
+        ge=0.0,
+        le=1.0,
+        description="Score (share of query points registered) a best match needs to count as "
+        "verified; the default was chosen on training-layout submaps (docs/VERIFY.md).",
+    )
+
+    def verify_config(self) -> VerifyConfig:
+        """How candidates are verified."""
+        return VerifyConfig(candidates=self.rerank, threshold=self.verify_threshold)
 
     def limits(self) -> Limits:
         """The request limits these settings configure (the rest are the format's)."""

@@ -3,7 +3,8 @@
 The routes only parse, call and serialise: the body is read into validated clouds in the
 thread pool (:mod:`pnvlad_service.server.bodies`), the filter G runs in the thread pool
 (``Localizer.prepare``), embedding and search in the micro-batcher's lanes
-(``Localizer.submit``, awaited), and the typed answers are written as JSON.
+(``Localizer.submit``, awaited), verification of the top candidates in the thread pool
+(``Localizer.verify``), and the typed answers are written as JSON.
 """
 
 from __future__ import annotations
@@ -12,13 +13,12 @@ import asyncio
 import time
 from typing import Any
 
-import numpy as np
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, Response
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.localizer import Localizer, milliseconds
+from pnvlad_service.localization.localizer import Localizer, PreparedCloud, milliseconds
 from pnvlad_service.server import problems, schemas
 from pnvlad_service.server.bodies import JSON, NPY, OCTET, read_batch, read_query
 from pnvlad_service.server.contract import Contract
@@ -44,15 +44,22 @@ def _content_type(request: Request, allowed: tuple[str, ...]) -> str:
     return ctype
 
 
-async def _prepare(loc: Localizer, cloud: Cloud, field: str) -> np.ndarray:
+async def _prepare(loc: Localizer, cloud: Cloud, field: str) -> PreparedCloud:
     """The encoder's input of one cloud; a raw scan goes through the filter G in the thread
     pool, and its refusal names ``field``."""
     if not cloud.preprocess:
-        return cloud.points
+        return loc.prepare(cloud.points, False, cloud.scale)
     try:
         return await run_in_threadpool(loc.prepare, cloud.points, True)
     except InputError as exc:
         raise InputError(f"filter G: {exc.detail}", field) from None
+
+
+async def _verified(loc: Localizer, prepared: PreparedCloud, result: Any, verify: bool) -> Any:
+    """The verification of one query (in the thread pool), or ``None`` when not asked."""
+    if not verify:
+        return None
+    return await run_in_threadpool(loc.verify, prepared, result)
 
 
 async def localize_one(
@@ -60,24 +67,34 @@ async def localize_one(
     contract: Contract,
     loc: Localizer,
     metrics: Metrics,
-    params: tuple[int | None, bool | None, str | None],
+    params: tuple[Any, ...],
 ) -> Response:
-    """``POST /localize``; ``params``: the query's ``top_n``, ``preprocess`` and ``dtype``."""
+    """``POST /localize``; ``params``: the query's ``top_n``, ``preprocess``, ``dtype``,
+    ``verify`` and ``scale``."""
     t0 = time.perf_counter()
     ctype = _content_type(request, (JSON, OCTET, NPY))
     body = await request.body()
-    top_n, preprocess, dtype = params
+    top_n, preprocess, dtype, verify, scale = params
     dtype = dtype or request.headers.get("x-points-dtype", "float32")
     with loc.announce():
-        cloud = await run_in_threadpool(read_query, contract, ctype, body, top_n, preprocess, dtype)
+        cloud = await run_in_threadpool(
+            read_query, contract, ctype, body, top_n, preprocess, dtype, verify, scale
+        )
         parse_s = time.perf_counter() - t0
+        wants = loc.wants_verify(cloud.verify)
         t1 = time.perf_counter()
         prepared = await _prepare(loc, cloud, "points")
         preprocess_s = time.perf_counter() - t1
-        future = loc.submit(prepared, cloud.top_n)
+        future = loc.submit(prepared, loc.search_k(cloud.top_n, wants))
     result = await asyncio.wrap_future(future)
+    verification = await _verified(loc, prepared, result, wants)
     answer = loc.answer(
-        result, parse_s=parse_s, preprocess_s=preprocess_s, total_s=time.perf_counter() - t0
+        result,
+        parse_s=parse_s,
+        preprocess_s=preprocess_s,
+        total_s=time.perf_counter() - t0,
+        top_n=cloud.top_n,
+        verification=verification,
     )
     metrics.observe(answer.timings.seconds())
     return JSONResponse({**answer.to_json(), **loc.info.to_json()})
@@ -88,22 +105,33 @@ async def localize_many(
     contract: Contract,
     loc: Localizer,
     metrics: Metrics,
-    params: tuple[int | None, bool | None],
+    params: tuple[int | None, bool | None, bool | None],
 ) -> Response:
-    """``POST /localize/batch``; ``params``: the query's ``top_n`` and ``preprocess``."""
+    """``POST /localize/batch``; ``params``: the query's ``top_n``, ``preprocess`` and
+    ``verify``."""
     t0 = time.perf_counter()
     ctype = _content_type(request, (JSON, NPY))
     body = await request.body()
     batch = await run_in_threadpool(read_batch, contract, ctype, body, *params)
     parse_s = time.perf_counter() - t0
+    wants = loc.wants_verify(batch.verify)
     t1 = time.perf_counter()
     prepared = [await _prepare(loc, q, f"queries[{i}].points") for i, q in enumerate(batch.queries)]
     preprocess_s = (time.perf_counter() - t1) / len(prepared)
-    futures = [loc.submit(c, batch.top_n) for c in prepared]
+    futures = [loc.submit(c, loc.search_k(batch.top_n, wants)) for c in prepared]
     results = await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))
+    checks = [await _verified(loc, p, r, wants) for p, r in zip(prepared, results, strict=True)]
     total_s = time.perf_counter() - t0
     answers = [
-        loc.answer(r, parse_s=parse_s, preprocess_s=preprocess_s, total_s=total_s) for r in results
+        loc.answer(
+            r,
+            parse_s=parse_s,
+            preprocess_s=preprocess_s,
+            total_s=total_s,
+            top_n=batch.top_n,
+            verification=v,
+        )
+        for r, v in zip(results, checks, strict=True)
     ]
     for a in answers:
         metrics.observe(a.timings.seconds())
@@ -134,6 +162,17 @@ def router(contract: Contract) -> APIRouter:
         None, ge=1, le=contract.limits.max_top_n, description="Matches to return (binary bodies)."
     )
     query_pre = Query(None, description="Raw scan: run the filter G first (binary bodies).")
+    query_verify = Query(
+        None,
+        description="Register the top candidates and re-rank them (binary bodies; default: "
+        "when the index carries geometry).",
+    )
+    query_scale = Query(
+        None,
+        gt=0,
+        le=contract.limits.max_scale,
+        description="Metres per unit of a preprocessed cloud, for a metric pose (binary bodies).",
+    )
     query_dtype = Query(
         None,
         pattern="^(float32|float64)$",
@@ -157,17 +196,23 @@ def router(contract: Contract) -> APIRouter:
         top_n: int | None = query_top_n,
         preprocess: bool | None = query_pre,
         dtype: str | None = query_dtype,
+        verify: bool | None = query_verify,
+        scale: float | None = query_scale,
         loc: Localizer = Depends(get_localizer),
         metrics: Metrics = Depends(get_metrics),
     ) -> Response:
         """Find the map places nearest to one cloud.
 
         JSON ``{"points": [[x, y, z], ...], "top_n": 5, "preprocess": false}`` with exactly
-        4096 preprocessed points, or a raw scan with ``preprocess: true``. Binary bodies:
+        4096 preprocessed points, or a raw scan with ``preprocess: true``. When the index
+        carries geometry the top candidates are registered to the query and re-ranked; the
+        answer says whether the best is ``verified`` and gives the query's ``pose`` (``verify:
+        false`` skips it; ``scale``: metres per unit of a preprocessed cloud). Binary bodies:
         ``application/octet-stream`` (little-endian xyz, float32 unless ``dtype=float64``) or
         ``application/x-npy`` ([N, 3]); then ``top_n`` and ``preprocess`` are query parameters.
         """
-        return await localize_one(request, contract, loc, metrics, (top_n, preprocess, dtype))
+        params = (top_n, preprocess, dtype, verify, scale)
+        return await localize_one(request, contract, loc, metrics, params)
 
     @_post(
         r,
@@ -180,12 +225,13 @@ def router(contract: Contract) -> APIRouter:
         request: Request,
         top_n: int | None = query_top_n,
         preprocess: bool | None = query_pre,
+        verify: bool | None = query_verify,
         loc: Localizer = Depends(get_localizer),
         metrics: Metrics = Depends(get_metrics),
     ) -> Response:
         """Several clouds in one request: JSON ``{"queries": [{"points": ...}, ...],
         "top_n": 5}`` or an ``application/x-npy`` array [B, N, 3] (query parameters
         ``top_n``, ``preprocess``). At most ``max_batch_queries`` clouds."""
-        return await localize_many(request, contract, loc, metrics, (top_n, preprocess))
+        return await localize_many(request, contract, loc, metrics, (top_n, preprocess, verify))
 
     return r

@@ -1,0 +1,529 @@
+"""``pnvlad eval --rerank K``: what geometric verification adds on a benchmark.
+
+For every ordered pair of runs of an area (database i, queries j), each query's K nearest
+database submaps by descriptor are registered to it (:func:`..verify.verify`) and re-ranked
+by score. The report holds, averaged over pairs as the benchmark averages recall:
+
+- recall@1 and recall@1% before and after re-ranking, and recall@K before (the ceiling);
+
+and pooled over queries:
+
+- the metric success rate: among the queries whose re-ranked top-1 is a true match, the share
+  whose estimated query -> match transform is within 2 m and 5 degrees of the simulator's true
+  relative pose (``inv(T_match) @ T_query``, from the frame sidecars' true poses), with the
+  median translation and yaw errors; reversed-heading queries (true relative yaw beyond 90
+  degrees) are reported on their own too;
+- the precision and recall of ``verified`` (best score >= threshold): precision is the share
+  of verified queries whose top-1 is a true match, coverage the share of all queries verified,
+  recall the share of queries with a true top-1 that are verified;
+- the threshold, when not given, chosen on the *training layout* (training submaps, outside
+  the test regions; :func:`calibrate`): the smallest score whose precision there reaches
+  ``target_precision``. Test queries never choose it.
+
+Both sides register the submaps' metres as a bundle stores them (float16 normalised points,
+then the sidecar's centre and scale), so the figures are the server's.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pnvlad_service.data.dataset import EvalRun, read_submap
+from pnvlad_service.data.frames import SubmapFrame
+from pnvlad_service.errors import InputError
+from pnvlad_service.evaluation import metrics
+from pnvlad_service.localization.verify import Candidate, QueryCloud, VerifyConfig, verify
+
+log = logging.getLogger(__name__)
+
+SUCCESS_M = 2.0
+SUCCESS_DEG = 5.0
+TARGET_PRECISION = 0.995
+
+
+def stored_metres(path: str | Path, frame: SubmapFrame) -> np.ndarray:
+    """A submap's metres as a bundle keeps them: float16 normalised points, then the frame."""
+    pts = read_submap(path).astype(np.float16).astype(np.float64)
+    return frame.local_m(pts)
+
+
+def yaw_deg(t: np.ndarray) -> float:
+    return math.degrees(math.atan2(t[1, 0], t[0, 0]))
+
+
+def wrap_deg(a: float) -> float:
+    """An angle in (-180, 180]."""
+    return -((-a + 180.0) % 360.0 - 180.0)
+
+
+def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """(translation error m, yaw error degrees) of a 4x4 estimate against the truth."""
+    t = float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
+    return t, abs(wrap_deg(yaw_deg(estimate) - yaw_deg(truth)))
+
+
+@dataclass
+class QueryOutcome:
+    """One query of one run pair, before and after re-ranking."""
+
+    pair: int
+    r1_before: bool
+    r1_after: bool
+    rk_before: bool
+    r1p_before: bool
+    r1p_after: bool
+    best_score: float
+    t_err: float | None = None
+    yaw_err: float | None = None
+    reversed: bool = False
+
+
+@dataclass
+class _Store:
+    """Metres and prepared clouds of the submaps met so far (a submap is a candidate of many
+    queries): cleared between areas."""
+
+    frames: dict[str, SubmapFrame]
+    metres: dict[str, np.ndarray] = field(default_factory=dict)
+    prepared: dict[Any, Any] = field(default_factory=dict)
+
+    def get(self, path: Path) -> tuple[np.ndarray, SubmapFrame]:
+        key = str(Path(path).resolve())
+        frame = self.frames.get(key)
+        if frame is None:
+            raise InputError("no frame sidecar row for this submap (rebuild the tree)", path)
+        if key not in self.metres:
+            self.metres[key] = stored_metres(path, frame)
+        return self.metres[key], frame
+
+    def clear(self) -> None:
+        self.metres.clear()
+        self.prepared.clear()
+
+
+def _search(db: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
+    import faiss
+
+    index = faiss.IndexFlatL2(db.shape[1])
+    index.add(np.ascontiguousarray(db, dtype=np.float32))
+    _, idx = index.search(np.ascontiguousarray(queries, dtype=np.float32), min(k, len(db)))
+    return idx.astype(np.int64)
+
+
+def _one_query(
+    q_path: Path,
+    db_paths: Sequence[Path],
+    ranked: np.ndarray,
+    store: _Store,
+    config: VerifyConfig,
+) -> tuple[Any, SubmapFrame, list[SubmapFrame]]:
+    """Verify one query against its first K ranked database rows."""
+    q_pts, q_frame = store.get(q_path)
+    cands, frames = [], []
+    for rank, row in enumerate(ranked[: config.candidates], 1):
+        pts, frame = store.get(db_paths[row])
+        frames.append(frame)
+        cands.append(Candidate(rank, pts, frame.map_pose, key=str(db_paths[row])))
+    query = QueryCloud(q_pts, "centroid", "measured")
+    v = verify(query, cands, config, cache=store.prepared, query_key=str(q_path))
+    return v, q_frame, frames
+
+
+def _outcome(
+    pair: int, ranked: np.ndarray, truth: np.ndarray, n1: int, v: Any, q: SubmapFrame, dbf: list
+) -> QueryOutcome:
+    k = len(v.checks)
+    true = set(int(t) for t in truth)
+    after = [int(ranked[c.rank - 1]) for c in v.checks] + [int(r) for r in ranked[k:]]
+    out = QueryOutcome(
+        pair=pair,
+        r1_before=int(ranked[0]) in true,
+        r1_after=after[0] in true,
+        rk_before=any(int(r) in true for r in ranked[:k]),
+        r1p_before=any(int(r) in true for r in ranked[:n1]),
+        r1p_after=any(r in true for r in after[:n1]),
+        best_score=v.best_score,
+    )
+    best = v.checks[0]
+    match = dbf[best.rank - 1]
+    if out.r1_after and q.true_pose is not None and match.true_pose is not None:
+        rel = np.linalg.inv(match.true_pose) @ q.true_pose
+        out.t_err, out.yaw_err = pose_error(best.transform, rel)
+        out.reversed = abs(wrap_deg(yaw_deg(rel))) > 90.0
+    return out
+
+
+def rerank_pairs(
+    runs: list[EvalRun],
+    db_desc: list[np.ndarray],
+    q_desc: list[np.ndarray],
+    frames: dict[str, SubmapFrame],
+    config: VerifyConfig,
+    *,
+    progress: bool = False,
+) -> tuple[list[QueryOutcome], list[tuple[int, int]]]:
+    """Every evaluated query of every ordered run pair of each area, verified; and the pairs
+    (db run, query run) in the order their outcomes are numbered."""
+    from tqdm.auto import tqdm
+
+    areas: dict[str, list[int]] = {}
+    for k, r in enumerate(runs):
+        areas.setdefault(r.area, []).append(k)
+    total = sum(len(runs[j].query_paths) * (len(m) - 1) for m in areas.values() for j in m)
+    bar = tqdm(total=total, desc="re-rank", unit="query", disable=None if progress else True)
+    outcomes: list[QueryOutcome] = []
+    pairs: list[tuple[int, int]] = []
+    store = _Store(frames)
+    for members in areas.values():
+        store.clear()
+        for i in members:
+            n1 = metrics.one_percent_n(len(db_desc[i]))
+            for j in members:
+                if i == j:
+                    continue
+                k = max(config.candidates, n1, metrics.NUM_NEIGHBOURS)
+                nn = _search(db_desc[i], q_desc[j], k)
+                pairs.append((i, j))
+                for q, truth in enumerate(runs[j].truth):
+                    bar.update(1)
+                    t = truth.get(i, np.zeros(0, dtype=np.int64))
+                    if len(t) == 0:
+                        continue
+                    ranked = nn[q][nn[q] >= 0]
+                    v, qf, dbf = _one_query(
+                        runs[j].query_paths[q], runs[i].db_paths, ranked, store, config
+                    )
+                    outcomes.append(_outcome(len(pairs) - 1, ranked, t, n1, v, qf, dbf))
+    bar.close()
+    return outcomes, pairs
+
+
+# --------------------------------------------------------------------------------------------
+# The figures
+# --------------------------------------------------------------------------------------------
+
+
+def _pair_mean(outcomes: list[QueryOutcome], attr: str) -> float:
+    """Percent, averaged over run pairs (as the benchmark averages recall)."""
+    by_pair: dict[int, list[bool]] = {}
+    for o in outcomes:
+        by_pair.setdefault(o.pair, []).append(getattr(o, attr))
+    if not by_pair:
+        return float("nan")
+    return float(np.mean([np.mean(v) for v in by_pair.values()]) * 100.0)
+
+
+def verified_figures(outcomes: list[QueryOutcome], threshold: float) -> dict[str, Any]:
+    """Precision, coverage and recall of ``verified`` at ``threshold`` (pooled, percent)."""
+    n = len(outcomes)
+    ver = [o for o in outcomes if o.best_score >= threshold]
+    right = [o for o in outcomes if o.r1_after]
+    good = [o for o in ver if o.r1_after]
+    return {
+        "threshold": threshold,
+        "n_verified": len(ver),
+        "precision": 100.0 * len(good) / len(ver) if ver else float("nan"),
+        "coverage": 100.0 * len(ver) / n if n else float("nan"),
+        "recall": 100.0 * len(good) / len(right) if right else float("nan"),
+    }
+
+
+def pr_curve(outcomes: list[QueryOutcome], thresholds: np.ndarray | None = None) -> list[dict]:
+    """``verified_figures`` over a grid of thresholds (0 to 1 by 0.01)."""
+    grid = np.round(np.arange(0.0, 1.0001, 0.01), 2) if thresholds is None else thresholds
+    return [verified_figures(outcomes, float(t)) for t in grid]
+
+
+def choose_threshold(outcomes: list[QueryOutcome], target: float = TARGET_PRECISION) -> float:
+    """The smallest grid threshold whose precision reaches ``target`` (and stays there for
+    every higher threshold that verifies anything); 1.0 when none does."""
+    curve = pr_curve(outcomes)
+    ok = [
+        c["precision"] >= target * 100.0 or c["n_verified"] == 0 or math.isnan(c["precision"])
+        for c in curve
+    ]
+    for k in range(len(curve)):
+        if all(ok[k:]) and curve[k]["n_verified"] > 0:
+            return float(curve[k]["threshold"])
+    return 1.0
+
+
+def _metric(outcomes: list[QueryOutcome]) -> dict[str, Any]:
+    posed = [o for o in outcomes if o.t_err is not None]
+    if not posed:
+        return {"n": 0}
+    t = np.array([o.t_err for o in posed])
+    y = np.array([o.yaw_err for o in posed])
+    ok = (t < SUCCESS_M) & (y < SUCCESS_DEG)
+    return {
+        "n": len(posed),
+        "success": float(ok.mean() * 100.0),
+        "median_translation_m": float(np.median(t)),
+        "median_yaw_deg": float(np.median(y)),
+        "p90_translation_m": float(np.percentile(t, 90)),
+        "p90_yaw_deg": float(np.percentile(y, 90)),
+    }
+
+
+def summarise(outcomes: list[QueryOutcome], threshold: float, candidates: int) -> dict[str, Any]:
+    """The report's figures of a set of outcomes (see the module doc)."""
+    rev = [o for o in outcomes if o.reversed]
+    fwd = [o for o in outcomes if o.t_err is not None and not o.reversed]
+    return {
+        "n_queries": len(outcomes),
+        "candidates": candidates,
+        "recall_at_1_before": _pair_mean(outcomes, "r1_before"),
+        "recall_at_1_after": _pair_mean(outcomes, "r1_after"),
+        "recall_at_k_before": _pair_mean(outcomes, "rk_before"),
+        "recall_at_1pct_before": _pair_mean(outcomes, "r1p_before"),
+        "recall_at_1pct_after": _pair_mean(outcomes, "r1p_after"),
+        "metric": _metric(outcomes),
+        "metric_same_heading": _metric(fwd),
+        "metric_reversed": _metric(rev),
+        "verified": verified_figures(outcomes, threshold),
+    }
+
+
+def rerank_report(
+    runs: list[EvalRun],
+    db_desc: list[np.ndarray],
+    q_desc: list[np.ndarray],
+    frames: dict[str, SubmapFrame],
+    config: VerifyConfig,
+    *,
+    calibration: dict[str, Any] | None = None,
+    progress: bool = False,
+) -> tuple[dict[str, Any], list[QueryOutcome]]:
+    """The ``rerank`` section of an evaluation report, overall and per area."""
+    t0 = time.monotonic()
+    outcomes, pairs = rerank_pairs(runs, db_desc, q_desc, frames, config, progress=progress)
+    area_of = [runs[j].area for _, j in pairs]
+    per_area = {
+        a: summarise(
+            [o for o in outcomes if area_of[o.pair] == a], config.threshold, config.candidates
+        )
+        for a in dict.fromkeys(area_of)
+    }
+    rep = {
+        **summarise(outcomes, config.threshold, config.candidates),
+        "per_area": per_area,
+        "pr_curve": pr_curve(outcomes),
+        "calibration": calibration,
+        "errors": [[o.t_err, o.yaw_err, o.reversed] for o in outcomes if o.t_err is not None],
+        "seconds": round(time.monotonic() - t0, 3),
+    }
+    return rep, outcomes
+
+
+# --------------------------------------------------------------------------------------------
+# Choosing the threshold on the training layout
+# --------------------------------------------------------------------------------------------
+
+
+def training_runs(tuples: Any, root: Path, area: str, positives_m: float = 25.0) -> list[EvalRun]:
+    """The training submaps of one dataset as evaluation runs (each run its own database and
+    queries; truth: the other runs' submaps within ``positives_m``)."""
+    files = list(tuples.files)
+    if tuples.northing is None:
+        raise InputError("training tuples without positions cannot choose a threshold", area)
+    by_run: dict[str, list[int]] = {}
+    for k, f in enumerate(files):
+        by_run.setdefault(f.split("/")[1], []).append(k)
+    names = sorted(by_run)
+    pos = np.stack([tuples.northing, tuples.easting], 1)
+    runs = []
+    for name in names:
+        idx = by_run[name]
+        truth = []
+        for k in idx:
+            d = {}
+            for i, other in enumerate(names):
+                if other == name:
+                    continue
+                o = np.asarray(by_run[other])
+                near = np.flatnonzero(np.linalg.norm(pos[o] - pos[k], axis=1) <= positives_m)
+                d[i] = near.astype(np.int64)
+            truth.append(d)
+        paths = [root / files[k] for k in idx]
+        runs.append(EvalRun(name, paths, pos[idx], paths, pos[idx], truth, area))
+    return runs
+
+
+def subsample_queries(runs: list[EvalRun], per_run: int, seed: int = 0) -> list[EvalRun]:
+    """The same runs with at most ``per_run`` queries each (seeded), databases whole."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for r in runs:
+        keep = np.sort(rng.permutation(len(r.query_paths))[:per_run])
+        out.append(
+            EvalRun(
+                r.name,
+                r.db_paths,
+                r.db_positions,
+                [r.query_paths[k] for k in keep],
+                r.query_positions[keep],
+                [r.truth[k] for k in keep],
+                r.area,
+            )
+        )
+    return out
+
+
+def calibrate(
+    embed_runs: Callable[[list[EvalRun]], tuple[list[np.ndarray], list[np.ndarray]]],
+    runs: list[EvalRun],
+    frames: dict[str, SubmapFrame],
+    config: VerifyConfig,
+    *,
+    target: float = TARGET_PRECISION,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Choose the threshold on training-layout ``runs`` (:func:`training_runs`): verify their
+    queries as the test is verified and take :func:`choose_threshold`."""
+    db_desc, q_desc = embed_runs(runs)
+    outcomes, _ = rerank_pairs(runs, db_desc, q_desc, frames, config, progress=progress)
+    threshold = choose_threshold(outcomes, target)
+    return {
+        "threshold": threshold,
+        "target_precision": target * 100.0,
+        "n_queries": len(outcomes),
+        "at_threshold": verified_figures(outcomes, threshold),
+        "pr_curve": pr_curve(outcomes),
+    }
+
+
+def summary_lines(rep: dict[str, Any]) -> list[str]:
+    """The console lines of a ``rerank`` section."""
+    v, m = rep["verified"], rep["metric"]
+    k = rep["candidates"]
+    lines = [
+        f"re-ranking top {k}: recall@1 {rep['recall_at_1_before']:.1f} -> "
+        f"{rep['recall_at_1_after']:.1f} % (recall@{k} before {rep['recall_at_k_before']:.1f} %), "
+        f"recall@1% {rep['recall_at_1pct_before']:.1f} -> {rep['recall_at_1pct_after']:.1f} %",
+    ]
+    if m.get("n"):
+        lines.append(
+            f"metric success (< {SUCCESS_M:g} m, < {SUCCESS_DEG:g} deg) {m['success']:.1f} % of "
+            f"{m['n']} true top-1; median error {m['median_translation_m']:.3f} m, "
+            f"{m['median_yaw_deg']:.3f} deg"
+        )
+    r = rep["metric_reversed"]
+    if r.get("n"):
+        lines.append(
+            f"  reversed heading: {r['success']:.1f} % of {r['n']}; median "
+            f"{r['median_translation_m']:.3f} m, {r['median_yaw_deg']:.3f} deg"
+        )
+    lines.append(
+        f"verified (score >= {v['threshold']:.2f}): precision {v['precision']:.1f} %, "
+        f"coverage {v['coverage']:.1f} % of queries, recall {v['recall']:.1f} % of true top-1"
+    )
+    for area, a in rep.get("per_area", {}).items():
+        lines.append(
+            f"  {area}: recall@1 {a['recall_at_1_before']:.1f} -> {a['recall_at_1_after']:.1f} %, "
+            f"recall@1% {a['recall_at_1pct_before']:.1f} -> {a['recall_at_1pct_after']:.1f} %, "
+            f"verified precision {a['verified']['precision']:.1f} % coverage "
+            f"{a['verified']['coverage']:.1f} %"
+        )
+    return lines
+
+
+def write_figures(rep: dict[str, Any], folder: Path) -> list[Path]:
+    """``verified_pr.png`` (precision against coverage and recall over thresholds, test and
+    calibration) and ``pose_errors.png`` (translation and yaw error distributions)."""
+    from pnvlad_service.extras import pyplot
+
+    plt = pyplot()
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    curves = [("test", rep["pr_curve"])]
+    if rep.get("calibration"):
+        curves.append(("training layout (chooses)", rep["calibration"]["pr_curve"]))
+    for name, curve in curves:
+        xs = [c["recall"] for c in curve if c["n_verified"]]
+        ys = [c["precision"] for c in curve if c["n_verified"]]
+        ax.plot(xs, ys, label=f"{name}: precision vs recall")
+    t = rep["verified"]
+    ax.plot([t["recall"]], [t["precision"]], "o", label=f"threshold {t['threshold']:.2f}")
+    ax.set_xlabel("recall of verified (% of queries with a true top-1)")
+    ax.set_ylabel("precision of verified (%)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out.append(folder / "verified_pr.png")
+    fig.savefig(out[-1], dpi=120)
+    plt.close(fig)
+    errs = np.array([[e[0], e[1]] for e in rep["errors"]]) if rep["errors"] else np.zeros((0, 2))
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    for ax, col, name, limit in ((axes[0], 0, "translation error (m)", SUCCESS_M),
+                                 (axes[1], 1, "yaw error (deg)", SUCCESS_DEG)):  # fmt: skip
+        vals = np.clip(errs[:, col], 0, limit * 2)
+        ax.hist(vals, bins=40, color="tab:blue")
+        ax.axvline(limit, color="tab:red", ls="--", label=f"success < {limit:g}")
+        ax.set_xlabel(f"{name}, clipped at {limit * 2:g}")
+        ax.set_ylabel("queries")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    out.append(folder / "pose_errors.png")
+    fig.savefig(out[-1], dpi=120)
+    plt.close(fig)
+    return out
+
+
+def evaluate_rerank(
+    embed: Any,
+    num_points: int,
+    runs: list[EvalRun],
+    descriptors: tuple[list[np.ndarray], list[np.ndarray]],
+    root: Path,
+    training: dict[str, Any],
+    *,
+    candidates: int,
+    threshold: float | None = None,
+    calibration_queries: int = 60,
+    workers: int = 4,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """The ``rerank`` section of ``pnvlad eval --rerank K``: the threshold (``threshold``, or
+    chosen on ``calibration_queries`` training-layout queries a run of each dataset of
+    ``training``), then :func:`rerank_report` on the evaluation runs."""
+    from pnvlad_service.data.tree import BenchmarkTree
+    from pnvlad_service.evaluation.evaluate import embed_runs
+
+    frames = BenchmarkTree(root).frames_by_path()
+    if not frames:
+        raise InputError(
+            "re-ranking needs the tree's frame sidecars (pnvlad synth / pnvlad data prepare "
+            "write them); this tree has none",
+            root,
+        )
+    calibration = None
+    if threshold is None:
+        cal_runs = []
+        for area, tuples in training.items():
+            cal_runs += subsample_queries(
+                training_runs(tuples, Path(root), area), calibration_queries
+            )
+
+        def embed_cal(rs: list[EvalRun]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+            _, db, q = embed_runs(embed, rs, num_points, workers, progress)
+            return db, q
+
+        calibration = calibrate(
+            embed_cal, cal_runs, frames, VerifyConfig(candidates=candidates), progress=progress
+        )
+        threshold = calibration["threshold"]
+        log.info("verification threshold %.2f, chosen on the training layout", threshold)
+    config = VerifyConfig(candidates=candidates, threshold=threshold)
+    rep, _ = rerank_report(
+        runs, *descriptors, frames, config, calibration=calibration, progress=progress
+    )
+    return rep

@@ -1,0 +1,90 @@
+"""localization.rerank_eval: the figures of pnvlad eval --rerank on hand-worked outcomes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pnvlad_service.data.frames import pose_matrix
+from pnvlad_service.localization.rerank_eval import (
+    QueryOutcome,
+    _outcome,
+    choose_threshold,
+    pose_error,
+    summarise,
+    verified_figures,
+    wrap_deg,
+)
+from pnvlad_service.localization.verify import Check, Verification, rerank
+
+
+def _o(pair: int, before: bool, after: bool, score: float, **kw: object) -> QueryOutcome:
+    return QueryOutcome(pair, before, after, after or before, before, after, score, **kw)
+
+
+def test_rerank_orders_by_score_then_retrieval_rank() -> None:
+    eye = np.eye(4)
+    checks = [Check(1, 0.2, 0.1, eye), Check(2, 0.9, 0.1, eye), Check(3, 0.9, 0.1, eye)]
+    assert [c.rank for c in rerank(checks)] == [2, 3, 1]
+
+
+def test_wrap_and_pose_error_by_hand() -> None:
+    assert wrap_deg(359.0) == pytest.approx(-1.0)
+    assert wrap_deg(-181.0) == pytest.approx(179.0)
+    assert wrap_deg(180.0) == pytest.approx(180.0)
+    est = pose_matrix(np.array([3.0, 4.0, 0.0]), 359.0)
+    true = pose_matrix(np.zeros(3), 1.0)
+    t, y = pose_error(est, true)
+    assert t == pytest.approx(5.0) and y == pytest.approx(2.0)
+
+
+def test_verified_figures_by_hand() -> None:
+    outs = [
+        _o(0, True, True, 0.9),  # verified, right
+        _o(0, False, True, 0.8),  # verified, right
+        _o(0, False, False, 0.7),  # verified, wrong
+        _o(1, True, True, 0.3),  # right, not verified
+        _o(1, False, False, 0.1),
+    ]
+    v = verified_figures(outs, 0.5)
+    assert v["n_verified"] == 3
+    assert v["precision"] == pytest.approx(200 / 3)
+    assert v["coverage"] == pytest.approx(60.0)
+    assert v["recall"] == pytest.approx(200 / 3)  # 2 of the 3 right ones
+    s = summarise(outs, 0.5, 10)
+    # Averaged over pairs: pair 0 has 1/3 right before, 2/3 after; pair 1 has 1/2 and 1/2.
+    assert s["recall_at_1_before"] == pytest.approx((1 / 3 + 1 / 2) / 2 * 100)
+    assert s["recall_at_1_after"] == pytest.approx((2 / 3 + 1 / 2) / 2 * 100)
+
+
+def test_choose_threshold_takes_the_lowest_that_stays_precise() -> None:
+    # Wrong answers score up to 0.42; right ones from 0.3 up; a wrong one at 0.42.
+    outs = [_o(0, True, True, s) for s in np.linspace(0.3, 1.0, 200)]
+    outs += [_o(0, False, False, s) for s in (0.1, 0.2, 0.35, 0.42)]
+    t = choose_threshold(outs, target=0.995)
+    assert t == pytest.approx(0.43)
+    assert verified_figures(outs, t)["precision"] == 100.0
+    # Nothing precise enough: 1.0.
+    assert choose_threshold([_o(0, False, False, 0.99)], target=0.995) == 1.0
+
+
+def test_outcome_uses_the_reranked_top1_and_the_true_relative_pose() -> None:
+    from pnvlad_service.data.frames import SubmapFrame
+
+    def frame(x: float, yaw: float) -> SubmapFrame:
+        return SubmapFrame(0, np.zeros(3), np.zeros(3), 1.0, "enu", np.array([x, 0.0, 0.0]), yaw)
+
+    q = frame(5.0, 180.0)  # the query drove the other way, 5 m east of the origin
+    dbf = [frame(100.0, 0.0), frame(0.0, 0.0)]
+    rel = np.linalg.inv(dbf[1].true_pose) @ q.true_pose
+    est = rel.copy()
+    est[0, 3] += 0.3  # 0.3 m off
+    v = Verification(True, (Check(2, 0.9, 0.1, est), Check(1, 0.1, 0.9, np.eye(4))), None, 0.5)
+    ranked = np.array([7, 3, 9])  # retrieval: row 7 first (wrong), row 3 second (true)
+    out = _outcome(0, ranked, np.array([3]), 1, v, q, dbf)
+    assert not out.r1_before and out.r1_after and out.rk_before
+    assert not out.r1p_before and out.r1p_after  # n1 = 1
+    assert out.t_err == pytest.approx(0.3) and out.yaw_err == pytest.approx(0.0, abs=1e-9)
+    assert out.reversed and not math.isnan(out.best_score)
