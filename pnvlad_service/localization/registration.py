@@ -60,6 +60,8 @@ class RegistrationConfig:
     bev_cells: int = 128  # image side; covers +-bev_cells * bev_cell_m / 2 about the origin
     polar_angles: int = 180  # angular bins over 180 degrees in the spectrum's polar grid
     yaw_peaks: int = 2  # yaw-correlation peaks kept (each also tried turned by 180 degrees)
+    whitening: float = 0.5  # phase correlation: cross spectrum divided by its magnitude**this
+    search_radius_m: float = 40.0  # the yaw and shift search looks at points within this
     hypotheses: int = 2  # best-scoring (yaw, shift) hypotheses given to the coarse GICP
     min_points: int = 20  # fewer points is degenerate
     min_spread_m: float = 0.05  # a cloud thinner than this across some axis is degenerate
@@ -175,6 +177,9 @@ def bev_image(points: np.ndarray, config: RegistrationConfig) -> np.ndarray:
     """float32 [S, S] bird's-eye occupancy (sqrt of the point count per cell), the origin at
     the image centre; axis 0 is x, axis 1 is y."""
     s = config.bev_cells
+    points = points[
+        np.einsum("ij,ij->i", points[:, :2], points[:, :2]) <= config.search_radius_m**2
+    ]
     ij = np.floor(points[:, :2] / config.bev_cell_m).astype(np.int64) + s // 2
     ok = ((ij >= 0) & (ij < s)).all(axis=1)
     counts = np.bincount(ij[ok, 0] * s + ij[ok, 1], minlength=s * s)
@@ -225,7 +230,9 @@ def place(
     turned = source_points @ _rot_z(yaw).T
     spectrum = np.fft.rfft2(bev_image(turned, config))
     cross = target.spectrum * np.conj(spectrum)
-    corr = np.fft.irfft2(cross / (np.abs(cross) ** 0.5 + 1e-9), s=(config.bev_cells,) * 2)
+    corr = np.fft.irfft2(
+        cross / (np.abs(cross) ** config.whitening + 1e-9), s=(config.bev_cells,) * 2
+    )
     peak = np.unravel_index(int(np.argmax(corr)), corr.shape)
     s = config.bev_cells
     shift = [((p + s // 2) % s - s // 2) * config.bev_cell_m for p in peak]
@@ -244,7 +251,11 @@ def _rot_z(yaw: float) -> np.ndarray:
 
 
 def fitness(
-    source_points: np.ndarray, target: Prepared, transform: np.ndarray, inlier_m: float, threads: int = 1
+    source_points: np.ndarray,
+    target: Prepared,
+    transform: np.ndarray,
+    inlier_m: float,
+    threads: int = 1,
 ) -> tuple[float, float]:
     """(fraction of ``source_points`` [N, 3] whose nearest target point is within ``inlier_m``
     once moved by ``transform``; RMS distance of those inliers in metres, nan when none)."""
@@ -259,7 +270,14 @@ def fitness(
     return float(inside.mean()), float(np.sqrt(sq[inside].mean()))
 
 
-def _align(source_cloud: Any, target: Prepared, init: np.ndarray, distance: float, iterations: int, config: RegistrationConfig) -> Any:
+def _align(
+    source_cloud: Any,
+    target: Prepared,
+    init: np.ndarray,
+    distance: float,
+    iterations: int,
+    config: RegistrationConfig,
+) -> Any:
     sg = _gicp()
     if config.method == "VGICP":
         return sg.align(
@@ -282,15 +300,21 @@ def _align(source_cloud: Any, target: Prepared, init: np.ndarray, distance: floa
     )
 
 
-def _best_start(source: Prepared, target: Prepared, config: RegistrationConfig) -> tuple[np.ndarray, tuple[float, ...]]:
+def _best_start(
+    source: Prepared, target: Prepared, config: RegistrationConfig
+) -> tuple[np.ndarray, tuple[float, ...]]:
     """The yaw search, then the coarse GICP stage from each of the best hypotheses: the
     coarse result with the highest fitness, and the yaws (degrees) tried."""
     yaws = yaw_candidates(source, target, config)
     placed = sorted((place(source.points, target, y, config) for y in yaws), key=lambda p: -p[1])
     best, best_fit = np.eye(4), -1.0
     for start, _ in placed[: config.hypotheses]:
-        result = _align(source.coarse, target, start, config.coarse_distance_m, config.coarse_iterations, config)
-        fit, _ = fitness(source.points, target, result.T_target_source, config.coarse_distance_m / 2, config.threads)
+        result = _align(
+            source.coarse, target, start, config.coarse_distance_m, config.coarse_iterations, config
+        )
+        fit, _ = fitness(
+            source.points, target, result.T_target_source, config.inlier_m, config.threads
+        )
         if fit > best_fit:
             best, best_fit = result.T_target_source, fit
     return best, tuple(float(np.degrees(y)) for y in yaws)
@@ -324,9 +348,13 @@ def register(
             start, yaws, how = *_best_start(src, tgt, config), "yaw search"
         else:
             start = np.asarray(init, dtype=np.float64)
-            coarse = _align(src.coarse, tgt, start, config.coarse_distance_m, config.coarse_iterations, config)
+            coarse = _align(
+                src.coarse, tgt, start, config.coarse_distance_m, config.coarse_iterations, config
+            )
             start, yaws, how = coarse.T_target_source, (), "given"
-        result = _align(src.fine, tgt, start, config.fine_distance_m, config.fine_iterations, config)
+        result = _align(
+            src.fine, tgt, start, config.fine_distance_m, config.fine_iterations, config
+        )
     except (RuntimeError, ValueError) as exc:  # small_gicp's own failures
         return _failed(init, f"registration failed: {exc}")
     transform = np.asarray(result.T_target_source, dtype=np.float64)

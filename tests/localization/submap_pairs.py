@@ -70,14 +70,22 @@ def drives(seed: int = 7, runs: int = 3) -> list[SimulatedDrive]:
     return [simulated_drive(spec, 0, r, seed) for r in range(runs)]
 
 
+def nearest_pass(a: SimulatedDrive, b: SimulatedDrive, i: int, offset_m: float) -> int:
+    """The scan of run ``b`` whose true position is nearest to ``offset_m`` metres from run
+    ``a``'s scan ``i`` (b drives the same road, so the offset is along it)."""
+    dist = np.linalg.norm(b.true_xy - a.true_xy[i], axis=1)
+    near = np.flatnonzero(dist <= abs(offset_m) + 6.0)
+    return int(near[np.argmin(np.abs(dist[near] - abs(offset_m)))])
+
+
 def submap_pair(
     a: SimulatedDrive, b: SimulatedDrive, i: int, offset_m: float, query_yaw: float
 ) -> Pair:
-    """Target: run ``a``'s submap at scan ``i``. Source: run ``b``'s submap at the scan nearest
-    to ``offset_m`` metres from it, seen in a frame turned by ``query_yaw`` (radians) - what a
-    query in any heading looks like. ``truth`` maps source points onto the target's."""
-    want = a.true_xy[i] + np.array([offset_m, 0.0])
-    j = int(np.argmin(np.linalg.norm(b.true_xy - want, axis=1)))
+    """Target: run ``a``'s submap at scan ``i``. Source: run ``b``'s submap about
+    ``offset_m`` metres along the road from it, seen in a frame turned by ``query_yaw``
+    (radians) - what a query in any heading looks like. ``truth`` maps source points onto
+    the target's."""
+    j = nearest_pass(a, b, i, offset_m)
     target, c_t = submap(a, i)
     source_world, c_s = submap(b, j)
     turn = yaw_matrix(query_yaw)
@@ -91,8 +99,7 @@ def submap_pair(
 def scan_pair(a: SimulatedDrive, b: SimulatedDrive, i: int, offset_m: float) -> Pair:
     """Target: run ``a``'s submap at scan ``i``; source: one raw scan of run ``b`` near it,
     through G, in its sensor frame (the heading of that run)."""
-    want = a.true_xy[i] + np.array([offset_m, 0.0])
-    j = int(np.argmin(np.linalg.norm(b.true_xy - want, axis=1)))
+    j = nearest_pass(a, b, i, offset_m)
     target, c_t = submap(a, i)
     source = apply_g(b.scan(j).astype(np.float64), GConfig(normalize=False)).points
     pose = true_poses(b)[j]
