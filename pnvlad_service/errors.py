@@ -28,10 +28,12 @@ class InputError(PnvladError, ValueError):
 class MissingDependencyError(PnvladError, ImportError):
     """An optional dependency (an extra) is needed for this feature and is not installed."""
 
-    def __init__(self, package: str, extra: str, feature: str) -> None:
+    def __init__(self, package: str, extra: str | None, feature: str) -> None:
+        # extra None: a core dependency missing from a broken or --no-deps install.
+        spec = package if extra is None else f"'pnvlad[{extra}]'"
         super().__init__(
             f"{feature} needs the '{package}' package, which is not installed. "
-            f"Install it with: pip install 'pnvlad[{extra}]'"
+            f"Install it with: pip install {spec}"
         )
 
 

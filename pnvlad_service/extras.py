@@ -10,9 +10,10 @@ from typing import Any
 from pnvlad_service.errors import MissingDependencyError
 
 
-def require(module: str, package: str, extra: str, feature: str) -> ModuleType:
+def require(module: str, package: str, extra: str | None, feature: str) -> ModuleType:
     """``import module``; when it is not installed, MissingDependencyError: ``feature`` needs
-    ``package``, from ``pip install 'pnvlad[extra]'``."""
+    ``package``, from ``pip install 'pnvlad[extra]'`` (``pip install package`` for a core
+    dependency, ``extra`` None)."""
     try:
         return importlib.import_module(module)
     except ImportError:

@@ -1,0 +1,362 @@
+"""Metric registration of a query cloud against a retrieved candidate (issue #10, verified
+metric localisation): the transform that lays the query onto the candidate submap, and a score
+that tells a true match from a false one.
+
+Why these pieces:
+
+- **Any heading.** Queries come from runs driving either way and from raw scans in the sensor
+  frame, so the yaw between query and candidate can be anything. GICP converges only from
+  within some 20 degrees, and running it from many yaws costs too much. So each cloud gets a
+  bird's-eye occupancy image; the magnitude of its 2-D Fourier transform does not change when
+  the cloud is shifted and turns with it, so a circular cross-correlation of the magnitudes
+  over angle (on a polar grid) gives the yaw modulo 180 degrees, translation-free (the
+  Fourier-Mellin idea, without the scale). Each yaw candidate (and its 180-degree twin) is
+  then placed by phase correlation of the images, which also scores it; only the best
+  hypotheses go to GICP.
+- **GICP by small_gicp.** Coarse (wide correspondence distance, coarser voxels), then fine.
+  It was the most accurate and fastest of the libraries measured (docs/VERIFY.md,
+  benchmarks/registration.py), and it keeps preprocessing apart from the registration call:
+  :func:`prepare` downsamples a cloud and computes its covariances, kd-tree and spectra once,
+  so one query is registered against K candidates without redoing its part.
+- **Score.** :attr:`Registration.fitness` is the fraction of the (downsampled) query points
+  with a candidate point within ``inlier_m`` after alignment: near 1 for the same place, low
+  for another one.
+
+Clouds are float [N, 3] metres, z up, in any frame whose origin is near the cloud's middle
+(a submap's centre, a scan's sensor). Transforms are float64 4x4, source -> target.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from scipy import ndimage
+
+from pnvlad_service.extras import require
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Every setting of :func:`prepare` and :func:`register`; lengths in metres.
+
+    Defaults were measured on synthetic submap pairs and a KITTI scan pair
+    (benchmarks/registration.py, docs/VERIFY.md).
+    """
+
+    fine_voxel_m: float = 0.5  # downsampling of the clouds the fine GICP stage aligns
+    coarse_voxel_m: float = 1.0  # downsampling of the source for the coarse stage
+    neighbours: int = 10  # points per covariance estimate
+    method: Literal["GICP", "VGICP"] = "VGICP"  # as accurate as GICP here, 2-3x faster
+    vgicp_leaf_m: float = 1.0  # voxel size of VGICP's Gaussian voxel map
+    coarse_distance_m: float = 3.0  # correspondence distance of the coarse stage
+    fine_distance_m: float = 1.0  # ... and of the fine stage
+    coarse_iterations: int = 12
+    fine_iterations: int = 20
+    inlier_m: float = 0.5  # a source point within this of the target counts for fitness
+    threads: int = 1  # 2 OpenMP threads on 2 shared cores measured slower (spin-waits)
+    bev_cell_m: float = 0.8  # bird's-eye image cell (the yaw and shift search)
+    bev_cells: int = 128  # image side; covers +-bev_cells * bev_cell_m / 2 about the origin
+    polar_angles: int = 180  # angular bins over 180 degrees in the spectrum's polar grid
+    yaw_peaks: int = 2  # yaw-correlation peaks kept (each also tried turned by 180 degrees)
+    whitening: float = 0.5  # phase correlation: cross spectrum divided by its magnitude**this
+    search_radius_m: float = 40.0  # the yaw and shift search looks at points within this
+    hypotheses: int = 2  # best-scoring (yaw, shift) hypotheses given to the coarse GICP
+    min_points: int = 20  # fewer points is degenerate
+    min_spread_m: float = 0.05  # a cloud thinner than this across some axis is degenerate
+
+
+DEFAULT = RegistrationConfig()
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """One cloud made ready for :func:`register` by :func:`prepare`.
+
+    ``points``: float64 [N, 3] metres, downsampled at ``fine_voxel_m``; ``reason``: why the
+    cloud cannot be registered (see :func:`degenerate`), or None. The rest is small_gicp's
+    (clouds with covariances, kd-trees, voxel map) and the yaw search's (image spectra).
+    """
+
+    points: np.ndarray
+    reason: str | None
+    fine: Any = None  # small_gicp.PointCloud with covariances
+    coarse: Any = None  # the same at coarse_voxel_m (used as a source)
+    tree: Any = None  # small_gicp.KdTree over ``fine``
+    voxels: Any = None  # small_gicp.GaussianVoxelMap over ``fine`` (VGICP only)
+    spectrum: np.ndarray | None = None  # complex rfft2 of the bird's-eye image
+    polar: np.ndarray | None = None  # float [radii, polar_angles], band-passed |FFT|
+
+
+@dataclass(frozen=True)
+class Registration:
+    """What :func:`register` found.
+
+    ``transform``: float64 4x4 source -> target; ``fitness``: fraction of source points with a
+    target point within ``inlier_m`` after alignment (0..1); ``rmse_m``: RMS distance of those
+    inliers (nan when none); ``converged``: the fine GICP stage converged; ``init``: how it
+    was started ("given", "yaw search", or "none" when nothing ran) and ``init_transform``
+    the 4x4 the fine stage started from; ``yaw_deg``: the yaw hypotheses tried;
+    ``reason``: why it could not run (a degenerate cloud), else None.
+    """
+
+    transform: np.ndarray
+    fitness: float
+    rmse_m: float
+    converged: bool
+    init: str
+    init_transform: np.ndarray
+    yaw_deg: tuple[float, ...] = field(default_factory=tuple)
+    reason: str | None = None
+
+
+def _gicp() -> Any:
+    return require("small_gicp", "small-gicp", None, "registration of point clouds")
+
+
+def degenerate(points: np.ndarray, config: RegistrationConfig = DEFAULT) -> str | None:
+    """Why ``points`` [N, 3] (metres) cannot be registered meaningfully, or None.
+
+    Too few points, non-finite values, or a shape that leaves some motion unobservable: all
+    on a line (one spread axis) or on a plane (thinner than ``min_spread_m`` across one axis).
+    Spreads are the square roots of the covariance's eigenvalues, in metres.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[-1] != 3:
+        return f"points must be [N, 3], got shape {list(pts.shape)}"
+    if len(pts) < config.min_points:
+        return f"{len(pts)} points, at least {config.min_points} needed"
+    if not np.isfinite(pts).all():
+        return "points hold NaN or infinite values"
+    spread = np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(pts.T)), 0.0, None))[::-1]
+    if spread[1] < config.min_spread_m or spread[1] < 1e-3 * spread[0]:
+        return f"points lie on a line (spreads {np.round(spread, 3).tolist()} m)"
+    if spread[2] < config.min_spread_m or spread[2] < 1e-4 * spread[0]:
+        return f"points lie on a plane (spreads {np.round(spread, 3).tolist()} m)"
+    return None
+
+
+def prepare(points_m: np.ndarray, config: RegistrationConfig = DEFAULT) -> Prepared:
+    """Downsample ``points_m`` [N, 3] (metres), estimate covariances, build the kd-tree (and
+    voxel map for VGICP) and the yaw search's spectra: everything of one cloud that
+    :func:`register` needs, done once. A degenerate cloud gives a Prepared with ``reason``."""
+    pts = np.asarray(points_m, dtype=np.float64)
+    reason = degenerate(pts, config)
+    if reason is not None:
+        return Prepared(points=np.empty((0, 3)), reason=reason)
+    sg = _gicp()
+    fine, tree = sg.preprocess_points(
+        pts, config.fine_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads
+    )
+    coarse, _ = sg.preprocess_points(
+        pts, config.coarse_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads
+    )
+    voxels = None
+    if config.method == "VGICP":
+        voxels = sg.GaussianVoxelMap(config.vgicp_leaf_m)
+        voxels.insert(fine)
+    image = bev_image(pts, config)
+    spectrum = np.fft.rfft2(image)
+    return Prepared(
+        points=fine.points()[:, :3].copy(),
+        reason=None,
+        fine=fine,
+        coarse=coarse,
+        tree=tree,
+        voxels=voxels,
+        spectrum=spectrum,
+        polar=polar_magnitude(image, config),
+    )
+
+
+# --- the yaw and shift search -------------------------------------------------------------
+
+
+def bev_image(points: np.ndarray, config: RegistrationConfig) -> np.ndarray:
+    """float32 [S, S] bird's-eye occupancy (sqrt of the point count per cell), the origin at
+    the image centre; axis 0 is x, axis 1 is y."""
+    s = config.bev_cells
+    points = points[
+        np.einsum("ij,ij->i", points[:, :2], points[:, :2]) <= config.search_radius_m**2
+    ]
+    ij = np.floor(points[:, :2] / config.bev_cell_m).astype(np.int64) + s // 2
+    ok = ((ij >= 0) & (ij < s)).all(axis=1)
+    counts = np.bincount(ij[ok, 0] * s + ij[ok, 1], minlength=s * s)
+    return np.sqrt(counts.reshape(s, s)).astype(np.float32)
+
+
+def polar_magnitude(image: np.ndarray, config: RegistrationConfig) -> np.ndarray:
+    """The log-magnitude of the image's 2-D spectrum on a polar grid, float [R, A]: radii from
+    a few cells (the lowest frequencies only say where the mass is) to the Nyquist band,
+    angles over [0, 180) degrees (the magnitude of a real image's spectrum is symmetric).
+    Shifting the cloud leaves it unchanged; turning the cloud by psi shifts it by psi."""
+    s = config.bev_cells
+    mag = np.log1p(np.abs(np.fft.fftshift(np.fft.fft2(image))))
+    radii = np.arange(4, s // 2 - 2, dtype=np.float64)
+    theta = np.arange(config.polar_angles) * (np.pi / config.polar_angles)
+    rows = s // 2 + radii[:, None] * np.cos(theta)[None, :]  # axis 0: frequency along x
+    cols = s // 2 + radii[:, None] * np.sin(theta)[None, :]
+    polar = ndimage.map_coordinates(mag, [rows, cols], order=1)
+    polar -= polar.mean(axis=1, keepdims=True)
+    return polar
+
+
+def yaw_candidates(source: Prepared, target: Prepared, config: RegistrationConfig) -> list[float]:
+    """Yaws (radians) that turn ``source`` towards ``target``: the ``yaw_peaks`` best peaks of
+    the angular cross-correlation of the polar spectra, each with its 180-degree twin."""
+    a = config.polar_angles
+    corr = np.fft.irfft(
+        (np.fft.rfft(target.polar, axis=1) * np.conj(np.fft.rfft(source.polar, axis=1))).sum(0),
+        n=a,
+    )
+    peaks: list[float] = []
+    order = np.argsort(corr)[::-1]
+    spacing = max(1, a // 18)  # peaks at least 10 degrees apart
+    for k in order:
+        if all(min(abs(k - p) % a, a - abs(k - p) % a) >= spacing for p in peaks):
+            peaks.append(int(k))
+        if len(peaks) == config.yaw_peaks:
+            break
+    step = np.pi / a
+    return [k * step + half for k in peaks for half in (0.0, np.pi)]
+
+
+def place(
+    source_points: np.ndarray, target: Prepared, yaw: float, config: RegistrationConfig
+) -> tuple[np.ndarray, float]:
+    """The 4x4 (turn by ``yaw``, then the image shift that best lays the source onto the
+    target, by phase correlation) and its score (the correlation peak's height)."""
+    turned = source_points @ _rot_z(yaw).T
+    spectrum = np.fft.rfft2(bev_image(turned, config))
+    cross = target.spectrum * np.conj(spectrum)
+    corr = np.fft.irfft2(
+        cross / (np.abs(cross) ** config.whitening + 1e-9), s=(config.bev_cells,) * 2
+    )
+    peak = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    s = config.bev_cells
+    shift = [((p + s // 2) % s - s // 2) * config.bev_cell_m for p in peak]
+    transform = np.eye(4)
+    transform[:3, :3] = _rot_z(yaw)
+    transform[:2, 3] = shift
+    return transform, float(corr[peak] / (np.abs(corr).mean() + 1e-12))
+
+
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+# --- registration -------------------------------------------------------------------------
+
+
+def fitness(
+    source_points: np.ndarray,
+    target: Prepared,
+    transform: np.ndarray,
+    inlier_m: float,
+    threads: int = 1,
+) -> tuple[float, float]:
+    """(fraction of ``source_points`` [N, 3] whose nearest target point is within ``inlier_m``
+    once moved by ``transform``; RMS distance of those inliers in metres, nan when none)."""
+    if len(source_points) == 0 or target.tree is None:
+        return 0.0, float("nan")
+    moved = source_points @ transform[:3, :3].T + transform[:3, 3]
+    _, sq = target.tree.batch_nearest_neighbor_search(moved, num_threads=threads)
+    sq = np.asarray(sq, dtype=np.float64).reshape(-1)
+    inside = sq <= inlier_m**2
+    if not inside.any():
+        return 0.0, float("nan")
+    return float(inside.mean()), float(np.sqrt(sq[inside].mean()))
+
+
+def _align(
+    source_cloud: Any,
+    target: Prepared,
+    init: np.ndarray,
+    distance: float,
+    iterations: int,
+    config: RegistrationConfig,
+) -> Any:
+    sg = _gicp()
+    if config.method == "VGICP":
+        return sg.align(
+            target.voxels,
+            source_cloud,
+            init_T_target_source=init,
+            max_correspondence_distance=distance,
+            num_threads=config.threads,
+            max_iterations=iterations,
+        )
+    return sg.align(
+        target.fine,
+        source_cloud,
+        target.tree,
+        init_T_target_source=init,
+        registration_type="GICP",
+        max_correspondence_distance=distance,
+        num_threads=config.threads,
+        max_iterations=iterations,
+    )
+
+
+def _best_start(
+    source: Prepared, target: Prepared, config: RegistrationConfig
+) -> tuple[np.ndarray, tuple[float, ...]]:
+    """The yaw search, then the coarse GICP stage from each of the best hypotheses: the
+    coarse result with the highest fitness, and the yaws (degrees) tried."""
+    yaws = yaw_candidates(source, target, config)
+    placed = sorted((place(source.points, target, y, config) for y in yaws), key=lambda p: -p[1])
+    best, best_fit = np.eye(4), -1.0
+    for start, _ in placed[: config.hypotheses]:
+        result = _align(
+            source.coarse, target, start, config.coarse_distance_m, config.coarse_iterations, config
+        )
+        fit, _ = fitness(
+            source.points, target, result.T_target_source, config.inlier_m, config.threads
+        )
+        if fit > best_fit:
+            best, best_fit = result.T_target_source, fit
+    return best, tuple(float(np.degrees(y)) for y in yaws)
+
+
+def _failed(init: np.ndarray | None, reason: str) -> Registration:
+    start = np.eye(4) if init is None else np.asarray(init, dtype=np.float64)
+    return Registration(start.copy(), 0.0, float("nan"), False, "none", start.copy(), (), reason)
+
+
+def register(
+    source: Prepared | np.ndarray,
+    target: Prepared | np.ndarray,
+    config: RegistrationConfig = DEFAULT,
+    init: np.ndarray | None = None,
+) -> Registration:
+    """Register ``source`` onto ``target`` (clouds [N, 3] metres, or :func:`prepare`'s output):
+    the 4x4 source -> target, the fitness and how it started.
+
+    With ``init`` (float 4x4, source -> target) the coarse and fine GICP stages start from
+    it; without, from the yaw search (any heading). Never raises on a degenerate or empty
+    cloud: the answer then has fitness 0, ``converged`` False and the ``reason``.
+    """
+    src = source if isinstance(source, Prepared) else prepare(source, config)
+    tgt = target if isinstance(target, Prepared) else prepare(target, config)
+    reason = src.reason or tgt.reason
+    if reason is not None:
+        return _failed(init, reason)
+    try:
+        if init is None:
+            start, yaws, how = *_best_start(src, tgt, config), "yaw search"
+        else:
+            start = np.asarray(init, dtype=np.float64)
+            coarse = _align(
+                src.coarse, tgt, start, config.coarse_distance_m, config.coarse_iterations, config
+            )
+            start, yaws, how = coarse.T_target_source, (), "given"
+        result = _align(
+            src.fine, tgt, start, config.fine_distance_m, config.fine_iterations, config
+        )
+    except (RuntimeError, ValueError) as exc:  # small_gicp's own failures
+        return _failed(init, f"registration failed: {exc}")
+    transform = np.asarray(result.T_target_source, dtype=np.float64)
+    fit, rmse = fitness(src.points, tgt, transform, config.inlier_m, config.threads)
+    return Registration(transform, fit, rmse, bool(result.converged), how, np.asarray(start), yaws)

@@ -1,0 +1,256 @@
+"""Tests of pnvlad_service.localization.registration: each truth is known independently of the
+code under test (a transform we applied, the simulator's true poses, a plain nearest-neighbour
+loop, an independent point-to-plane ICP written here in numpy)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from pnvlad_service.errors import MissingDependencyError
+from pnvlad_service.localization import registration as reg
+from tests.localization import submap_pairs as sp
+
+pytest.importorskip("small_gicp")
+
+
+def errors(estimate: np.ndarray, true: np.ndarray) -> tuple[float, float]:
+    """(translation error m, rotation error degrees)."""
+    e = np.linalg.inv(true) @ estimate
+    angle = np.linalg.norm(Rotation.from_matrix(e[:3, :3]).as_rotvec())
+    return float(np.linalg.norm(e[:3, 3])), float(np.degrees(angle))
+
+
+def street(seed: int) -> np.ndarray:
+    """A structured scene [N, 3] metres, about +-25 m: building walls of random lengths and
+    set-backs on both sides of a street, poles and boxes (parked cars), ground removed."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    x = -25.0
+    while x < 25.0:  # facades, one block after another, each side its own set-back
+        length = rng.uniform(5, 14)
+        for side in (-1, 1):
+            y = side * rng.uniform(7, 12)
+            n = int(length * 40)
+            parts.append(
+                np.c_[rng.uniform(x, x + length, n), np.full(n, y), rng.uniform(-1.5, 1.5, n)]
+            )
+            end = np.c_[
+                np.full(60, x), y + side * rng.uniform(0, 4, 60), rng.uniform(-1.5, 1.5, 60)
+            ]
+            parts.append(end)
+        x += length + rng.uniform(0.5, 4)
+    for _ in range(12):  # poles
+        c = rng.uniform(-24, 24), rng.choice([-1, 1]) * rng.uniform(4, 6)
+        a = rng.uniform(0, 2 * np.pi, 40)
+        parts.append(
+            np.c_[c[0] + 0.15 * np.cos(a), c[1] + 0.15 * np.sin(a), rng.uniform(-1.5, 2, 40)]
+        )
+    for _ in range(8):  # boxes: the sides of parked cars
+        c = np.array([rng.uniform(-24, 24), rng.choice([-1, 1]) * rng.uniform(3, 5)])
+        half = np.array([2.2, 0.9, 0.7])
+        u = rng.uniform(-1, 1, (200, 3)) * half
+        face = rng.integers(0, 2, 200)  # each point on an end or a side of the box
+        u[np.arange(200), face] = rng.choice([-1, 1], 200) * half[face]
+        parts.append(np.c_[c + u[:, :2], u[:, 2] - 1.0])
+    return np.concatenate(parts)
+
+
+def moved(points: np.ndarray, truth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The source seeing ``points``: cropped to partial overlap, expressed in a frame that
+    ``truth`` (source -> target) maps onto theirs, with 2 cm noise."""
+    part = points[points[:, 0] < 12.0]  # the source sees the scene up to x = 12 m only
+    inv = np.linalg.inv(truth)
+    out = part @ inv[:3, :3].T + inv[:3, 3]
+    return out + rng.normal(0, 0.02, out.shape)
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 23.0, 97.0, 180.0, 251.0])
+def test_structured_cloud_any_yaw_recovered(yaw_deg: float) -> None:
+    rng = np.random.default_rng(int(yaw_deg))
+    target = street(1)
+    truth = Rotation.from_euler("zyx", [yaw_deg, 0.8, -0.5], degrees=True).as_matrix()
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = truth, [4.0, -3.0, 0.3]
+    result = reg.register(moved(target, t, rng), target)
+    dt, dr = errors(result.transform, t)
+    assert dt < 0.2 and dr < 1.0, (dt, dr, result)
+    assert result.converged and result.init == "yaw search"
+    assert result.fitness > 0.8
+
+
+def test_given_init_is_used() -> None:
+    target = street(1)
+    t = sp.yaw_matrix(np.radians(5.0), np.array([1.0, 0.5, 0.0]))
+    result = reg.register(moved(target, t, np.random.default_rng(0)), target, init=np.eye(4))
+    assert result.init == "given" and result.yaw_deg == ()
+    assert errors(result.transform, t)[0] < 0.2
+
+
+def test_unrelated_clouds_have_low_fitness() -> None:
+    rng = np.random.default_rng(5)
+    same = reg.register(moved(street(1), sp.yaw_matrix(1.0, np.array([3.0, 1, 0])), rng), street(1))
+    other = reg.register(street(2) @ sp.yaw_matrix(1.0)[:3, :3], street(1))
+    assert other.fitness < 0.5 * same.fitness, (other.fitness, same.fitness)
+
+
+@pytest.mark.parametrize(
+    "points, words",
+    [
+        (np.empty((0, 3)), "0 points"),
+        (np.random.default_rng(0).normal(size=(5, 3)), "5 points"),
+        (np.c_[np.linspace(0, 30, 500), np.linspace(0, 10, 500), np.zeros(500)], "line"),
+        (np.c_[np.random.default_rng(1).uniform(-20, 20, (500, 2)), np.zeros(500)], "plane"),
+        (np.full((100, 3), np.nan), "NaN"),
+        (np.zeros((10, 2)), "[N, 3]"),
+    ],
+)
+def test_degenerate_clouds_give_a_reason_and_never_raise(points: np.ndarray, words: str) -> None:
+    reason = reg.degenerate(points)
+    assert reason is not None and words in reason
+    assert reg.degenerate(street(1)) is None
+    for result in (reg.register(points, street(1)), reg.register(street(1), points)):
+        assert result.fitness == 0.0 and not result.converged and result.reason == reason
+        assert result.transform.shape == (4, 4)
+
+
+def test_fitness_matches_a_plain_nearest_neighbour_loop() -> None:
+    rng = np.random.default_rng(3)
+    target = reg.prepare(street(1)[::7])
+    source = rng.uniform(-20, 20, (60, 3)) * [1, 0.6, 0.05]
+    t = sp.yaw_matrix(0.3, np.array([0.5, -0.2, 0.1]))
+    inlier = 0.8
+    got, rmse = reg.fitness(source, target, t, inlier)
+    close = []
+    for p in source:
+        q = t[:3, :3] @ p + t[:3, 3]
+        d = min(float(np.linalg.norm(q - r)) for r in target.points)
+        if d <= inlier:
+            close.append(d)
+    assert got == pytest.approx(len(close) / len(source))
+    assert rmse == pytest.approx(float(np.sqrt(np.mean(np.square(close)))))
+    assert 0 < len(close) < len(source)  # the case tests both sides of the threshold
+
+
+def test_missing_small_gicp_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "small_gicp", None)
+    with pytest.raises(MissingDependencyError, match="small-gicp"):
+        reg.prepare(street(1))
+
+
+# --- submap pairs of the synthetic city, truth from the simulator's true poses -------------
+
+
+@pytest.fixture(scope="module")
+def drives() -> list:
+    return sp.drives()
+
+
+@pytest.mark.parametrize(
+    "runs, i, offset_m, yaw_deg",
+    [((0, 1), 20, 6.0, 180.0), ((0, 2), 40, 3.0, 73.0), ((1, 2), 30, 9.0, 305.0)],
+)
+def test_synthetic_submap_pair_recovered(drives, runs, i, offset_m, yaw_deg) -> None:
+    pair = sp.submap_pair(drives[runs[0]], drives[runs[1]], i, offset_m, np.radians(yaw_deg))
+    result = reg.register(pair.source, pair.target)
+    dt, dr = errors(result.transform, pair.truth)
+    # The issue's success criterion per pair; the medians (0.03 m, 0.2 deg over 20 pairs) are
+    # benchmarks/registration.py's to report.
+    assert dt < 2.0 and dr < 5.0, (pair.name, dt, dr)
+    assert result.fitness > 0.4
+
+
+def test_prepared_query_reused_against_several_candidates(drives) -> None:
+    a, b = drives[0], drives[1]
+    pairs = [sp.submap_pair(a, b, i, 4.0, 2.0) for i in (35, 55)]
+    query = reg.prepare(pairs[0].source)
+    again = reg.register(query, reg.prepare(pairs[0].target))
+    other = reg.register(query, reg.prepare(pairs[1].target))  # a place 80 m away
+    assert errors(again.transform, pairs[0].truth)[0] < 0.5
+    assert other.fitness < again.fitness
+
+
+# --- KITTI 00, frames 0 and 5 --------------------------------------------------------------
+
+
+def kitti(folder: Path, i: int) -> np.ndarray:
+    raw = np.fromfile(folder / f"kitti00_{i:06d}.bin", dtype="<f4").reshape(-1, 4)
+    return raw[:, :3].astype(np.float64)
+
+
+def point_to_plane(source: np.ndarray, target: np.ndarray, iterations: int = 60) -> np.ndarray:
+    """An independent point-to-plane ICP (numpy and scipy only; 0.3 m voxels, PCA normals of
+    20 neighbours, 1 m gate), from the identity: the cross-check of small_gicp's answer."""
+
+    def voxel(p: np.ndarray) -> np.ndarray:
+        return p[np.unique(np.floor(p / 0.3).astype(np.int64), axis=0, return_index=True)[1]]
+
+    src, tgt = voxel(source), voxel(target)
+    tree = cKDTree(tgt)
+    nb = tgt[tree.query(tgt, 20)[1]]
+    nb = nb - nb.mean(1, keepdims=True)
+    normals = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))[1][:, :, 0]
+    m = np.eye(4)
+    for _ in range(iterations):
+        x = src @ m[:3, :3].T + m[:3, 3]
+        d, j = tree.query(x, distance_upper_bound=1.0)
+        ok = np.isfinite(d)
+        x, q, n = x[ok], tgt[j[ok]], normals[j[ok]]
+        xi = np.linalg.lstsq(
+            np.c_[np.cross(x, n), n], -np.einsum("ij,ij->i", x - q, n), rcond=None
+        )[0]
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = Rotation.from_rotvec(xi[:3]).as_matrix(), xi[3:]
+        m = step @ m
+        if np.linalg.norm(xi) < 1e-7:
+            break
+    return m
+
+
+def kitti_truth(folder: Path) -> np.ndarray:
+    """Velodyne frame 5 -> velodyne frame 0 from the poses file (camera 0) and KITTI 00's
+    velodyne-to-camera calibration."""
+    tr = np.array(
+        [
+            [4.276802385584e-04, -9.999672484946e-01, -8.084491683471e-03, -1.198459927713e-02],
+            [-7.210626507497e-03, 8.081198471645e-03, -9.999413164504e-01, -5.403984729748e-02],
+            [9.999738645903e-01, 4.859485810390e-04, -7.206933692422e-03, -2.921968648686e-01],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+    rows = np.loadtxt(folder / "kitti00_poses_0-5.txt").reshape(-1, 3, 4)
+    cam = np.tile(np.eye(4), (len(rows), 1, 1))
+    cam[:, :3, :] = rows
+    return np.linalg.inv(cam[0] @ tr) @ cam[5] @ tr
+
+
+def test_kitti_pair_agrees_with_independent_icp(real_scans: Path) -> None:
+    """Frame 5 of KITTI 00 registered against frame 0.
+
+    The issue asked for the recorded relative pose within 0.2 m and 0.5 degrees. The scans do
+    not agree with that pose: small_gicp (GICP, VGICP), kiss-icp, open3d (point-to-plane,
+    GICP) and the numpy point-to-plane below all land at 3.58-3.62 m forward and 1.12-1.17
+    degrees of yaw, where the poses file says 4.29 m and 0.59 degrees (also started from the
+    recorded pose, with or without ground, de-skewed or not, with kiss-icp's KITTI vertical
+    angle correction; docs/VERIFY.md). So this asserts what is cross-checked - our answer
+    within 0.1 m and 0.2 degrees of an independent method's - and only prints the comparison
+    with the recorded pose.
+    """
+    source, target = kitti(real_scans, 5), kitti(real_scans, 0)
+    ours = reg.register(source, target)
+    independent = point_to_plane(source, target)
+    dt, dr = errors(ours.transform, independent)
+    gt_t, gt_r = errors(ours.transform, kitti_truth(real_scans))
+    print(
+        f"KITTI 00 5->0: ours t = {np.round(ours.transform[:3, 3], 3)} m, independent "
+        f"t = {np.round(independent[:3, 3], 3)} m; ours vs independent {dt:.3f} m {dr:.3f} deg; "
+        f"ours vs the poses file {gt_t:.3f} m {gt_r:.3f} deg (not asserted, see docstring)"
+    )
+    assert dt < 0.1 and dr < 0.2
+    assert 3.4 < ours.transform[0, 3] < 3.8  # forward, as every method measured
+    assert ours.fitness > 0.5
