@@ -24,8 +24,10 @@ too few distinct points) answers ``verified: false`` with the reason.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -42,11 +44,13 @@ class VerifyConfig:
 
     ``candidates``: how many of the nearest (by descriptor) are registered (K);
     ``threshold``: the score at or above which the best match counts as verified;
-    ``registration``: the registration's settings.
+    ``workers``: candidates registered at once (threads: small_gicp and NumPy's FFT release
+    the GIL); ``registration``: the registration's settings.
     """
 
     candidates: int = DEFAULT_CANDIDATES
     threshold: float = 0.5
+    workers: int = 2
     registration: reg.RegistrationConfig = field(default_factory=reg.RegistrationConfig)
 
     def __post_init__(self) -> None:
@@ -181,6 +185,19 @@ class Verification:
     @property
     def best_score(self) -> float:
         return self.checks[0].score if self.checks else 0.0
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """One shared pool of ``workers`` threads (a process verifies with few threads, whatever
+    the number of requests in flight: the cores are the limit)."""
+    with _POOLS_LOCK:
+        if workers not in _POOLS:
+            _POOLS[workers] = ThreadPoolExecutor(workers, thread_name_prefix="pnvlad-verify")
+        return _POOLS[workers]
 
 
 def rerank(checks: Sequence[Check]) -> tuple[Check, ...]:
