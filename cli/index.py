@@ -21,7 +21,8 @@ app = typer.Typer(
     rich_markup_mode="markdown",
     help="Build and inspect FAISS index bundles (the map `pnvlad serve` searches).\n\n"
     "A bundle is a directory: index.faiss, metadata.npz (one row per submap: run, timestamp, "
-    "UTM northing/easting, path) and manifest.json (model and file sha256s).",
+    "UTM northing/easting, path), manifest.json (model and file sha256s) and, when the tree "
+    "has frame sidecars, geometry.f16 + geometry.npz (each submap's points, for verification).",
     no_args_is_help=True,
 )
 
@@ -55,6 +56,21 @@ _LAYOUT = typer.Option(
 _BATCH = typer.Option(32, "--batch-size", "-b", help="Clouds embedded per forward pass.")
 
 
+def _geometry_mode(value: str) -> str:
+    from pnvlad_service.index.build import GEOMETRY_MODES
+
+    if value not in GEOMETRY_MODES:
+        raise typer.BadParameter(f"{value!r} is not one of {', '.join(GEOMETRY_MODES)}")
+    return value
+
+
+_GEOMETRY_HELP = (
+    "Store each submap's points (float16, ~24.6 KB a submap) for geometric verification: "
+    "'auto' when every run has a frame sidecar (<csv stem>.frames.csv, written by pnvlad "
+    "synth and pnvlad data prepare), 'required' to refuse runs without one, 'off' for none."
+)
+
+
 @app.command()
 def build(
     model: Path = _MODEL,
@@ -78,6 +94,9 @@ def build(
         1000, help="Database vectors used to measure recall@1 of approximate indexes."
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing bundle."),
+    geometry: str = typer.Option(
+        "auto", "--geometry", callback=_geometry_mode, help=_GEOMETRY_HELP
+    ),
 ) -> None:
     """Embed every database submap of a benchmark tree and write an index bundle.
 
@@ -106,6 +125,7 @@ def build(
             batch_size=batch_size,
             recall_sample=recall_sample,
             overwrite=overwrite,
+            geometry=geometry,
         )
     if rep.path is None:  # a non-zero torchrun rank
         return
@@ -116,6 +136,8 @@ def build(
     )
     if rep.recall_at_1 is not None:
         typer.echo(f"recall@1 against exact search: {rep.recall_at_1:.4f}")
+    assert rep.manifest is not None
+    typer.echo(f"geometry: {_geometry_text(rep.manifest)}")
     typer.echo(f"wrote {rep.path}")
 
 
@@ -128,11 +150,20 @@ def add(
     run: list[str] = _RUNS,
     layout: str = _LAYOUT,
     batch_size: int = _BATCH,
+    geometry: str = typer.Option(
+        "auto",
+        "--geometry",
+        callback=_geometry_mode,
+        help="'auto': a bundle with geometry keeps it and gains the new runs' (refused for runs "
+        "without a frame sidecar); 'required': also refuse a bundle without geometry; 'off': "
+        "drop the bundle's geometry.",
+    ),
 ) -> None:
     """Append new runs to a bundle.
 
     The model must be the one the bundle was built with (same weights sha256); submaps
-    already in the bundle are refused.
+    already in the bundle are refused. A bundle with geometry keeps it: runs without a frame
+    sidecar are refused unless --geometry off drops it.
 
     Example: pnvlad index add map.index -m runs/model -r benchmark_datasets \
       --run 2015-02-03-08-45-10
@@ -148,6 +179,7 @@ def add(
             runs=run or None,
             layout=layout,
             batch_size=batch_size,
+            geometry=geometry,
         )
     assert rep.manifest is not None
     typer.echo(
@@ -172,6 +204,8 @@ def info(
     with user_errors():
         manifest = Manifest.read(bundle)
         checks = manifest.verify_files(bundle)
+        if manifest.geometry is not None:
+            checks["geometry"] = _geometry_ok(bundle, manifest)
     if as_json:
         typer.echo(json.dumps({"manifest": manifest.to_json(), "files_ok": checks}, indent=2))
     else:
@@ -182,6 +216,32 @@ def info(
     if not all(checks.values()):
         typer.secho("error: some files do not match the manifest", err=True, fg="red")
         raise typer.Exit(code=1)
+
+
+def _geometry_text(manifest: Manifest) -> str:
+    """'none' or 'N submaps, X KB each (Y MB)'."""
+    g = manifest.geometry
+    if g is None:
+        return "none"
+    return (
+        f"{g.count} submaps, {g.bytes / max(g.count, 1) / 1e3:.1f} KB each ({g.bytes / 1e6:.1f} MB)"
+    )
+
+
+def _geometry_ok(bundle: Path, manifest: Manifest) -> bool:
+    """The start-up checks of the bundle's geometry (size, table, hash or sampled rows)."""
+    import logging
+
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.index.geometry import BundleGeometry
+
+    assert manifest.geometry is not None
+    try:
+        BundleGeometry.open(bundle, manifest.geometry).close()
+    except InputError as exc:
+        logging.getLogger("pnvlad").error("%s", exc)
+        return False
+    return True
 
 
 def _checkpoint_state(manifest: Manifest) -> str:
@@ -218,6 +278,7 @@ def _info_rows(bundle: Path, manifest: Manifest, checks: dict[str, bool]) -> lis
         ("model weights", m.model.weights_sha256),
         ("model config", m.model.config_sha256),
         ("checkpoint", f"{m.model.checkpoint} [{_checkpoint_state(m)}]"),
+        ("geometry", _geometry_text(m)),
         ("created", m.created),
         ("modified", m.modified),
     ]
@@ -231,5 +292,8 @@ def _info_rows(bundle: Path, manifest: Manifest, checks: dict[str, bool]) -> lis
             )
         )
     for name, ok in checks.items():
-        rows.append((name, "sha256 OK" if ok else "sha256 MISMATCH"))
+        if name == "geometry":
+            rows.append((name, "checks OK" if ok else "checks FAILED (see the error above)"))
+        else:
+            rows.append((name, "sha256 OK" if ok else "sha256 MISMATCH"))
     return rows

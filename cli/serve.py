@@ -58,7 +58,7 @@ def serve(
     best match is verified and gives the query's pose on the map.
 
     Loads the model and the index once. Refuses to start when the bundle was built with other
-    weights than the checkpoint. Every setting can also come from the environment (PNVLAD_INDEX,
+    weights than the checkpoint, or when its geometry file is truncated or fails its hash. Every setting can also come from the environment (PNVLAD_INDEX,
     PNVLAD_CHECKPOINT, PNVLAD_HOST, PNVLAD_PORT, PNVLAD_API_KEY for bearer-token auth,
     PNVLAD_MAX_BODY_BYTES, ...; see docs/SERVICE.md). OpenAPI docs at /docs.
 
@@ -84,6 +84,7 @@ def serve(
     import uvicorn
 
     from pnvlad_service.errors import InputError
+    from pnvlad_service.index.geometry import check_geometry
     from pnvlad_service.localization.localizer import checked_model
     from pnvlad_service.server.settings import ServerSettings
 
@@ -92,6 +93,7 @@ def serve(
         if settings.index is None:
             raise InputError("no index bundle given (--index or PNVLAD_INDEX)", "index")
         identity = checked_model(settings.index, settings.checkpoint)
+        check_geometry(settings.index, verify=settings.verify_bundle)
     os.environ["PNVLAD_CHECKPOINT"] = identity.checkpoint
     uvicorn.run(
         "pnvlad_service.server.app:create_app_from_env",

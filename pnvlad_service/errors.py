@@ -39,3 +39,16 @@ class MissingDependencyError(PnvladError, ImportError):
 
 class NotReadyError(PnvladError):
     """A service object was used before it was loaded or after it was closed."""
+
+
+class CorruptFileError(PnvladError):
+    """A file the service already checked and relies on no longer matches its recorded hash
+    (e.g. a geometry row fetched at query time): a server fault, not the caller's.
+
+    ``source`` is the file's path.
+    """
+
+    def __init__(self, message: str, source: str | Path | None = None) -> None:
+        self.source = None if source is None else str(source)
+        self.detail = message
+        super().__init__(f"{self.source}: {message}" if self.source else message)

@@ -4,6 +4,11 @@
 bundle; under ``torchrun`` each rank embeds a contiguous shard and rank 0 gathers them (gloo).
 :func:`add_to_bundle` appends new runs to a bundle built with the same weights.
 
+Geometry (:mod:`pnvlad_service.index.geometry`): with ``geometry="auto"`` a bundle stores the
+database submaps' points when every run indexed has a frame sidecar, and is built without them
+(one log line naming the runs) otherwise; ``"required"`` refuses such runs, ``"off"`` stores
+none (and drops an existing bundle's on add).
+
 ``torch`` is imported inside the functions that need it.
 """
 
@@ -22,6 +27,7 @@ import numpy as np
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.index.bundle import IndexBundle, Metadata, now, write_bundle
+from pnvlad_service.index.geometry import database_frames, geometry_writer
 from pnvlad_service.index.keys import (
     DEFAULT_MEMORY_BUDGET,
     apply_search_params,
@@ -37,10 +43,14 @@ from pnvlad_service.models.embedding import Embedder, embed_in_chunks
 from pnvlad_service.models.store import ModelIdentity, model_identity, resolve_model_dir
 
 if TYPE_CHECKING:
+    from pnvlad_service.data.frames import SubmapFrame
     from pnvlad_service.data.tree import Submap
     from pnvlad_service.models.inference import Encoder
 
 log = logging.getLogger(__name__)
+
+#: What ``geometry=`` may be (``--geometry``): store it when the tree has it, insist, or not.
+GEOMETRY_MODES = ("auto", "required", "off")
 
 
 # --------------------------------------------------------------------------------------------
@@ -222,6 +232,7 @@ def build_bundle(
     progress: bool = True,
     encoder: Embedder | None = None,
     preprocess: dict[str, Any] | None = None,
+    geometry: str = "auto",
 ) -> BuildReport:
     """Embed every ``layout`` submap of the tree at ``root`` and write a bundle to ``out``.
 
@@ -230,13 +241,15 @@ def build_bundle(
     ``memory_budget`` bytes). Under ``torchrun`` (``WORLD_SIZE`` > 1) each rank embeds a
     contiguous shard, rank 0 gathers them (gloo) and writes the same bundle a single process
     would; other ranks return a report with ``path=None``. ``encoder`` defaults to the
-    model's, ``preprocess`` to the default filter G config.
+    model's, ``preprocess`` to the default filter G config. ``geometry`` (see the module
+    docstring): rank 0 writes it from the tree, never from the shards.
     """
     out = Path(out)
     root = Path(root)
     if out.exists() and not overwrite:
         raise InputError("bundle already exists (use --overwrite to replace it)", source=out)
     records = list_database_submaps(root, datasets, runs, layout)
+    frames = _frames_for(root, records, geometry)
     identity = model_identity(model)
     record = ModelRecord.from_identity(identity)
     enc = encoder if encoder is not None else load_encoder(model, identity=identity)
@@ -264,9 +277,50 @@ def build_bundle(
             recall=recall,
             overwrite=overwrite,
             build={"processes": world, "embed_seconds": round(t_embed, 3)},
+            geometry=None if frames is None else geometry_writer(root, records, frames),
         )
     rate = len(desc) / t_embed if t_embed > 0 else float("inf")
     return BuildReport(out, len(desc), index_key, t_embed, t_index, rate, recall, manifest)
+
+
+def _frames_for(
+    root: Path, records: Sequence[Submap], mode: str, has_geometry: bool | None = None
+) -> list[SubmapFrame] | None:
+    """The frame sidecar rows of ``records`` when their geometry is to be stored, else
+    ``None``. ``has_geometry``: adding to a bundle that has geometry (``True``), has none
+    (``False``), or building (``None``). :class:`InputError` naming the runs without a sidecar
+    when the geometry cannot be left out."""
+    if mode not in GEOMETRY_MODES:
+        raise InputError(
+            f"geometry must be one of {list(GEOMETRY_MODES)}, got {mode!r}", "geometry"
+        )
+    if mode == "off":
+        return None
+    if has_geometry is False:
+        if mode == "required":
+            raise InputError(
+                "the bundle has no geometry (built without it): rebuild it to store geometry",
+                source=root,
+            )
+        return None
+    frames, missing = database_frames(root, records)
+    if frames is not None:
+        return frames
+    runs = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+    sidecar = "no frame sidecar (<locations csv stem>.frames.csv)"
+    if has_geometry:
+        raise InputError(
+            f"the bundle has geometry but {runs} {'has' if len(missing) == 1 else 'have'} "
+            f"{sidecar}; pass --geometry off to drop the bundle's geometry",
+            source=root,
+        )
+    if mode == "required":
+        raise InputError(
+            f"--geometry required, but {runs} {'has' if len(missing) == 1 else 'have'} {sidecar}",
+            source=root,
+        )
+    log.warning("building without geometry: %s lack%s %s", runs, "s" * (len(missing) == 1), sidecar)
+    return None
 
 
 def _index_of(
@@ -306,11 +360,15 @@ def add_to_bundle(
     batch_size: int = 32,
     progress: bool = True,
     encoder: Embedder | None = None,
+    geometry: str = "auto",
 ) -> BuildReport:
     """Append the submaps of new runs to an existing bundle (rewritten atomically).
 
     Refuses a model whose weights differ from the bundle's
     (:meth:`~pnvlad_service.index.manifest.Manifest.check_model`) and submaps already in it.
+    A bundle with geometry keeps it (old rows copied, each checked against its digest) and
+    gains the new submaps'; runs without a frame sidecar are refused unless ``geometry`` is
+    ``"off"``, which drops the bundle's geometry.
     """
     bundle_dir = Path(bundle_dir)
     root = Path(root)
@@ -324,6 +382,10 @@ def add_to_bundle(
         raise InputError(
             f"{len(dup)} submaps are already in the bundle, e.g. {dup[0]}", source=bundle_dir
         )
+    base = bundle.geometry
+    frames = _frames_for(root, records, geometry, has_geometry=base is not None)
+    if geometry == "off" and base is not None:
+        log.warning("dropping the bundle's geometry (--geometry off)")
     enc = encoder if encoder is not None else load_encoder(model, identity=identity)
     t0 = time.perf_counter()
     desc = embed_submaps(enc, root, records, batch_size, progress)
@@ -346,7 +408,10 @@ def add_to_bundle(
         overwrite=True,
         build=m.build,
         extra=m.extra,
+        geometry=None if frames is None else geometry_writer(root, records, frames, base),
     )
+    if base is not None:
+        base.close()
     rate = len(desc) / t_embed if t_embed > 0 else float("inf")
     return BuildReport(
         bundle_dir, len(records), m.index_key, t_embed, t_index, rate, None, manifest

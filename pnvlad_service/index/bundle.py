@@ -7,9 +7,12 @@ A bundle is a directory written atomically (:func:`pnvlad_service.fileio.atomic_
                              timestamp (int64 µs), northing, easting (float64, UTM metres),
                              utm_zone ("" when unknown), path (relative to the benchmark root)
     <bundle>/manifest.json   :class:`pnvlad_service.index.manifest.Manifest`
+    <bundle>/geometry.f16    optional: the submaps' points, float16 [N, 4096, 3], and
+    <bundle>/geometry.npz    their origin, centre, scale and row digests
+                             (:mod:`pnvlad_service.index.geometry`; the manifest's ``geometry``)
 
-Vector ``i`` of the index is row ``i`` of the metadata. Distances returned by
-:meth:`IndexBundle.search` are Euclidean (not squared) descriptor distances.
+Vector ``i`` of the index is row ``i`` of the metadata (and of the geometry). Distances
+returned by :meth:`IndexBundle.search` are Euclidean (not squared) descriptor distances.
 
 ``faiss`` is imported inside the functions that need it.
 """
@@ -20,7 +23,7 @@ import datetime as _dt
 import io
 import json
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -34,6 +37,7 @@ from pnvlad_service.fileio import (
     atomic_write_text,
     sha256_file,
 )
+from pnvlad_service.index.geometry import FULL_HASH_MAX_BYTES, SAMPLE_ROWS, BundleGeometry
 from pnvlad_service.index.keys import apply_search_params, import_faiss
 from pnvlad_service.index.manifest import (
     FORMAT,
@@ -41,6 +45,7 @@ from pnvlad_service.index.manifest import (
     MANIFEST_FILE,
     METADATA_FILE,
     VERSION,
+    GeometryRecord,
     Manifest,
     ModelRecord,
 )
@@ -167,12 +172,14 @@ class Match:
 
 @dataclass
 class IndexBundle:
-    """A loaded bundle: the FAISS index, its metadata and manifest."""
+    """A loaded bundle: the FAISS index, its metadata and manifest, and the submaps' points
+    (``geometry``, memory-mapped; ``None`` for a bundle built without them)."""
 
     path: Path
     index: Any
     metadata: Metadata
     manifest: Manifest
+    geometry: BundleGeometry | None = None
 
     @property
     def dim(self) -> int:
@@ -195,8 +202,20 @@ class IndexBundle:
         return str(self.manifest.files[INDEX_FILE])[:16]
 
     @classmethod
-    def load(cls, path: str | Path, verify: bool = True) -> IndexBundle:
-        """Read a bundle; with ``verify`` check every file's sha256 against the manifest."""
+    def load(
+        cls,
+        path: str | Path,
+        verify: bool = True,
+        *,
+        geometry_hash_max_bytes: int = FULL_HASH_MAX_BYTES,
+        geometry_sample_rows: int = SAMPLE_ROWS,
+    ) -> IndexBundle:
+        """Read a bundle; with ``verify`` check every file's sha256 against the manifest.
+
+        The geometry, when the bundle has it, is mapped, not read
+        (:meth:`BundleGeometry.open`): its size is always checked, and with ``verify`` its
+        table's sha256 and the points file's sha256 when that is at most
+        ``geometry_hash_max_bytes``, else ``geometry_sample_rows`` rows' digests."""
         faiss = import_faiss()
         path = Path(path)
         manifest = Manifest.read(path)
@@ -218,7 +237,22 @@ class IndexBundle:
             )
         if index.d != manifest.dim:
             raise InputError(f"index dimension {index.d} != manifest's {manifest.dim}", path)
-        return cls(path, index, metadata, manifest)
+        geometry = None
+        if manifest.geometry is not None:
+            if manifest.geometry.count != manifest.count:
+                raise InputError(
+                    f"the geometry has {manifest.geometry.count} rows where the index has "
+                    f"{manifest.count} vectors",
+                    source=path / MANIFEST_FILE,
+                )
+            geometry = BundleGeometry.open(
+                path,
+                manifest.geometry,
+                verify=verify,
+                full_hash_max_bytes=geometry_hash_max_bytes,
+                sample_rows=geometry_sample_rows,
+            )
+        return cls(path, index, metadata, manifest, geometry)
 
     def search(self, descriptors: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Nearest ``k`` vectors of each row of ``descriptors`` float32 [Q, D].
@@ -270,12 +304,15 @@ def write_bundle(
     overwrite: bool = False,
     build: Mapping[str, Any] | None = None,
     extra: Mapping[str, Any] | None = None,
+    geometry: Callable[[Path], GeometryRecord] | None = None,
 ) -> Manifest:
     """Write index, metadata and manifest to ``out`` atomically; return the manifest.
 
     ``indexed`` lists what went in (root, layout, datasets, runs, count, added); ``recall``
     is recall@1 against exact search (approximate keys); ``build`` how it was built;
     ``extra`` keys of a manifest read back and kept (see :attr:`Manifest.extra`).
+    ``geometry``, when given, writes the geometry files into the temporary bundle directory
+    it is passed and returns their record (:class:`~pnvlad_service.index.geometry.GeometryWriter`).
     """
     faiss = import_faiss()
     if index.ntotal != len(metadata):
@@ -283,6 +320,9 @@ def write_bundle(
     with atomic_directory(out, overwrite=overwrite) as tmp:
         faiss.write_index(index, str(tmp / INDEX_FILE))
         atomic_write_bytes(tmp / METADATA_FILE, metadata.to_bytes())
+        geo = None if geometry is None else geometry(tmp)
+        if geo is not None and geo.count != index.ntotal:
+            raise PnvladError(f"geometry has {geo.count} rows, the index {index.ntotal} vectors")
         manifest = Manifest(
             format=FORMAT,
             version=VERSION,
@@ -303,10 +343,14 @@ def write_bundle(
                 METADATA_FILE: sha256_file(tmp / METADATA_FILE),
             },
             build=build,
+            geometry=geo,
             extra=extra or {},
             path=Path(out),
         )
         text = json.dumps(manifest.to_json(), indent=2) + "\n"
         atomic_write_text(tmp / MANIFEST_FILE, text)
     log.info("wrote index bundle %s: %s, %d vectors", out, index_key, manifest.count)
+    if manifest.geometry is not None:
+        g = manifest.geometry
+        log.info("geometry: %d submaps, %.1f KB each", g.count, g.bytes / max(g.count, 1) / 1e3)
     return manifest

@@ -47,9 +47,22 @@ KEYS = (
     "modified",
     "files",
 )
-#: Keys a manifest may have: how the bundle was built (processes, embedding seconds).
-OPTIONAL_KEYS = ("build",)
+#: Keys a manifest may have: how the bundle was built (processes, embedding seconds) and the
+#: database submaps' points (:class:`GeometryRecord`; bundles without it have no ``geometry``).
+OPTIONAL_KEYS = ("build", "geometry")
 _MODEL_KEYS = ("checkpoint", "weights_sha256", "config_sha256", "config")
+#: The keys of the ``geometry`` entry, in the file's order.
+GEOMETRY_KEYS = (
+    "points_file",
+    "table_file",
+    "count",
+    "points",
+    "dtype",
+    "bytes",
+    "digest",
+    "table_sha256",
+    "points_sha256",
+)
 
 
 def _freeze(value: Any) -> Any:
@@ -115,6 +128,50 @@ class ModelRecord:
 
 
 @dataclass(frozen=True)
+class GeometryRecord:
+    """The manifest's ``geometry`` entry (:mod:`pnvlad_service.index.geometry`).
+
+    ``points_file`` (``geometry.f16``) holds ``count`` rows of ``points`` x 3 coordinates of
+    type ``dtype`` (``"<f2"``), ``bytes`` in all; ``table_file`` (``geometry.npz``) the
+    per-row origin, centre, scale and ``digest`` (``"blake2b-64"``: an 8-byte BLAKE2b of each
+    row's bytes). ``table_sha256`` is the table's sha256; ``points_sha256`` the points file's,
+    or ``None`` when it was too big to hash at every start-up (rows are then checked against
+    their digests: a sample at start-up, each one when fetched).
+    """
+
+    points_file: str
+    table_file: str
+    count: int
+    points: int
+    dtype: str
+    bytes: int
+    digest: str
+    table_sha256: str
+    points_sha256: str | None
+
+    @classmethod
+    def from_json(cls, doc: Any, source: str | Path | None = None) -> GeometryRecord:
+        """Parse the ``geometry`` entry; :class:`InputError` naming ``source`` when malformed."""
+        if not isinstance(doc, Mapping):
+            raise InputError("manifest's geometry entry is not an object", source=source)
+        missing = [k for k in GEOMETRY_KEYS if k not in doc]
+        if missing:
+            raise InputError(f"manifest's geometry entry lacks the keys {missing}", source)
+        ints = ("count", "points", "bytes")
+        strs = ("points_file", "table_file", "dtype", "digest", "table_sha256")
+        wrong = [k for k in ints if not isinstance(doc[k], int) or isinstance(doc[k], bool)]
+        wrong += [k for k in strs if not isinstance(doc[k], str)]
+        if not (doc["points_sha256"] is None or isinstance(doc["points_sha256"], str)):
+            wrong.append("points_sha256")
+        if wrong:
+            raise InputError(f"manifest's geometry keys of the wrong type: {wrong}", source)
+        return cls(**{k: doc[k] for k in GEOMETRY_KEYS})
+
+    def to_json(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in GEOMETRY_KEYS}
+
+
+@dataclass(frozen=True)
 class Manifest:
     """``manifest.json`` of a bundle, one field per key (see :data:`KEYS`).
 
@@ -124,8 +181,10 @@ class Manifest:
     approximate key against exact search (``None`` for exact keys); ``indexed`` one entry per
     build or add (root, layout, datasets, runs, count, added); ``created`` / ``modified`` ISO
     8601 UTC; ``files`` maps each file name to its sha256; ``build`` (optional) how it was
-    built. ``extra`` keeps keys this version does not know, so :meth:`to_json` writes back
-    what was read. ``path`` is the bundle directory the manifest belongs to (not in the file).
+    built; ``geometry`` (optional) the database submaps' points (:class:`GeometryRecord`,
+    ``None`` for a bundle without them). ``extra`` keeps keys this version does not know, so
+    :meth:`to_json` writes back what was read. ``path`` is the bundle directory the manifest
+    belongs to (not in the file).
     """
 
     format: str
@@ -144,6 +203,7 @@ class Manifest:
     modified: str
     files: Mapping[str, str]
     build: Mapping[str, Any] | None = None
+    geometry: GeometryRecord | None = None
     extra: Mapping[str, Any] = field(default_factory=dict)
     path: Path | None = field(default=None, compare=False)
 
@@ -183,6 +243,8 @@ class Manifest:
         _check_types(doc, source)
         known = {k: doc[k] for k in (*KEYS, *OPTIONAL_KEYS) if k in doc}
         known["model"] = ModelRecord.from_json(doc["model"], source)
+        if doc.get("geometry") is not None:
+            known["geometry"] = GeometryRecord.from_json(doc["geometry"], source)
         extra = {k: v for k, v in doc.items() if k not in KEYS and k not in OPTIONAL_KEYS}
         path = None if bundle_dir is None else Path(bundle_dir)
         return cls(**known, extra=extra, path=path)
@@ -193,6 +255,8 @@ class Manifest:
         doc["model"] = self.model.to_json()
         if self.build is not None:
             doc["build"] = _thaw(self.build)
+        if self.geometry is not None:
+            doc["geometry"] = self.geometry.to_json()
         doc.update(_thaw(self.extra))
         return doc
 
@@ -237,6 +301,7 @@ _TYPES: dict[str, tuple[type, ...]] = {
     "modified": (str,),
     "files": (dict,),
     "build": (dict, type(None)),
+    "geometry": (dict, type(None)),
 }
 
 
