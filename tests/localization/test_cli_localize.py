@@ -28,8 +28,12 @@ def test_table_and_json_name_the_submap_itself_first(world: dict[str, Path]) -> 
     res = runner.invoke(app, local_args(world, scan, "-n", "4"))
     assert res.exit_code == 0, res.output
     lines = res.stdout.splitlines()
-    assert lines[0].split() == ["rank", "submap", "run", "northing", "easting", "distance"]
-    assert len(lines) == 1 + 4 + 1 and lines[-1].startswith("preprocess")
+    header = ["rank", "submap", "run", "northing", "easting", "distance", "score"]
+    assert lines[0].split() == header
+    # No geometry in this bundle: no scores, and the verdict line says why.
+    assert len(lines) == 1 + 4 + 2 and lines[-1].startswith("preprocess")
+    assert lines[-2].startswith("not verified: verification off")
+    assert all(ln.split()[-1] == "-" for ln in lines[1:5])
     rank1 = lines[1].split()
     assert rank1[:3] == ["1", str(rec.timestamp), rec.run]
     assert float(rank1[3]) == pytest.approx(rec.northing, abs=0.005)

@@ -122,8 +122,15 @@ def test_a_raw_scan_goes_through_the_bundles_filter_g(loc, plain) -> None:
     np.testing.assert_allclose([m.distance for m in answer.matches], dists, atol=1e-5)
     assert answer.timings.preprocess > 0
     prepared = loc.prepare(raw, True)
-    assert prepared.dtype == np.float32 and prepared.shape == (4096, 3)
-    assert np.abs(prepared).max() <= 1.0
+    cloud = prepared.cloud
+    assert cloud.dtype == np.float32 and cloud.shape == (4096, 3)
+    assert np.abs(cloud).max() <= 1.0
+    # What G did comes along: the cloud in metres is the raw scan's voxel means (sensor frame).
+    assert prepared.sensor and prepared.scale is not None and prepared.scale > 0
+    metres = prepared.query([]).points_m
+    from scipy.spatial import cKDTree
+
+    assert np.median(cKDTree(raw).query(metres)[0]) < 2.0
     # The filter G's own refusal, as the library raises it (the server names its field).
     with pytest.raises(InputError, match="points"):
         loc.localize(np.zeros((3, 3)), preprocess=True)

@@ -522,7 +522,8 @@ def test_pnvlad_localize_against_the_server(world, server, local) -> None:
     )
     assert res.exit_code == 0, res.output
     lines = res.stdout.splitlines()
-    assert lines[0].split() == ["rank", "submap", "run", "northing", "easting", "distance"]
+    header = ["rank", "submap", "run", "northing", "easting", "distance", "score"]
+    assert lines[0].split() == header
     first = lines[1].split()
     assert first[0] == "1" and first[1] == str(local[1].metadata.timestamp[5])
     assert float(first[3]) == pytest.approx(local[1].metadata.northing[5], abs=0.01)

@@ -29,7 +29,7 @@ def test_the_schemas_as_the_openapi_document_has_them() -> None:
     timings = schemas.Timings.model_json_schema()
     assert timings["title"] == "Timings"
     assert timings["description"] == "Milliseconds spent per stage."
-    stages = ["parse", "preprocess", "queue", "embed", "search", "total"]
+    stages = ["parse", "preprocess", "queue", "embed", "search", "verify", "total"]
     assert list(timings["properties"]) == stages
     assert all(
         timings["properties"][s] == {"default": 0.0, "title": s.title(), "type": "number"}
@@ -59,6 +59,7 @@ def test_an_answer_validates_against_the_response_model_and_round_trips() -> Non
         "queue": 0.0,
         "embed": 2.5,
         "search": 0.0,
+        "verify": 0.0,
         "total": 4.0,
     }
     assert doc["model"] == {
