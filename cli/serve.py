@@ -58,9 +58,10 @@ def serve(
     best match is verified and gives the query's pose on the map.
 
     Loads the model and the index once. Refuses to start when the bundle was built with other
-    weights than the checkpoint, or when its geometry file is truncated or fails its hash. Every setting can also come from the environment (PNVLAD_INDEX,
-    PNVLAD_CHECKPOINT, PNVLAD_HOST, PNVLAD_PORT, PNVLAD_API_KEY for bearer-token auth,
-    PNVLAD_MAX_BODY_BYTES, ...; see docs/SERVICE.md). OpenAPI docs at /docs.
+    weights than the checkpoint, or when its geometry file is truncated or fails its hash.
+    Every setting can also come from the environment (PNVLAD_INDEX, PNVLAD_CHECKPOINT,
+    PNVLAD_HOST, PNVLAD_PORT, PNVLAD_API_KEY for bearer-token auth, PNVLAD_MAX_BODY_BYTES, ...;
+    see docs/SERVICE.md). OpenAPI docs at /docs.
 
     Example: pnvlad serve --index map.index --port 8000
     """

@@ -5,6 +5,8 @@
 - :mod:`~pnvlad_service.index.manifest`: the typed, frozen ``manifest.json``, which owns the
   model-compatibility check;
 - :mod:`~pnvlad_service.index.bundle`: the bundle on disk, loaded (search, matches) and written;
+- :mod:`~pnvlad_service.index.geometry`: the database submaps' points in metres (float16,
+  memory-mapped, checked at start-up and per fetch) for geometric verification;
 - :mod:`~pnvlad_service.index.build`: listing and embedding a tree's submaps, building, adding,
   sharded building under torchrun.
 """

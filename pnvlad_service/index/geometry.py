@@ -456,10 +456,10 @@ def _read_table(path: Path, count: int) -> tuple[np.ndarray, np.ndarray, np.ndar
                 f"geometry table column {name} has shape {arr.shape}, want {shapes[name]}", path
             )
     return (
-        origin.astype(np.float64),
-        centre.astype(np.float64),
-        scale.astype(np.float64),
-        digest.astype(np.uint64),
+        origin.astype(np.float64, copy=False),
+        centre.astype(np.float64, copy=False),
+        scale.astype(np.float64, copy=False),
+        digest.astype(np.uint64, copy=False),
     )
 
 
