@@ -319,7 +319,8 @@ def _frames_for(
             f"--geometry required, but {runs} {'has' if len(missing) == 1 else 'have'} {sidecar}",
             source=root,
         )
-    log.warning("building without geometry: %s lack%s %s", runs, "s" * (len(missing) == 1), sidecar)
+    verb = "has" if len(missing) == 1 else "have"
+    log.warning("building without geometry: %s %s %s", runs, verb, sidecar)
     return None
 
 
