@@ -30,3 +30,14 @@ def real_scans() -> Path:
             "real scans not found (set PNVLAD_REAL_SCANS or provide ../shared/data/real_scans)"
         )
     return d
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """`pnvlad synth --preset tiny --seed 3` (two workers), generated once for every test that
+    reads it (synth, verification); tests must not change it."""
+    from pnvlad_service.synth.generate import generate
+
+    root = tmp_path_factory.mktemp("synth") / "tiny"
+    generate("tiny", root, seed=3, workers=2, progress=False)
+    return root

@@ -305,7 +305,7 @@ class BenchmarkTree:
     def frames_by_path(self) -> dict[str, SubmapFrame]:
         """Every submap with a frame sidecar row: its absolute ``.bin`` path -> the row."""
         out: dict[str, SubmapFrame] = {}
-        for dataset in self.datasets():
+        for dataset in self.datasets:
             for run in self.runs(dataset):
                 for kind in ("train", "test"):
                     if not self.has(dataset, run, kind):

@@ -152,6 +152,13 @@ def prepare(points_m: np.ndarray, config: RegistrationConfig = DEFAULT) -> Prepa
     coarse, _ = sg.preprocess_points(
         pts, config.coarse_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads
     )
+    if fine.size() < config.min_points:
+        n = fine.size()
+        return Prepared(
+            points=np.empty((0, 3)),
+            reason=f"{n} distinct points at {config.fine_voxel_m:g} m, at least "
+            f"{config.min_points} needed",
+        )
     voxels = None
     if config.method == "VGICP":
         voxels = sg.GaussianVoxelMap(config.vgicp_leaf_m)

@@ -206,22 +206,46 @@ def rerank(checks: Sequence[Check]) -> tuple[Check, ...]:
 
 
 def verify(
-    query: QueryCloud, candidates: Sequence[Candidate], config: VerifyConfig
+    query: QueryCloud,
+    candidates: Sequence[Candidate],
+    config: VerifyConfig,
+    *,
+    cache: dict[Any, Any] | None = None,
+    query_key: Any = None,
 ) -> Verification:
-    """Register ``query`` to each candidate, re-rank, decide and pose (see the module doc)."""
+    """Register ``query`` to each candidate, re-rank, decide and pose (see the module doc).
+
+    ``cache`` (evaluation, where a submap is a candidate of many queries): prepared clouds by
+    ``Candidate.key`` and ``query_key``, filled as they are made."""
     t0 = time.perf_counter()
+
+    def refused(reason: str) -> Verification:
+        checks = tuple(Check(c.rank, 0.0, math.inf, np.eye(4)) for c in candidates)
+        return Verification(False, checks, None, config.threshold, reason, time.perf_counter() - t0)
+
     why = reg.degenerate(query.points_m)
     if why is not None or not candidates:
-        checks = tuple(Check(c.rank, 0.0, math.inf, np.eye(4)) for c in candidates)
-        reason = f"query: {why}" if why else "no candidates"
-        return Verification(False, checks, None, config.threshold, reason, time.perf_counter() - t0)
-    source = reg.prepare(query.points_m, config.registration)
-    checks = []
-    for cand in candidates:
-        r = reg.register(
-            source, reg.prepare(cand.points_m, config.registration), config.registration
-        )
-        checks.append(Check(cand.rank, float(r.fitness), float(r.rmse_m), r.transform))
+        return refused(f"query: {why}" if why else "no candidates")
+
+    def prepared(points: np.ndarray, key: Any) -> Any:
+        if cache is None or key is None:
+            return reg.prepare(points, config.registration)
+        if key not in cache:
+            cache[key] = reg.prepare(points, config.registration)
+        return cache[key]
+
+    source = prepared(query.points_m, query_key)
+    if source.reason is not None:  # e.g. too few distinct points once downsampled
+        return refused(f"query: {source.reason}")
+
+    def check(cand: Candidate) -> Check:
+        r = reg.register(source, prepared(cand.points_m, cand.key), config.registration)
+        return Check(cand.rank, float(r.fitness), float(r.rmse_m), r.transform)
+
+    if config.workers > 1 and len(candidates) > 1:
+        checks = list(_pool(config.workers).map(check, candidates))
+    else:
+        checks = [check(c) for c in candidates]
     ordered = rerank(checks)
     best = ordered[0]
     verified = best.score >= config.threshold
