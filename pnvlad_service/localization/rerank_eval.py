@@ -440,7 +440,7 @@ def write_figures(rep: dict[str, Any], folder: Path) -> list[Path]:
     calibration) and ``pose_errors.png`` (translation and yaw error distributions)."""
     from pnvlad_service.extras import pyplot
 
-    plt = pyplot()
+    plt = pyplot("the re-ranking figures")
     folder.mkdir(parents=True, exist_ok=True)
     out = []
     fig, ax = plt.subplots(figsize=(6, 4.5))
