@@ -1,9 +1,12 @@
 """The last step of the demo: localise held-out submaps of one run against a running server.
 
 Picks ``--count`` query submaps of ``--run`` (a run that is not in the server's index) inside the
-dataset's test regions, sends each to ``POST /localize`` as a binary float64 body, prints its
-top-N matches with UTM coordinates and descriptor distances, and says whether the best match lies
-within ``--radius`` metres of where the query really was (the benchmark's 25 m rule).
+dataset's test regions, sends each to ``POST /localize`` as a binary float64 body (with its
+frame sidecar's scale, so the pose is metric), prints its top-N matches with UTM coordinates,
+descriptor distances and verification scores, and says whether the best match lies within
+``--radius`` metres of where the query really was (the benchmark's 25 m rule). When the server
+verified the answer it prints the query's pose on the map and its error against the
+simulator's truth (the true pose of the query's frame, before the GNSS/INS error).
 Exits non-zero if the server cannot be reached.
 
     python scripts/demo_localize.py --url http://127.0.0.1:8000 --root runs/demo/city \
@@ -19,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pnvlad_service.data.frames import SubmapFrame
 from pnvlad_service.data.splits import resolve_regions
 from pnvlad_service.data.tree import BenchmarkTree, Submap
 from pnvlad_service.errors import PnvladError
@@ -26,7 +30,29 @@ from pnvlad_service.io.readers import read_points
 from pnvlad_service.localization.client import LocalizeClient
 
 
-def report(q: Submap, answer: dict, radius: float) -> bool:
+def pose_line(answer: dict, frame: SubmapFrame | None) -> str:
+    """The verdict, and for a verified answer the pose and its error against the truth."""
+    v = answer.get("verification")
+    if answer.get("verified") is None or v is None:
+        return "  not verified (the index carries no geometry)"
+    if not answer["verified"]:
+        why = v.get("reason") or f"best score {v['best_score']:.2f} < {v['threshold']:.2f}"
+        return f"  NOT verified: {why}"
+    p = answer["pose"]
+    line = (
+        f"  verified (score {p['fitness']:.2f}): pose N {p['northing']:.2f} E {p['easting']:.2f} "
+        f"yaw {p['yaw_deg']:.1f} deg"
+    )
+    if frame is not None and frame.true_pose is not None:
+        true = frame.true_pose
+        centroid = true[:3, :3] @ frame.centre + true[:3, 3]  # the query frame's true origin
+        err = math.hypot(p["easting"] - centroid[0], p["northing"] - centroid[1])
+        dyaw = (p["yaw_deg"] - frame.true_yaw_deg + 180.0) % 360.0 - 180.0
+        line += f"; off the truth by {err:.2f} m and {abs(dyaw):.2f} deg"
+    return line
+
+
+def report(q: Submap, answer: dict, radius: float, frame: SubmapFrame | None = None) -> bool:
     """Print one query's matches; whether its top-1 lies within ``radius`` metres of it."""
     best = answer["matches"][0]
     err = math.hypot(best["northing"] - q.northing, best["easting"] - q.easting)
@@ -36,14 +62,19 @@ def report(q: Submap, answer: dict, radius: float) -> bool:
         f"(embed {answer['timings_ms']['embed']:.1f} ms, search "
         f"{answer['timings_ms']['search']:.2f} ms)"
     )
-    print(f"  {'rank':>4}  {'run':<20} {'northing':>12} {'easting':>11} {'dist':>7} {'off':>8}")
+    print(
+        f"  {'rank':>4}  {'run':<20} {'northing':>12} {'easting':>11} {'dist':>7} {'score':>6} "
+        f"{'off':>8}"
+    )
     for m in answer["matches"]:
         off = math.hypot(m["northing"] - q.northing, m["easting"] - q.easting)
+        score = "-" if m.get("score") is None else f"{m['score']:.2f}"
         print(
             f"  {m['rank']:>4}  {m['run']:<20} {m['northing']:>12.1f} {m['easting']:>11.1f} "
-            f"{m['distance']:>7.3f} {off:>6.1f} m"
+            f"{m['distance']:>7.3f} {score:>6} {off:>6.1f} m"
         )
     print(f"  top-1 is {err:.1f} m from the truth: {'WITHIN' if ok else 'NOT within'} {radius:g} m")
+    print(pose_line(answer, frame))
     return ok
 
 
@@ -69,21 +100,33 @@ def main(argv: list[str] | None = None) -> int:
     if not submaps:
         print(f"no query submaps for {args.dataset}/{args.run} under {args.root}", file=sys.stderr)
         return 2
+    frames = dict(
+        zip(
+            [s.timestamp for s in tree.submaps(args.dataset, args.run, "test")],
+            tree.frames(args.dataset, args.run, "test") or [],
+            strict=False,
+        )
+    )
     step = max(len(submaps) // args.count, 1)
     chosen = submaps[::step][: args.count]
 
-    hits = 0
+    hits = verified = 0
     with LocalizeClient(args.url, timeout=60) as client:
         for q in chosen:
             pts = read_points(args.root / q.path, reader="benchmark").astype(np.float64)
+            frame = frames.get(q.timestamp)
             try:
-                answer = client.localize(pts, args.top_n)
+                # A negated tree (GConfig.negate) has a negative scale: the server estimates it.
+                scale = frame.scale if frame is not None and frame.scale > 0 else None
+                answer = client.localize(pts, args.top_n, scale=scale)
             except PnvladError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return 1
-            hits += report(q, answer, args.radius)
+            hits += report(q, answer, args.radius, frame)
+            verified += bool(answer.get("verified"))
     print(
-        f"\n{hits}/{len(chosen)} queries localised within {args.radius:g} m by their top-1 match."
+        f"\n{hits}/{len(chosen)} queries localised within {args.radius:g} m by their top-1 match; "
+        f"{verified} verified with a pose."
     )
     return 0
 
