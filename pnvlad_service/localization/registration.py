@@ -45,24 +45,24 @@ class RegistrationConfig:
     (benchmarks/registration.py, docs/VERIFY.md).
     """
 
-    fine_voxel_m: float = 0.5  # downsampling of the clouds the fine GICP stage aligns
-    coarse_voxel_m: float = 1.0  # downsampling of the source for the coarse stage
+    fine_voxel_m: float = 1.0  # downsampling of the clouds the fine GICP stage aligns
+    coarse_voxel_m: float = 1.5  # downsampling of the source for the coarse stage
     neighbours: int = 10  # points per covariance estimate
     method: Literal["GICP", "VGICP"] = "VGICP"  # as accurate as GICP here, 2-3x faster
     vgicp_leaf_m: float = 1.0  # voxel size of VGICP's Gaussian voxel map
     coarse_distance_m: float = 3.0  # correspondence distance of the coarse stage
     fine_distance_m: float = 1.0  # ... and of the fine stage
-    coarse_iterations: int = 12
-    fine_iterations: int = 20
+    coarse_iterations: int = 6
+    fine_iterations: int = 10
     inlier_m: float = 0.5  # a source point within this of the target counts for fitness
     threads: int = 1  # 2 OpenMP threads on 2 shared cores measured slower (spin-waits)
-    bev_cell_m: float = 0.8  # bird's-eye image cell (the yaw and shift search)
-    bev_cells: int = 128  # image side; covers +-bev_cells * bev_cell_m / 2 about the origin
-    polar_angles: int = 180  # angular bins over 180 degrees in the spectrum's polar grid
+    bev_cell_m: float = 1.0  # bird's-eye image cell (the yaw and shift search)
+    bev_cells: int = 64  # image side; covers +-bev_cells * bev_cell_m / 2 about the origin
+    polar_angles: int = 90  # angular bins over 180 degrees in the spectrum's polar grid
     yaw_peaks: int = 2  # yaw-correlation peaks kept (each also tried turned by 180 degrees)
     whitening: float = 0.5  # phase correlation: cross spectrum divided by its magnitude**this
     search_radius_m: float = 40.0  # the yaw and shift search looks at points within this
-    hypotheses: int = 2  # best-scoring (yaw, shift) hypotheses given to the coarse GICP
+    hypotheses: int = 1  # best-scoring (yaw, shift) hypotheses given to the coarse GICP
     min_points: int = 20  # fewer points is degenerate
     min_spread_m: float = 0.05  # a cloud thinner than this across some axis is degenerate
 
@@ -137,42 +137,54 @@ def degenerate(points: np.ndarray, config: RegistrationConfig = DEFAULT) -> str 
     return None
 
 
-def prepare(points_m: np.ndarray, config: RegistrationConfig = DEFAULT) -> Prepared:
+def prepare(
+    points_m: np.ndarray,
+    config: RegistrationConfig = DEFAULT,
+    role: Literal["both", "source", "target"] = "both",
+) -> Prepared:
     """Downsample ``points_m`` [N, 3] (metres), estimate covariances, build the kd-tree (and
     voxel map for VGICP) and the yaw search's spectra: everything of one cloud that
-    :func:`register` needs, done once. A degenerate cloud gives a Prepared with ``reason``."""
+    :func:`register` needs, done once. A degenerate cloud gives a Prepared with ``reason``.
+
+    ``role``: what the cloud will be. A ``source`` (the query) needs no kd-tree, voxel map or
+    image spectrum; a ``target`` (a candidate) no coarse cloud: each skips the other's work."""
     pts = np.asarray(points_m, dtype=np.float64)
-    reason = degenerate(pts, config)
+    reason = degenerate(pts[: config.min_points], config) if len(pts) < config.min_points else None
+    if reason is None and (pts.ndim != 2 or pts.shape[-1] != 3 or not np.isfinite(pts).all()):
+        reason = degenerate(pts, config)
     if reason is not None:
         return Prepared(points=np.empty((0, 3)), reason=reason)
     sg = _gicp()
     fine, tree = sg.preprocess_points(
         pts, config.fine_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads
     )
-    coarse, _ = sg.preprocess_points(
-        pts, config.coarse_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads
-    )
-    if fine.size() < config.min_points:
-        n = fine.size()
-        return Prepared(
-            points=np.empty((0, 3)),
-            reason=f"{n} distinct points at {config.fine_voxel_m:g} m, at least "
-            f"{config.min_points} needed",
+    # The shape checks on the downsampled cloud: as telling (duplicates collapse) and cheaper.
+    reason = degenerate(fine.points()[:, :3], config)
+    if reason is not None:
+        if fine.size() < config.min_points:
+            reason = (
+                f"{fine.size()} distinct points at {config.fine_voxel_m:g} m, at least "
+                f"{config.min_points} needed"
+            )
+        return Prepared(points=np.empty((0, 3)), reason=reason)
+    coarse = None
+    if role != "target":
+        coarse, _ = sg.preprocess_points(
+            pts, config.coarse_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads
         )
     voxels = None
-    if config.method == "VGICP":
+    if config.method == "VGICP" and role != "source":
         voxels = sg.GaussianVoxelMap(config.vgicp_leaf_m)
         voxels.insert(fine)
     image = bev_image(pts, config)
-    spectrum = np.fft.rfft2(image)
     return Prepared(
         points=fine.points()[:, :3].copy(),
         reason=None,
         fine=fine,
         coarse=coarse,
-        tree=tree,
+        tree=tree if role != "source" else None,
         voxels=voxels,
-        spectrum=spectrum,
+        spectrum=np.fft.rfft2(image) if role != "source" else None,
         polar=polar_magnitude(image, config),
     )
 
@@ -314,16 +326,15 @@ def _best_start(
     coarse result with the highest fitness, and the yaws (degrees) tried."""
     yaws = yaw_candidates(source, target, config)
     placed = sorted((place(source.points, target, y, config) for y in yaws), key=lambda p: -p[1])
-    best, best_fit = np.eye(4), -1.0
+    best, best_fit = np.eye(4), -1
     for start, _ in placed[: config.hypotheses]:
         result = _align(
             source.coarse, target, start, config.coarse_distance_m, config.coarse_iterations, config
         )
-        fit, _ = fitness(
-            source.points, target, result.T_target_source, config.inlier_m, config.threads
-        )
-        if fit > best_fit:
-            best, best_fit = result.T_target_source, fit
+        # The coarse stage's own inlier count (within its correspondence distance) picks the
+        # hypothesis: no extra nearest-neighbour search.
+        if result.num_inliers > best_fit:
+            best, best_fit = result.T_target_source, result.num_inliers
     return best, tuple(float(np.degrees(y)) for y in yaws)
 
 
@@ -345,8 +356,12 @@ def register(
     it; without, from the yaw search (any heading). Never raises on a degenerate or empty
     cloud: the answer then has fitness 0, ``converged`` False and the ``reason``.
     """
-    src = source if isinstance(source, Prepared) else prepare(source, config)
-    tgt = target if isinstance(target, Prepared) else prepare(target, config)
+    src = source if isinstance(source, Prepared) else prepare(source, config, "source")
+    tgt = target if isinstance(target, Prepared) else prepare(target, config, "target")
+    if src.coarse is None and src.reason is None:
+        raise ValueError("the source was prepared as a target only (role='target')")
+    if tgt.tree is None and tgt.reason is None:
+        raise ValueError("the target was prepared as a source only (role='source')")
     reason = src.reason or tgt.reason
     if reason is not None:
         return _failed(init, reason)

@@ -227,19 +227,19 @@ def verify(
     if why is not None or not candidates:
         return refused(f"query: {why}" if why else "no candidates")
 
-    def prepared(points: np.ndarray, key: Any) -> Any:
+    def prepared(points: np.ndarray, key: Any, role: str) -> Any:
         if cache is None or key is None:
-            return reg.prepare(points, config.registration)
-        if key not in cache:
-            cache[key] = reg.prepare(points, config.registration)
-        return cache[key]
+            return reg.prepare(points, config.registration, role)  # type: ignore[arg-type]
+        if (key, role) not in cache:
+            cache[(key, role)] = reg.prepare(points, config.registration, role)  # type: ignore[arg-type]
+        return cache[(key, role)]
 
-    source = prepared(query.points_m, query_key)
+    source = prepared(query.points_m, query_key, "source")
     if source.reason is not None:  # e.g. too few distinct points once downsampled
         return refused(f"query: {source.reason}")
 
     def check(cand: Candidate) -> Check:
-        r = reg.register(source, prepared(cand.points_m, cand.key), config.registration)
+        r = reg.register(source, prepared(cand.points_m, cand.key, "target"), config.registration)
         return Check(cand.rank, float(r.fitness), float(r.rmse_m), r.transform)
 
     if config.workers > 1 and len(candidates) > 1:

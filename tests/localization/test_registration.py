@@ -115,7 +115,7 @@ def test_degenerate_clouds_give_a_reason_and_never_raise(points: np.ndarray, wor
     assert reason is not None and words in reason
     assert reg.degenerate(street(1)) is None
     for result in (reg.register(points, street(1)), reg.register(street(1), points)):
-        assert result.fitness == 0.0 and not result.converged and result.reason == reason
+        assert result.fitness == 0.0 and not result.converged and words in result.reason
         assert result.transform.shape == (4, 4)
 
 
