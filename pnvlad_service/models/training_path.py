@@ -47,15 +47,16 @@ class LinearMax(torch.autograd.Function):
     def forward(ctx: Any, x: torch.Tensor, w: torch.Tensor, t: torch.Tensor, relu: bool):  # type: ignore[override]
         b, _, _ = x.shape
         o = w.shape[1]
-        vals = x.new_empty(b, o)
+        vals = x.new_empty(b, o, dtype=torch.promote_types(x.dtype, w.dtype))
         idx = torch.empty(b, o, dtype=torch.long, device=x.device)
         wt = w.t()
         for i in range(b):  # [O, N]: the max runs along contiguous rows (2x faster than [N, O])
-            torch.max(torch.mm(wt, x[i].t()), 1, out=(vals[i], idx[i]))
+            v, j = torch.mm(wt, x[i].t()).max(1)  # bfloat16 under autocast
+            vals[i], idx[i] = v, j
         vals += t  # the same for every point: added to the max, not to the [O, N] product
         if relu:
             vals.relu_()
-        ctx.relu = relu
+        ctx.relu, ctx.t_dtype = relu, t.dtype
         ctx.save_for_backward(x, w, idx, vals)
         return vals
 
@@ -67,13 +68,13 @@ class LinearMax(torch.autograd.Function):
         rows = idx.unsqueeze(2).expand(-1, -1, c)  # [B, O, C]
         dx = dw = dt = None
         if ctx.needs_input_grad[0]:
-            contrib = p.unsqueeze(2) * w.t().unsqueeze(0)  # [B, O, C]
+            contrib = (p.unsqueeze(2) * w.t().unsqueeze(0)).to(x.dtype)  # [B, O, C]
             dx = torch.zeros_like(x).scatter_add_(1, rows, contrib)
         if ctx.needs_input_grad[1]:
             xg = torch.gather(x, 1, rows)  # [B, O, C]: the argmax points' inputs
-            dw = torch.einsum("boc,bo->co", xg, p)
+            dw = torch.einsum("boc,bo->co", xg.to(p.dtype), p).to(w.dtype)
         if ctx.needs_input_grad[2]:
-            dt = p.sum(0)
+            dt = p.sum(0).to(ctx.t_dtype)
         return dx, dw, dt, None
 
 
@@ -108,11 +109,14 @@ def folded_linear_bn(
     assert bn.weight is not None and bn.bias is not None
     if bn.training or bn.running_mean is None:
         m = x.shape[0]
-        xbar = x.mean(0)
-        xc = x - xbar
+        # In float64: the gradients through these statistics cancel the sparse max gradient
+        # almost exactly, and float32 sums would leave a few per cent of it.
+        x64, w64 = x.double(), w.double()
+        xbar = x64.mean(0)
+        xc = x64 - xbar
         cov = (xc.t() @ xc) / m  # [C, C]
-        mean = xbar @ w + bias
-        var = ((cov @ w) * w).sum(0).clamp_min(0)
+        mean = (xbar @ w64 + bias).to(w.dtype)
+        var = ((cov @ w64) * w64).sum(0).clamp_min(0).to(w.dtype)
         if bn.training:
             _update_running(bn, mean, var, m)
     else:
