@@ -135,9 +135,10 @@ def linear_bn_max(lin: nn.Linear, bn: nn.Module, x: torch.Tensor, relu: bool) ->
 
 
 def _lin_act(lin: nn.Linear, bn: nn.Module, h: torch.Tensor, relu: bool) -> torch.Tensor:
-    """``act(bn(lin(h)))`` on [M, C] rows as one ``addmm`` (batch norm folded), ReLU in place."""
-    w, t = folded_linear_bn(lin, bn, h)
-    z = torch.addmm(t, h, w)
+    """``act(bn(lin(h)))`` on [M, C] rows, ReLU in place. (Folding the batch norm here too, with
+    statistics from the input covariance, made the narrow layers slower: the float64 [C, C]
+    covariance costs as much as the layer itself when C_out is no wider than C_in.)"""
+    z = bn(F.linear(h, lin.weight, lin.bias))
     return z.relu_() if relu else z
 
 

@@ -54,8 +54,8 @@ def test_fast_path_matches_reference(name: str, train: bool) -> None:
 def test_float32_full_width_paper_is_as_accurate_as_the_reference() -> None:
     """The shipped paper configuration in float32 (the training dtype) on 3 clouds: the fast
     path's descriptors and gradients are as close to a float64 reference as the float32
-    reference itself is, or within 1 % (batch norm over 3 rows in the head is ill-conditioned, so the float32
-    error is real, and the same for both)."""
+    reference itself is, or within 1 % (batch norm over 3 rows in the head is ill-conditioned,
+    so a float32 error is real for both)."""
     cfg = ModelConfig.paper(num_points=512)
     torch.manual_seed(0)
     fast = build_model(cfg).train()
@@ -71,11 +71,12 @@ def test_float32_full_width_paper_is_as_accurate_as_the_reference() -> None:
         m(x.to(dt))
         for m, dt in ((fast, torch.float32), (ref, torch.float32), (exact, torch.float64))
     ]
-    for m, y in zip((fast, ref, exact), ys, strict=True):
+    for y in ys:
         (y[0] - y[1]).pow(2).sum().backward()
     err_fast = (ys[0].double() - ys[2]).abs().max().item()
     err_ref = (ys[1].double() - ys[2]).abs().max().item()
     assert err_fast <= 3 * err_ref + 1e-6, (err_fast, err_ref)
+    top = max(e.grad.abs().max().item() for e in exact.parameters() if e.grad is not None)
     named = zip(fast.named_parameters(), ref.parameters(), exact.parameters(), strict=True)
     for (pname, p), q, e in named:
         assert p.grad is not None and q.grad is not None and e.grad is not None, pname
@@ -83,7 +84,9 @@ def test_float32_full_width_paper_is_as_accurate_as_the_reference() -> None:
         gr = (q.grad.double() - e.grad).abs().max().item()
         # Within 3x the reference's own float32 error, or 1 % of the gradient's size (the
         # covariance-based batch statistics round differently from the direct ones).
-        assert gf <= max(3 * gr, 1e-2 * e.grad.abs().max().item()) + 1e-9, (pname, gf, gr)
+        # (Biases before a batch norm: exactly 0, so noise against noise, on the model's scale.)
+        tol = max(3 * gr, 1e-2 * e.grad.abs().max().item(), 1e-5 * top)
+        assert gf <= tol, (pname, gf, gr)
 
 
 @pytest.mark.parametrize("relu", [True, False])
