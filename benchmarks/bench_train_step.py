@@ -52,7 +52,7 @@ def make_step(
 ) -> Callable[[], float]:
     """One training step on ``x`` [B, N, 3]; returns the loss."""
     opt = torch.optim.SGD(model.parameters(), lr=1e-4, momentum=0.9)
-    fwd = forward or model
+    fwd = forward if forward is not None else model
     b = x.shape[0]
     npos, nneg = 2, b - 4
 
