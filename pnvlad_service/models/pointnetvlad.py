@@ -157,6 +157,8 @@ class PointNetVLAD(nn.Module):
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
+        #: False: :meth:`forward` is :meth:`reference_forward` (for comparisons; same result).
+        self.fast_path = True
         self.input_tnet = (
             TransformNet(3, 3, cfg.tnet_point_widths, cfg.tnet_fc_widths, cfg.tnet_batch_norm)
             if cfg.input_transform
@@ -214,6 +216,19 @@ class PointNetVLAD(nn.Module):
         return h.reshape(b, n, -1)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
+        if not self.fast_path:
+            return self.reference_forward(points)
+        if points.dim() != 3 or points.shape[-1] != 3:
+            raise InputError(
+                f"expected points of shape [B, N, 3], got {list(points.shape)}", "points"
+            )
+        from pnvlad_service.models.training_path import fast_forward
+
+        return fast_forward(self, points)
+
+    def reference_forward(self, points: torch.Tensor) -> torch.Tensor:
+        """The forward pass layer by layer through the modules (what :meth:`forward` computes
+        faster, see ``training_path.py``; kept as its reference and for comparisons)."""
         return F.normalize(self.pool(self.point_features(points)), dim=1)
 
 

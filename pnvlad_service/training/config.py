@@ -64,7 +64,9 @@ class TrainSection(BaseModel):
     seed: int = 0
     device: str = Field("auto", description="'auto' (cuda when present), 'cpu', 'cuda', 'cuda:1'.")
     amp: Literal["auto", "off", "bf16", "fp16"] = Field(
-        "auto", description="Mixed precision on CUDA ('auto': bf16 when supported, else fp16)."
+        "auto",
+        description="Mixed precision on CUDA ('auto': bf16 when supported, else fp16); on the "
+        "CPU only 'bf16', and only where the CPU has native bfloat16.",
     )
     threads: int = Field(0, ge=0, description="torch CPU threads (0: the cores of this process).")
     workers: int = Field(4, ge=0, description="Threads loading submaps into RAM.")

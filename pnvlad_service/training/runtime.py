@@ -9,6 +9,7 @@ process, so the trainer reads the same either way. ``gloo`` on CPU, ``nccl`` on 
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -22,6 +23,8 @@ if TYPE_CHECKING:
     import torch
 
     from pnvlad_service.training.config import TrainSection
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -50,7 +53,9 @@ class Runtime:
 
 def setup_runtime(t: TrainSection) -> Runtime:
     """Join the process group (under torchrun), pick the device, set the CPU threads and choose
-    the mixed-precision dtype: bf16 or fp16 on CUDA as ``t.amp`` says, none on CPU."""
+    the mixed-precision dtype: bf16 or fp16 on CUDA as ``t.amp`` says; on the CPU bf16 only when
+    asked for (``amp: bf16``) and the CPU has native bfloat16 (AVX512-BF16 or AMX), else none
+    (``auto`` stays float32 on the CPU: docs/TRAINING.md, "Training step speed")."""
     import torch
 
     cuda_wanted = t.device.startswith("cuda") or (t.device == "auto" and torch.cuda.is_available())
@@ -62,6 +67,13 @@ def setup_runtime(t: TrainSection) -> Runtime:
     if device.type == "cuda" and t.amp != "off":
         bf16 = t.amp == "bf16" or (t.amp == "auto" and torch.cuda.is_bf16_supported())
         amp_dtype = torch.bfloat16 if bf16 else torch.float16
+    elif device.type == "cpu" and t.amp == "bf16":
+        from pnvlad_service.models.inference import bf16_supported
+
+        if bf16_supported():
+            amp_dtype = torch.bfloat16
+        else:
+            log.warning("train.amp bf16: this CPU has no native bfloat16; training in float32")
     return Runtime(d, device, amp_dtype)
 
 

@@ -32,7 +32,10 @@ def test_one_process_on_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
         torch.set_num_threads(before)
     assert rt.dist == Dist() and rt.dist.main
     assert rt.device == torch.device("cpu")
-    assert rt.amp_dtype is None  # mixed precision is for CUDA only
+    from pnvlad_service.models.inference import bf16_supported
+
+    # bf16 on the CPU only where it is native
+    assert rt.amp_dtype == (torch.bfloat16 if bf16_supported() else None)
     assert any_rank(True, rt) is True and any_rank(False, rt) is False
     assert mean_over_ranks(2.5, rt) == 2.5
     rows = np.arange(12, dtype=np.float32).reshape(4, 3)
@@ -55,3 +58,22 @@ def test_rng_state_round_trip() -> None:
     torch.rand(3)  # move on
     restore_rng_state(saved)
     assert torch.equal(torch.rand(5), a)
+
+
+def test_cpu_bf16_only_when_native_and_asked(monkeypatch: pytest.MonkeyPatch) -> None:
+    import pnvlad_service.models.inference as inference
+
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    before = torch.get_num_threads()
+    try:
+        for native, amp, want in [
+            (True, "bf16", torch.bfloat16),
+            (False, "bf16", None),
+            (True, "auto", None),
+            (True, "off", None),
+        ]:
+            monkeypatch.setattr(inference, "bf16_supported", lambda native=native: native)
+            rt = setup_runtime(TrainSection(device="cpu", threads=1, amp=amp))
+            assert rt.amp_dtype == want, (native, amp)
+    finally:
+        torch.set_num_threads(before)

@@ -1,0 +1,230 @@
+"""The fast forward pass of :class:`~pnvlad_service.models.pointnetvlad.PointNetVLAD` (training
+and eval mode, with autograd), numerically the modules' own forward (``reference_forward``).
+
+What it does differently from the layer-by-layer reference:
+
+- **Max-pooled layers** (the last per-point layer of each transform net, and of PN_MAX's trunk)
+  never materialise their [B*N, C_out] output for autograd. ``BN(x W + b)`` followed by ReLU
+  and a max over the points is ``max_n (x W' + t)`` with ``W' = W * s``, ``t`` per channel
+  (``s = gamma / sigma``). In training mode the batch statistics come from the [C_in, C_in]
+  covariance of the inputs (``mean = x̄ W + b``, ``var_c = w_c^T S w_c``) rather than from the
+  [B*N, C_out] outputs, and autograd differentiates those few small products. The product
+  ``x W' + t`` then runs one cloud at a time and keeps only the max and its point index
+  (:class:`LinearMax`); its backward touches one point per cloud and channel. For the
+  128 -> 1024 layers this removes the two backward products (2 x 2·N·128·1024 multiply-adds a
+  cloud) and five [B*N, 1024] tensors a transform net.
+- **Per-point L2 normalisation before NetVLAD** is folded into the K logits and the assignment
+  weights (``logits = (h Wc) / |h|``, ``v = (a / |h|)^T h``), so the normalised [B*N, D]
+  features never exist; the residual sums are one batched product with the centre term as its
+  added input (``baddbmm``), never a [B, N, K, D] tensor.
+- **ReLU in place** where autograd allows it (after batch norm and after a product).
+- **Transforms folded**: ``(x T) W`` as ``x (T W)`` per cloud for the layer after each
+  transform (one [C, C] product instead of a pass over every point).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+if TYPE_CHECKING:
+    from pnvlad_service.models.pointnetvlad import NetVLAD, PointNetVLAD, TransformNet
+
+
+class LinearMax(torch.autograd.Function):
+    """``out[b, o] = act(max_n (x[b, n] @ w + t)[o])`` with ``act`` ReLU or the identity.
+
+    x float32 [B, N, C], w [C, O], t [O] -> [B, O]. The [N, O] product is computed one cloud
+    at a time and only its max and argmax are kept; the backward pass sends each (cloud,
+    channel) gradient to its argmax point (ties: the first point; the reference's ``amax``
+    splits it, a measure-zero difference that a ReLU'd zero max makes moot).
+    """
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, w: torch.Tensor, t: torch.Tensor, relu: bool):  # type: ignore[override]
+        b, _, _ = x.shape
+        o = w.shape[1]
+        vals = x.new_empty(b, o, dtype=torch.promote_types(x.dtype, w.dtype))
+        idx = torch.empty(b, o, dtype=torch.long, device=x.device)
+        wt = w.t()
+        for i in range(b):  # [O, N]: the max runs along contiguous rows (2x faster than [N, O])
+            v, j = torch.mm(wt, x[i].t()).max(1)  # bfloat16 under autocast
+            vals[i], idx[i] = v, j
+        vals += t  # the same for every point: added to the max, not to the [O, N] product
+        if relu:
+            vals.relu_()
+        ctx.relu, ctx.t_dtype = relu, t.dtype
+        ctx.save_for_backward(x, w, idx, vals)
+        return vals
+
+    @staticmethod
+    def backward(ctx: Any, g: torch.Tensor):  # type: ignore[override]
+        x, w, idx, vals = ctx.saved_tensors
+        p = g * (vals > 0) if ctx.relu else g  # [B, O]
+        c = x.shape[2]
+        rows = idx.unsqueeze(2).expand(-1, -1, c)  # [B, O, C]
+        dx = dw = dt = None
+        if ctx.needs_input_grad[0]:
+            contrib = (p.unsqueeze(2) * w.t().unsqueeze(0)).to(x.dtype)  # [B, O, C]
+            dx = torch.zeros_like(x).scatter_add_(1, rows, contrib)
+        if ctx.needs_input_grad[1]:
+            xg = torch.gather(x, 1, rows)  # [B, O, C]: the argmax points' inputs
+            dw = torch.einsum("boc,bo->co", xg.to(p.dtype), p).to(w.dtype)
+        if ctx.needs_input_grad[2]:
+            dt = p.sum(0).to(ctx.t_dtype)
+        return dx, dw, dt, None
+
+
+def _update_running(bn: nn.BatchNorm1d, mean: torch.Tensor, var: torch.Tensor, m: int) -> None:
+    """What ``BatchNorm1d`` does to its running statistics in a training-mode call over ``m``
+    rows with batch ``mean`` and biased ``var``."""
+    if not bn.track_running_stats or bn.running_mean is None or bn.running_var is None:
+        return
+    with torch.no_grad():
+        assert bn.num_batches_tracked is not None
+        bn.num_batches_tracked.add_(1)
+        mom = bn.momentum if bn.momentum is not None else 1.0 / float(bn.num_batches_tracked)
+        bn.running_mean.mul_(1 - mom).add_(mean.detach(), alpha=mom)
+        unbiased = var.detach() * (m / max(m - 1, 1))
+        bn.running_var.mul_(1 - mom).add_(unbiased, alpha=mom)
+
+
+def folded_linear_bn(
+    lin: nn.Linear, bn: nn.Module, x: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(W', t)`` with ``bn(lin(x)) == x @ W' + t`` for x [M, C] (W' [C, O], t [O]), in
+    either mode of ``bn`` (a ``BatchNorm1d``, or ``nn.Identity``: W' = W^T, t = bias).
+
+    In training mode the batch mean and variance of ``lin(x)`` are taken from x's [C, C]
+    covariance (``mean = x̄ W + b``, ``var_o = w_o^T S w_o``), never from the [M, O] outputs,
+    and the running statistics are updated as ``BatchNorm1d`` would; autograd differentiates
+    through those small products, so the gradients are the reference's."""
+    w = lin.weight.t()  # [C, O], a view
+    bias = lin.bias if lin.bias is not None else x.new_zeros(w.shape[1])
+    if not isinstance(bn, nn.BatchNorm1d):
+        return w, bias
+    assert bn.weight is not None and bn.bias is not None
+    if bn.training or bn.running_mean is None:
+        m = x.shape[0]
+        # In float64: the gradients through these statistics cancel the sparse max gradient
+        # almost exactly, and float32 sums would leave a few per cent of it.
+        x64, w64 = x.double(), w.double()
+        xbar = x64.mean(0)
+        xc = x64 - xbar
+        cov = (xc.t() @ xc) / m  # [C, C]
+        mean = (xbar @ w64 + bias).to(w.dtype)
+        var = ((cov @ w64) * w64).sum(0).clamp_min(0).to(w.dtype)
+        if bn.training:
+            _update_running(bn, mean, var, m)
+    else:
+        assert bn.running_var is not None
+        mean, var = bn.running_mean, bn.running_var
+    s = bn.weight * torch.rsqrt(var + bn.eps)
+    return w * s, bn.bias + (bias - mean) * s
+
+
+def linear_bn_max(lin: nn.Linear, bn: nn.Module, x: torch.Tensor, relu: bool) -> torch.Tensor:
+    """``act(bn(lin(x)))`` max-pooled over the points: x [B, N, C] -> [B, O], as the reference
+    ``act(bn(lin(x))).amax(1)`` (``bn`` a ``BatchNorm1d`` in either mode, or ``nn.Identity``)."""
+    b, n, c = x.shape
+    w, t = folded_linear_bn(lin, bn, x.reshape(b * n, c))
+    return LinearMax.apply(x, w, t, relu)
+
+
+def _lin_act(lin: nn.Linear, bn: nn.Module, h: torch.Tensor, relu: bool) -> torch.Tensor:
+    """``act(bn(lin(h)))`` on [M, C] rows, ReLU in place. (Folding the batch norm here too, with
+    statistics from the input covariance, made the narrow layers slower: the float64 [C, C]
+    covariance costs as much as the layer itself when C_out is no wider than C_in.)"""
+    z = bn(F.linear(h, lin.weight, lin.bias))
+    return z.relu_() if relu else z
+
+
+def _folded_linear(
+    lin: nn.Linear, t: torch.Tensor, h: torch.Tensor, b: int, n: int
+) -> torch.Tensor:
+    """``lin(h @ T)`` as ``h @ (T W^T) + bias`` per cloud: h [B*N, C], t [B, C, C] -> [B*N, O]."""
+    wt = torch.matmul(t, lin.weight.t())  # [B, C, O]
+    out = torch.baddbmm(lin.bias, h.reshape(b, n, -1), wt) if lin.bias is not None else None
+    if out is None:
+        out = torch.bmm(h.reshape(b, n, -1), wt)
+    return out.reshape(b * n, -1)
+
+
+def _tnet(net: TransformNet, x: torch.Tensor) -> torch.Tensor:
+    """The transform net's k x k matrix [B, k, k] of x [B, N, C] (reference
+    ``TransformNet.forward``)."""
+    b, n, c = x.shape
+    h = x.reshape(b * n, c)
+    last = len(net.points) - 1
+    for lin, bn in zip(list(net.points)[:last], list(net.points_bn)[:last], strict=True):
+        h = _lin_act(lin, bn, h, True)
+    g = linear_bn_max(net.points[last], net.points_bn[last], h.reshape(b, n, -1), relu=True)
+    for lin, bn in zip(net.fcs, net.fcs_bn, strict=True):
+        g = F.relu(bn(lin(g)))
+    return (net.out(g) + net.identity).reshape(b, net.k, net.k)
+
+
+def _netvlad(pool: NetVLAD, h: torch.Tensor, inv: torch.Tensor | None, b: int, n: int):
+    """NetVLAD of features h [B*N, D], each row to be scaled by ``inv`` [B*N, 1] (the per-point
+    L2 normalisation, folded) or not (None) -> [B, out] (reference ``NetVLAD.forward``)."""
+    d, k = pool.dim, pool.clusters
+    logits = h @ pool.cluster_weights  # [M, K]
+    if inv is not None:
+        logits = logits * inv
+    logits = pool.cluster_bn(logits) if pool.bn else logits + pool.cluster_biases
+    a = torch.softmax(logits, dim=-1)
+    aw = a * inv if inv is not None else a
+    centre = a.reshape(b, n, k).sum(1).unsqueeze(2) * pool.centers.t()  # [B, K, D]
+    # v[k, d] = sum_n aw[n, k] h[n, d] - (sum_n a[n, k]) c[d, k]: one batched product.
+    vlad = torch.baddbmm(centre, aw.reshape(b, n, k).transpose(1, 2), h.reshape(b, n, d), beta=-1)
+    vlad = F.normalize(vlad, dim=2)  # intra-normalisation (over d, each cluster)
+    vlad = F.normalize(vlad.transpose(1, 2).reshape(b, d * k), dim=1)  # flattened d-major
+    y = pool.fc_bn(pool.fc(vlad))
+    return pool.gating(y) if pool.gating is not None else y
+
+
+def fast_forward(model: PointNetVLAD, points: torch.Tensor) -> torch.Tensor:
+    """``model(points)`` computed the fast way: points [B, N, 3] -> [B, out], unit rows."""
+    from pnvlad_service.models.pointnetvlad import NetVLAD
+
+    cfg = model.cfg
+    b, n, _ = points.shape
+    h = points.reshape(b * n, 3)
+    pending: torch.Tensor | None = None  # a transform to fold into the next per-point layer
+    if model.input_tnet is not None:
+        pending = _tnet(model.input_tnet, points)
+    layers = [(lin, bn, True) for lin, bn in zip(model.stem, model.stem_bn, strict=True)]
+    feat_at = len(layers)
+    last = len(model.trunk) - 1
+    layers += [
+        (lin, bn, i < last or cfg.last_relu)
+        for i, (lin, bn) in enumerate(zip(model.trunk, model.trunk_bn, strict=True))
+    ]
+    vlad = isinstance(model.pool, NetVLAD)
+    for i, (lin, bn, relu) in enumerate(layers):
+        if i == feat_at and model.feature_tnet is not None:
+            if pending is not None:  # no stem layer took the input transform
+                h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
+            pending = _tnet(model.feature_tnet, h.reshape(b, n, -1))
+        if i == len(layers) - 1 and not vlad:
+            src = h if pending is None else torch.bmm(h.reshape(b, n, -1), pending)
+            g = linear_bn_max(lin, bn, src.reshape(b, n, -1), relu)
+            y = model.pool.fc(g)
+            gating = model.pool.gating
+            return F.normalize(gating(y) if gating is not None else y, dim=1)
+        if pending is not None:
+            z = bn(_folded_linear(lin, pending, h, b, n))
+            h = z.relu_() if relu else z
+            pending = None
+        else:
+            h = _lin_act(lin, bn, h, relu)
+    if pending is not None:  # a transform after the last layer (not a shipped configuration)
+        h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
+    assert isinstance(model.pool, NetVLAD)
+    inv = None
+    if cfg.point_l2_norm:
+        inv = 1.0 / torch.linalg.vector_norm(h, dim=1, keepdim=True).clamp_min(1e-12)
+    return F.normalize(_netvlad(model.pool, h, inv, b, n), dim=1)

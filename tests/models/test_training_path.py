@@ -1,0 +1,112 @@
+"""The fast forward pass (models/training_path.py) against the modules' own layer-by-layer
+forward (``PointNetVLAD.reference_forward``, the implementation before it): same weights and
+inputs give the same descriptors, the same gradients of every parameter and the same batch-norm
+running statistics, in training and in eval mode."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.pointnetvlad import build_model
+from pnvlad_service.models.training_path import LinearMax
+from tests.models.helpers import CONFIGS, clouds, trained_like
+
+CASES = {
+    **CONFIGS,
+    "paper-max-narrow": CONFIGS["paper-narrow"].model_copy(update={"arch": "pointnet-max"}),
+    "port-max-last-no-relu": ModelConfig.port(
+        num_points=64, arch="pointnet-max", trunk_widths=(16, 32), stem_widths=(8, 8)
+    ),
+}
+
+
+def _pair(cfg: ModelConfig, train: bool) -> tuple[torch.nn.Module, torch.nn.Module]:
+    fast = trained_like(cfg).double().train(train)
+    ref = copy.deepcopy(fast)
+    ref.fast_path = False
+    return fast, ref
+
+
+@pytest.mark.parametrize("train", [True, False], ids=["train", "eval"])
+@pytest.mark.parametrize("name", list(CASES))
+def test_fast_path_matches_reference(name: str, train: bool) -> None:
+    fast, ref = _pair(CASES[name], train)
+    x = clouds(3, n=96, seed=5).double()
+    y_fast, y_ref = fast(x), ref(x)
+    torch.testing.assert_close(y_fast, y_ref, rtol=1e-9, atol=1e-11)
+    w = torch.randn(y_ref.shape, generator=torch.Generator().manual_seed(1), dtype=x.dtype)
+    (y_fast * w).sum().backward()
+    (y_ref * w).sum().backward()
+    top = max(q.grad.abs().max().item() for q in ref.parameters() if q.grad is not None)
+    for (pname, p), q in zip(fast.named_parameters(), ref.parameters(), strict=True):
+        assert p.grad is not None and q.grad is not None, pname
+        # Biases right before a training-mode batch norm: exactly 0 against rounding noise.
+        scale = max(q.grad.abs().max().item(), 1e-4 * top)
+        assert (p.grad - q.grad).abs().max().item() <= 1e-7 * scale, pname
+    for (bname, a), b in zip(fast.named_buffers(), ref.buffers(), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12, msg=bname)
+
+
+def test_float32_full_width_paper_is_as_accurate_as_the_reference() -> None:
+    """The shipped paper configuration in float32 (the training dtype) on 3 clouds: the fast
+    path's descriptors and gradients are as close to a float64 reference as the float32
+    reference itself is, or within 1 % (batch norm over 3 rows in the head is ill-conditioned,
+    so a float32 error is real for both)."""
+    cfg = ModelConfig.paper(num_points=512)
+    torch.manual_seed(0)
+    fast = build_model(cfg).train()
+    with torch.no_grad():
+        for name, p in fast.named_parameters():
+            if name.endswith("tnet.out.weight"):
+                p.normal_(0, 0.01)
+    ref = copy.deepcopy(fast)
+    ref.fast_path = False
+    exact = copy.deepcopy(ref).double()
+    x = clouds(3, n=512, seed=3)
+    ys = [
+        m(x.to(dt))
+        for m, dt in ((fast, torch.float32), (ref, torch.float32), (exact, torch.float64))
+    ]
+    for y in ys:
+        (y[0] - y[1]).pow(2).sum().backward()
+    err_fast = (ys[0].double() - ys[2]).abs().max().item()
+    err_ref = (ys[1].double() - ys[2]).abs().max().item()
+    assert err_fast <= 3 * err_ref + 1e-6, (err_fast, err_ref)
+    top = max(e.grad.abs().max().item() for e in exact.parameters() if e.grad is not None)
+    named = zip(fast.named_parameters(), ref.parameters(), exact.parameters(), strict=True)
+    for (pname, p), q, e in named:
+        assert p.grad is not None and q.grad is not None and e.grad is not None, pname
+        gf = (p.grad.double() - e.grad).abs().max().item()
+        gr = (q.grad.double() - e.grad).abs().max().item()
+        # Within 3x the reference's own float32 error, or 1 % of the gradient's size (the
+        # covariance-based batch statistics round differently from the direct ones).
+        # (Biases before a batch norm: exactly 0, so noise against noise, on the model's scale.)
+        tol = max(3 * gr, 1e-2 * e.grad.abs().max().item(), 1e-5 * top)
+        assert gf <= tol, (pname, gf, gr)
+
+
+@pytest.mark.parametrize("relu", [True, False])
+def test_linear_max_gradcheck(relu: bool) -> None:
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 7, 4, dtype=torch.float64, generator=g, requires_grad=True)
+    w = torch.randn(4, 5, dtype=torch.float64, generator=g, requires_grad=True)
+    t = torch.randn(5, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x, w, t: LinearMax.apply(x, w, t, relu), (x, w, t))
+    want = (x @ w + t).amax(1)
+    want = want.relu() if relu else want
+    torch.testing.assert_close(LinearMax.apply(x, w, t, relu), want)
+
+
+def test_state_dict_unchanged_by_the_fast_path() -> None:
+    cfg = CONFIGS["compact"]
+    fast = build_model(cfg)
+    ref = build_model(cfg)
+    ref.fast_path = False
+    assert list(fast.state_dict()) == list(ref.state_dict())
+    ref.load_state_dict(fast.state_dict())
+    x = clouds(2)
+    torch.testing.assert_close(fast.eval()(x), ref.eval()(x), rtol=1e-5, atol=1e-6)
