@@ -46,7 +46,8 @@ def _serve(bundle: Path, env: dict[str, str] | None = None) -> Iterator[str]:
 @pytest.fixture(scope="module")
 def geo(bundles: dict) -> Iterator[str]:
     # Every database submap a candidate (the model is random): the true one is among them.
-    yield from _serve(bundles["base"] / "map.index", {"PNVLAD_RERANK": "26"})
+    env = {"PNVLAD_RERANK": "26", "PNVLAD_VERIFY_THRESHOLD": "0.25"}
+    yield from _serve(bundles["base"] / "map.index", env)
 
 
 @pytest.fixture(scope="module")
