@@ -84,6 +84,7 @@ class QueryOutcome:
     t_err: float | None = None
     yaw_err: float | None = None
     reversed: bool = False
+    pose_ok: bool | None = None  # the best candidate's pose within 2 m and 5 degrees
 
 
 @dataclass
@@ -154,10 +155,12 @@ def _outcome(
     )
     best = v.checks[0]
     match = dbf[best.rank - 1]
-    if out.r1_after and q.true_pose is not None and match.true_pose is not None:
+    if q.true_pose is not None and match.true_pose is not None:
         rel = np.linalg.inv(match.true_pose) @ q.true_pose
-        out.t_err, out.yaw_err = pose_error(best.transform, rel)
-        out.reversed = abs(wrap_deg(yaw_deg(rel))) > 90.0
+        t_err, yaw_err = pose_error(best.transform, rel)
+        out.pose_ok = t_err < SUCCESS_M and yaw_err < SUCCESS_DEG
+        if out.r1_after:
+            out.t_err, out.yaw_err = t_err, yaw_err
     return out
 
 
@@ -169,9 +172,12 @@ def rerank_pairs(
     config: VerifyConfig,
     *,
     progress: bool = False,
+    reversed_runs: frozenset[str] = frozenset(),
 ) -> tuple[list[QueryOutcome], list[tuple[int, int]]]:
     """Every evaluated query of every ordered run pair of each area, verified; and the pairs
-    (db run, query run) in the order their outcomes are numbered."""
+    (db run, query run) in the order their outcomes are numbered. A query is ``reversed``
+    when its run and the database's drove the route in opposite directions
+    (``reversed_runs``: the runs that drove it backwards, from ``synth.json``)."""
     from tqdm.auto import tqdm
 
     areas: dict[str, list[int]] = {}
@@ -201,7 +207,11 @@ def rerank_pairs(
                     v, qf, dbf = _one_query(
                         runs[j].query_paths[q], runs[i].db_paths, ranked, store, config
                     )
-                    outcomes.append(_outcome(len(pairs) - 1, ranked, t, n1, v, qf, dbf))
+                    out = _outcome(len(pairs) - 1, ranked, t, n1, v, qf, dbf)
+                    out.reversed = (runs[i].name in reversed_runs) != (
+                        runs[j].name in reversed_runs
+                    )
+                    outcomes.append(out)
     bar.close()
     return outcomes, pairs
 
@@ -222,15 +232,25 @@ def _pair_mean(outcomes: list[QueryOutcome], attr: str) -> float:
 
 
 def verified_figures(outcomes: list[QueryOutcome], threshold: float) -> dict[str, Any]:
-    """Precision, coverage and recall of ``verified`` at ``threshold`` (pooled, percent)."""
+    """Precision, coverage and recall of ``verified`` at ``threshold`` (pooled, percent).
+
+    ``precision``: the share of verified answers whose top-1 is the right place (within the
+    benchmark's 25 m); ``pose_precision``: the share whose pose is right (< 2 m and < 5
+    degrees of the truth, whichever submap gave it: what a robot acting on ``verified``
+    relies on). ``recall``: the share of right top-1s that are verified; ``coverage``: the
+    share of all queries verified."""
     n = len(outcomes)
     ver = [o for o in outcomes if o.best_score >= threshold]
     right = [o for o in outcomes if o.r1_after]
     good = [o for o in ver if o.r1_after]
+    posed = [o for o in ver if o.pose_ok is not None]
     return {
         "threshold": threshold,
         "n_verified": len(ver),
         "precision": 100.0 * len(good) / len(ver) if ver else float("nan"),
+        "pose_precision": (
+            100.0 * sum(bool(o.pose_ok) for o in posed) / len(posed) if posed else float("nan")
+        ),
         "coverage": 100.0 * len(ver) / n if n else float("nan"),
         "recall": 100.0 * len(good) / len(right) if right else float("nan"),
     }
@@ -242,14 +262,19 @@ def pr_curve(outcomes: list[QueryOutcome], thresholds: np.ndarray | None = None)
     return [verified_figures(outcomes, float(t)) for t in grid]
 
 
-def choose_threshold(outcomes: list[QueryOutcome], target: float = TARGET_PRECISION) -> float:
-    """The smallest grid threshold whose precision reaches ``target`` (and stays there for
-    every higher threshold that verifies anything); 1.0 when none does."""
+def choose_threshold(
+    outcomes: list[QueryOutcome], target: float = TARGET_PRECISION, key: str = "pose_precision"
+) -> float:
+    """The smallest grid threshold whose ``key`` precision (``pose_precision``: the pose is
+    right, what ``verified`` promises; or ``precision``: the place is) reaches ``target`` and
+    stays there for every higher threshold that verifies anything; 1.0 when none does."""
     curve = pr_curve(outcomes)
-    ok = [
-        c["precision"] >= target * 100.0 or c["n_verified"] == 0 or math.isnan(c["precision"])
-        for c in curve
-    ]
+
+    def value(c: dict[str, Any]) -> float:
+        v = c[key]
+        return c["precision"] if math.isnan(v) else v
+
+    ok = [value(c) >= target * 100.0 or c["n_verified"] == 0 or math.isnan(value(c)) for c in curve]
     for k in range(len(curve)):
         if all(ok[k:]) and curve[k]["n_verified"] > 0:
             return float(curve[k]["threshold"])
@@ -276,7 +301,7 @@ def _metric(outcomes: list[QueryOutcome]) -> dict[str, Any]:
 def summarise(outcomes: list[QueryOutcome], threshold: float, candidates: int) -> dict[str, Any]:
     """The report's figures of a set of outcomes (see the module doc)."""
     rev = [o for o in outcomes if o.reversed]
-    fwd = [o for o in outcomes if o.t_err is not None and not o.reversed]
+    fwd = [o for o in outcomes if not o.reversed]
     return {
         "n_queries": len(outcomes),
         "candidates": candidates,
@@ -288,6 +313,9 @@ def summarise(outcomes: list[QueryOutcome], threshold: float, candidates: int) -
         "metric": _metric(outcomes),
         "metric_same_heading": _metric(fwd),
         "metric_reversed": _metric(rev),
+        "n_reversed": len(rev),
+        "recall_at_1_after_reversed": _pair_mean(rev, "r1_after") if rev else float("nan"),
+        "recall_at_1_before_reversed": _pair_mean(rev, "r1_before") if rev else float("nan"),
         "verified": verified_figures(outcomes, threshold),
     }
 
@@ -301,10 +329,13 @@ def rerank_report(
     *,
     calibration: dict[str, Any] | None = None,
     progress: bool = False,
+    reversed_runs: frozenset[str] = frozenset(),
 ) -> tuple[dict[str, Any], list[QueryOutcome]]:
     """The ``rerank`` section of an evaluation report, overall and per area."""
     t0 = time.monotonic()
-    outcomes, pairs = rerank_pairs(runs, db_desc, q_desc, frames, config, progress=progress)
+    outcomes, pairs = rerank_pairs(
+        runs, db_desc, q_desc, frames, config, progress=progress, reversed_runs=reversed_runs
+    )
     area_of = [runs[j].area for _, j in pairs]
     per_area = {
         a: summarise(
@@ -390,6 +421,7 @@ def calibrate(
     queries as the test is verified and take :func:`choose_threshold`."""
     db_desc, q_desc = embed_runs(runs)
     outcomes, _ = rerank_pairs(runs, db_desc, q_desc, frames, config, progress=progress)
+    # Pose precision when every frame has a true pose, else place precision.
     threshold = choose_threshold(outcomes, target)
     return {
         "threshold": threshold,
@@ -418,12 +450,15 @@ def summary_lines(rep: dict[str, Any]) -> list[str]:
     r = rep["metric_reversed"]
     if r.get("n"):
         lines.append(
-            f"  reversed heading: {r['success']:.1f} % of {r['n']}; median "
+            f"  reversed runs ({rep['n_reversed']} queries): recall@1 "
+            f"{rep['recall_at_1_before_reversed']:.1f} -> {rep['recall_at_1_after_reversed']:.1f} "
+            f"%, metric success {r['success']:.1f} % of {r['n']}; median "
             f"{r['median_translation_m']:.3f} m, {r['median_yaw_deg']:.3f} deg"
         )
     lines.append(
-        f"verified (score >= {v['threshold']:.2f}): precision {v['precision']:.1f} %, "
-        f"coverage {v['coverage']:.1f} % of queries, recall {v['recall']:.1f} % of true top-1"
+        f"verified (score >= {v['threshold']:.2f}): precision {v['precision']:.1f} % (place), "
+        f"{v['pose_precision']:.1f} % (pose < 2 m, 5 deg), coverage {v['coverage']:.1f} % of "
+        f"queries, recall {v['recall']:.1f} % of true top-1"
     )
     for area, a in rep.get("per_area", {}).items():
         lines.append(
@@ -499,6 +534,7 @@ def evaluate_rerank(
     from pnvlad_service.evaluation.evaluate import embed_runs
 
     frames = BenchmarkTree(root).frames_by_path()
+    reversed_runs = _reversed_runs(Path(root))
     if not frames:
         raise InputError(
             "re-ranking needs the tree's frame sidecars (pnvlad synth / pnvlad data prepare "
@@ -524,6 +560,28 @@ def evaluate_rerank(
         log.info("verification threshold %.2f, chosen on the training layout", threshold)
     config = VerifyConfig(candidates=candidates, threshold=threshold)
     rep, _ = rerank_report(
-        runs, *descriptors, frames, config, calibration=calibration, progress=progress
+        runs,
+        *descriptors,
+        frames,
+        config,
+        calibration=calibration,
+        progress=progress,
+        reversed_runs=reversed_runs,
     )
     return rep
+
+
+def _reversed_runs(root: Path) -> frozenset[str]:
+    """The runs of a ``pnvlad synth`` tree that drove their route backwards (its
+    ``synth.json``); empty for other trees."""
+    import json
+
+    path = root / "synth.json"
+    if not path.is_file():
+        return frozenset()
+    try:
+        doc = json.loads(path.read_text())
+        return frozenset(str(r["run"]) for r in doc.get("runs", []) if r.get("reverse"))
+    except (ValueError, KeyError, TypeError, AttributeError):
+        log.warning("%s: cannot read the runs' directions", path)
+        return frozenset()

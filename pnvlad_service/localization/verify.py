@@ -44,12 +44,16 @@ class VerifyConfig:
 
     ``candidates``: how many of the nearest (by descriptor) are registered (K);
     ``threshold``: the score at or above which the best match counts as verified;
+    ``place_radius_m``: a candidate whose registration puts the query farther than this from
+    its own origin is another place that shares some geometry with the query (a street seen
+    from 30 m on): it ranks after the candidates that place the query within the radius;
     ``workers``: candidates registered at once (threads: small_gicp and NumPy's FFT release
     the GIL); ``registration``: the registration's settings.
     """
 
     candidates: int = DEFAULT_CANDIDATES
     threshold: float = 0.5
+    place_radius_m: float = 25.0
     workers: int = 2
     registration: reg.RegistrationConfig = field(default_factory=reg.RegistrationConfig)
 
@@ -200,9 +204,14 @@ def _pool(workers: int) -> ThreadPoolExecutor:
         return _POOLS[workers]
 
 
-def rerank(checks: Sequence[Check]) -> tuple[Check, ...]:
-    """Best score first; the retrieval rank breaks ties (stable)."""
-    return tuple(sorted(checks, key=lambda c: (-c.score, c.rank)))
+def rerank(checks: Sequence[Check], place_radius_m: float = math.inf) -> tuple[Check, ...]:
+    """Candidates that place the query within ``place_radius_m`` of their origin first, each
+    group best score first; the retrieval rank breaks ties (stable)."""
+
+    def far(c: Check) -> bool:
+        return bool(np.hypot(c.transform[0, 3], c.transform[1, 3]) > place_radius_m)
+
+    return tuple(sorted(checks, key=lambda c: (far(c), -c.score, c.rank)))
 
 
 def verify(
@@ -246,7 +255,7 @@ def verify(
         checks = list(_pool(config.workers).map(check, candidates))
     else:
         checks = [check(c) for c in candidates]
-    ordered = rerank(checks)
+    ordered = rerank(checks, config.place_radius_m)
     best = ordered[0]
     verified = best.score >= config.threshold
     pose = None

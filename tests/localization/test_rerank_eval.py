@@ -28,6 +28,13 @@ def test_rerank_orders_by_score_then_retrieval_rank() -> None:
     eye = np.eye(4)
     checks = [Check(1, 0.2, 0.1, eye), Check(2, 0.9, 0.1, eye), Check(3, 0.9, 0.1, eye)]
     assert [c.rank for c in rerank(checks)] == [2, 3, 1]
+    # A candidate that places the query 30 m from its origin is another place: after those
+    # within the radius, whatever its score.
+    far = np.eye(4)
+    far[:2, 3] = [18.0, 24.0]
+    checks = [Check(1, 0.2, 0.1, eye), Check(2, 0.9, 0.1, far), Check(3, 0.5, 0.1, eye)]
+    assert [c.rank for c in rerank(checks, 25.0)] == [3, 1, 2]
+    assert [c.rank for c in rerank(checks)] == [2, 3, 1]
 
 
 def test_wrap_and_pose_error_by_hand() -> None:
@@ -87,7 +94,10 @@ def test_outcome_uses_the_reranked_top1_and_the_true_relative_pose() -> None:
     assert not out.r1_before and out.r1_after and out.rk_before
     assert not out.r1p_before and out.r1p_after  # n1 = 1
     assert out.t_err == pytest.approx(0.3) and out.yaw_err == pytest.approx(0.0, abs=1e-9)
-    assert out.reversed and not math.isnan(out.best_score)
+    assert out.pose_ok and not math.isnan(out.best_score)
+    # A far-off estimate: the pose is wrong, whatever the place label says.
+    est[0, 3] += 3.0
+    assert _outcome(0, ranked, np.array([3]), 1, v, q, dbf).pose_ok is False
 
 
 def test_eval_rerank_on_the_tiny_city(tiny, tmp_path) -> None:
