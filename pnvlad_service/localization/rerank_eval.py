@@ -47,6 +47,8 @@ log = logging.getLogger(__name__)
 SUCCESS_M = 2.0
 SUCCESS_DEG = 5.0
 TARGET_PRECISION = 0.995
+#: The least share of the calibration queries (percent) a chosen threshold must verify.
+MIN_COVERAGE = 85.0
 
 
 def stored_metres(path: str | Path, frame: SubmapFrame) -> np.ndarray:
@@ -267,7 +269,9 @@ def choose_threshold(
 ) -> float:
     """The smallest grid threshold whose ``key`` precision (``pose_precision``: the pose is
     right, what ``verified`` promises; or ``precision``: the place is) reaches ``target`` and
-    stays there for every higher threshold that verifies anything; 1.0 when none does."""
+    stays there for every higher threshold that verifies anything, while verifying at least
+    :data:`MIN_COVERAGE` % of the queries; when no threshold does, the most precise one that
+    still covers that share (1.0 when none covers it)."""
     curve = pr_curve(outcomes)
 
     def value(c: dict[str, Any]) -> float:
@@ -276,9 +280,15 @@ def choose_threshold(
 
     ok = [value(c) >= target * 100.0 or c["n_verified"] == 0 or math.isnan(value(c)) for c in curve]
     for k in range(len(curve)):
-        if all(ok[k:]) and curve[k]["n_verified"] > 0:
+        if all(ok[k:]) and curve[k]["n_verified"] > 0 and curve[k]["coverage"] >= MIN_COVERAGE:
             return float(curve[k]["threshold"])
-    return 1.0
+    # Unreachable with enough coverage: the most precise threshold that still verifies at
+    # least MIN_COVERAGE % of the queries.
+    usable = [c for c in curve if c["coverage"] >= MIN_COVERAGE and not math.isnan(value(c))]
+    best = max(usable, key=lambda c: (value(c), c["threshold"]), default=None)
+    if best is None or value(best) <= 0.0:
+        return 1.0
+    return float(best["threshold"])
 
 
 def _metric(outcomes: list[QueryOutcome]) -> dict[str, Any]:

@@ -52,7 +52,7 @@ class VerifyConfig:
     """
 
     candidates: int = DEFAULT_CANDIDATES
-    threshold: float = 0.5
+    threshold: float = 0.30
     place_radius_m: float = 25.0
     workers: int = 2
     registration: reg.RegistrationConfig = field(default_factory=reg.RegistrationConfig)

@@ -67,13 +67,21 @@ def test_verified_figures_by_hand() -> None:
 
 
 def test_choose_threshold_takes_the_lowest_that_stays_precise() -> None:
-    # Wrong answers score up to 0.42; right ones from 0.3 up; a wrong one at 0.42.
+    # Right answers score from 0.3 up; wrong ones up to 0.32 (one among the right ones).
     outs = [_o(0, True, True, s) for s in np.linspace(0.3, 1.0, 200)]
-    outs += [_o(0, False, False, s) for s in (0.1, 0.2, 0.35, 0.42)]
-    t = choose_threshold(outs, target=0.995)
-    assert t == pytest.approx(0.43)
+    outs += [_o(0, False, False, s) for s in (0.1, 0.2, 0.25, 0.32)]
+    t = choose_threshold(outs, target=0.995, key="precision")
+    assert t == pytest.approx(0.33)
     assert verified_figures(outs, t)["precision"] == 100.0
-    # Nothing precise enough: 1.0.
+    # Nothing precise enough at 85 % coverage: the most precise threshold that covers it.
+    mixed = [_o(0, True, True, s) for s in np.linspace(0.3, 1.0, 90)]
+    mixed += [_o(0, False, False, s) for s in (0.1, 0.2, 0.95, 0.99)]
+    t = choose_threshold(mixed, target=0.995, key="precision")
+    v = verified_figures(mixed, t)
+    assert v["coverage"] >= 85.0 and v["precision"] < 99.5
+    better = [verified_figures(mixed, x / 100) for x in range(101)]
+    assert v["precision"] == max(b["precision"] for b in better if b["coverage"] >= 85.0)
+    # Nothing right at all: 1.0.
     assert choose_threshold([_o(0, False, False, 0.99)], target=0.995) == 1.0
 
 
