@@ -1,16 +1,14 @@
 """Registration of KITTI 00 frame 5 against frame 0 (../shared/data/real_scans) with small_gicp,
-against the ground-truth relative pose: a first measurement for issue #10 (verified metric
-localisation), kept so the next step starts from it.
+against the ground-truth relative pose: the first measurement for issue #10.
 
     pip install small-gicp && python benchmarks/registration_kitti_pair.py
 
 Prints, for GICP and VGICP at three voxel sizes and once started from the ground truth, the
-time and the translation / rotation error of the estimate. Measured 2026-12-01 (2 cores): every
-variant converges to about 3.58 m forward and 1.17 degrees of yaw, while the ground truth says
-4.29 m and 0.59 degrees (0.74 m / 0.61 degrees apart), also when started from the ground truth
-and with KITTI's full velodyne-to-camera calibration. Either the two files are not frames 0
-and 5 of the poses file, or those poses need another convention: to settle before #10's
-"within 0.2 m and 0.5 degrees" test can be written.
+time and the translation / rotation error of the estimate. Every variant converges to about
+3.58 m forward and 1.17 degrees of yaw, while the poses file says 4.29 m and 0.59 degrees: five
+independent methods agree with each other and not with the file, so the second scan is not
+frame 5 of those poses. The evidence and the test that checks what can be checked are in
+docs/VERIFY.md ("KITTI 00, frames 0 and 5").
 """
 
 from __future__ import annotations
