@@ -99,7 +99,7 @@ def embed_paths(
     return embed_in_chunks(embed, len(paths), load, chunk=chunk, progress=progress)
 
 
-def _faiss_search(db: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
+def exact_search(db: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
     """int64 [Q, min(k, N)]: exact L2 nearest database rows of each query, nearest first."""
     import faiss
 
@@ -130,7 +130,7 @@ def _pairs_report(
             if not any(len(t) for t in truth):
                 skipped.append((i, j))
                 continue
-            nn = _faiss_search(db_desc[i], q_desc[j], metrics.NUM_NEIGHBOURS)
+            nn = exact_search(db_desc[i], q_desc[j], metrics.NUM_NEIGHBOURS)
             pr = metrics.pair_recall_from_neighbours(nn, truth, len(db_desc[i]), db=i, query=j)
             assert pr is not None
             per_pair.append(pr)
@@ -171,7 +171,7 @@ def _joint_report(
     q_xy, top1_xy = [], []
     for j, run in enumerate(runs):
         own = int(offsets[j + 1] - offsets[j])
-        nn = _faiss_search(joint, q_desc[j], k + own)
+        nn = exact_search(joint, q_desc[j], k + own)
         n1 = metrics.one_percent_n(len(joint) - own)
         for q, truth in enumerate(run.truth):
             true = np.concatenate(

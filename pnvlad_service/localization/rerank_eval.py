@@ -40,6 +40,7 @@ from pnvlad_service.data.dataset import EvalRun, read_submap
 from pnvlad_service.data.frames import SubmapFrame
 from pnvlad_service.errors import InputError
 from pnvlad_service.evaluation import metrics
+from pnvlad_service.evaluation.evaluate import embed_runs, exact_search
 from pnvlad_service.localization.verify import Candidate, QueryCloud, VerifyConfig, verify
 
 log = logging.getLogger(__name__)
@@ -110,15 +111,6 @@ class _Store:
     def clear(self) -> None:
         self.metres.clear()
         self.prepared.clear()
-
-
-def _search(db: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
-    import faiss
-
-    index = faiss.IndexFlatL2(db.shape[1])
-    index.add(np.ascontiguousarray(db, dtype=np.float32))
-    _, idx = index.search(np.ascontiguousarray(queries, dtype=np.float32), min(k, len(db)))
-    return idx.astype(np.int64)
 
 
 def _one_query(
@@ -198,7 +190,7 @@ def rerank_pairs(
                 if i == j:
                     continue
                 k = max(config.candidates, n1, metrics.NUM_NEIGHBOURS)
-                nn = _search(db_desc[i], q_desc[j], k)
+                nn = exact_search(db_desc[i], q_desc[j], k)
                 pairs.append((i, j))
                 for q, truth in enumerate(runs[j].truth):
                     bar.update(1)
@@ -541,7 +533,6 @@ def evaluate_rerank(
     chosen on ``calibration_queries`` training-layout queries a run of each dataset of
     ``training``), then :func:`rerank_report` on the evaluation runs."""
     from pnvlad_service.data.tree import BenchmarkTree
-    from pnvlad_service.evaluation.evaluate import embed_runs
 
     frames = BenchmarkTree(root).frames_by_path()
     reversed_runs = _reversed_runs(Path(root))
