@@ -149,11 +149,9 @@ def prepare(
     ``role``: what the cloud will be. A ``source`` (the query) needs no kd-tree, voxel map or
     image spectrum; a ``target`` (a candidate) no coarse cloud: each skips the other's work."""
     pts = np.asarray(points_m, dtype=np.float64)
-    reason = degenerate(pts[: config.min_points], config) if len(pts) < config.min_points else None
-    if reason is None and (pts.ndim != 2 or pts.shape[-1] != 3 or not np.isfinite(pts).all()):
-        reason = degenerate(pts, config)
-    if reason is not None:
-        return Prepared(points=np.empty((0, 3)), reason=reason)
+    bad_shape = pts.ndim != 2 or pts.shape[-1] != 3 or len(pts) < config.min_points
+    if bad_shape or not np.isfinite(pts).all():  # degenerate() names what is wrong
+        return Prepared(points=np.empty((0, 3)), reason=degenerate(pts, config))
     sg = _gicp()
     fine, tree = sg.preprocess_points(
         pts, config.fine_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads

@@ -232,9 +232,8 @@ def verify(
         checks = tuple(Check(c.rank, 0.0, math.inf, np.eye(4)) for c in candidates)
         return Verification(False, checks, None, config.threshold, reason, time.perf_counter() - t0)
 
-    why = reg.degenerate(query.points_m)
-    if why is not None or not candidates:
-        return refused(f"query: {why}" if why else "no candidates")
+    if not candidates:
+        return refused("no candidates")
 
     def prepared(points: np.ndarray, key: Any, role: str) -> Any:
         if cache is None or key is None:
@@ -244,7 +243,7 @@ def verify(
         return cache[(key, role)]
 
     source = prepared(query.points_m, query_key, "source")
-    if source.reason is not None:  # e.g. too few distinct points once downsampled
+    if source.reason is not None:  # a line, a plane, too few distinct points (reg.prepare)
         return refused(f"query: {source.reason}")
 
     def check(cand: Candidate) -> Check:
