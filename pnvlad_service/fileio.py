@@ -105,6 +105,19 @@ def atomic_directory(path: str | Path, overwrite: bool = False) -> Iterator[Path
         raise
 
 
+def read_csv_text(path: str | Path, what: str, encoding: str = "utf-8") -> str:
+    """The text of a CSV file; :class:`~pnvlad_service.errors.InputError` naming the file when
+    it is missing (``what`` not found) or not text."""
+    from pnvlad_service.errors import InputError
+
+    try:
+        return Path(path).read_text(encoding=encoding)
+    except FileNotFoundError:
+        raise InputError(f"{what} not found", source=path) from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not a text CSV ({exc.reason})", source=path) from None
+
+
 def sha256_file(path: str | Path, chunk: int = 1 << 22) -> str:
     """Hex sha256 of a file's bytes, read ``chunk`` bytes at a time."""
     h = hashlib.sha256()

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.fileio import atomic_write_text
+from pnvlad_service.fileio import atomic_write_text, read_csv_text
 
 FRAMES_SUFFIX = ".frames.csv"
 FRAME_KINDS = ("enu",)
@@ -163,13 +163,7 @@ def read_frames_csv(path: str | Path) -> list[SubmapFrame]:
     """Read a sidecar, in file order. ``InputError`` naming the file and line for a missing
     column, a bad number, a zero scale, an unknown frame or a half-given true pose."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("frame sidecar not found", source=path) from None
-    except UnicodeDecodeError as exc:
-        raise InputError(f"not a text CSV ({exc.reason})", source=path) from None
-    reader = csv.DictReader(text.splitlines())
+    reader = csv.DictReader(read_csv_text(path, "frame sidecar").splitlines())
     missing = [c for c in _BASE if c not in (reader.fieldnames or [])]
     if missing:
         raise InputError(f"missing column(s) {', '.join(missing)}", source=path)

@@ -30,7 +30,7 @@ import numpy as np
 
 from pnvlad_service.data.frames import SubmapFrame, check_frames, frames_path
 from pnvlad_service.errors import InputError
-from pnvlad_service.fileio import atomic_write_text
+from pnvlad_service.fileio import atomic_write_text, read_csv_text
 from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_BYTES, SUBMAP_POINTS, read_submap
 
 log = logging.getLogger(__name__)
@@ -140,13 +140,7 @@ def read_locations_csv(path: str | Path) -> Locations:
     a non-integer timestamp, a non-numeric or non-finite coordinate.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputError("locations CSV not found", source=path) from None
-    except UnicodeDecodeError as exc:
-        raise InputError(f"not a text CSV ({exc.reason})", source=path) from None
-    reader = csv.reader(text.splitlines())
+    reader = csv.reader(read_csv_text(path, "locations CSV", "utf-8-sig").splitlines())
     header = next(reader, None)
     if header is None:
         raise InputError("empty file: expected the header 'timestamp,northing,easting'", path)
