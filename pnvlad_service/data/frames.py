@@ -28,6 +28,7 @@ Tools that read the published layout ignore the file; ``pnvlad data check`` vali
 from __future__ import annotations
 
 import csv
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -184,3 +185,36 @@ def check_frames(path: str | Path, timestamps: list[int]) -> list[SubmapFrame]:
                 f"line {k + 2}: timestamp {f.timestamp} where the locations CSV has {t}", path
             )
     return frames
+
+
+# --- the journal: rows one JSON line each, as a prepare run writes them (resumable) --------
+
+
+def journal_line(f: SubmapFrame) -> str:
+    """One row as a JSON line (floats as JSON writes them: a round trip is exact)."""
+    true = None if f.true_position is None else [*map(float, f.true_position), f.true_yaw_deg]
+    row = {"t": f.timestamp, "o": [*map(float, f.origin)], "c": [*map(float, f.centre)]}
+    return json.dumps({**row, "s": f.scale, "f": f.frame, "true": true}) + "\n"
+
+
+def read_journal(path: str | Path) -> list[SubmapFrame]:
+    """The rows of a journal, up to the first line a crash cut short."""
+    rows = []
+    for line in Path(path).read_text(encoding="utf-8").splitlines():
+        try:
+            d = json.loads(line)
+            true = d["true"]
+            rows.append(
+                SubmapFrame(
+                    int(d["t"]),
+                    np.array(d["o"], dtype=np.float64),
+                    np.array(d["c"], dtype=np.float64),
+                    float(d["s"]),
+                    str(d["f"]),
+                    None if true is None else np.array(true[:3], dtype=np.float64),
+                    None if true is None else float(true[3]),
+                )
+            )
+        except (ValueError, KeyError, TypeError, IndexError):
+            break  # a line cut short by a crash: what follows it was not recorded
+    return rows

@@ -25,7 +25,6 @@ submap, then write the locations CSVs.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -37,7 +36,14 @@ from typing import Any, Literal
 import numpy as np
 
 from pnvlad_service.data.drives import Drive, check_drive, snap_m
-from pnvlad_service.data.frames import SubmapFrame, frames_path, read_frames_csv, write_frames_csv
+from pnvlad_service.data.frames import (
+    SubmapFrame,
+    frames_path,
+    journal_line,
+    read_frames_csv,
+    read_journal,
+    write_frames_csv,
+)
 from pnvlad_service.data.preprocess import GConfig, GResult, apply_g
 from pnvlad_service.data.run_folder import claim_folders
 from pnvlad_service.data.tree import LAYOUTS, write_locations_csv
@@ -469,34 +475,6 @@ def _journal_path(res: LayoutResult) -> Path:
     return res.csv.with_name(f".prepare-{res.folder.name}.frames.jsonl")
 
 
-def _journal_line(f: SubmapFrame) -> str:
-    true = None if f.true_position is None else [*map(float, f.true_position), f.true_yaw_deg]
-    row = {"t": f.timestamp, "o": [*map(float, f.origin)], "c": [*map(float, f.centre)]}
-    return json.dumps({**row, "s": f.scale, "f": f.frame, "true": true}) + "\n"
-
-
-def _journal_rows(path: Path) -> list[SubmapFrame]:
-    rows = []
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            d = json.loads(line)
-            true = d["true"]
-            rows.append(
-                SubmapFrame(
-                    int(d["t"]),
-                    np.array(d["o"], dtype=np.float64),
-                    np.array(d["c"], dtype=np.float64),
-                    float(d["s"]),
-                    str(d["f"]),
-                    None if true is None else np.array(true[:3], dtype=np.float64),
-                    None if true is None else float(true[3]),
-                )
-            )
-        except (ValueError, KeyError, TypeError, IndexError):
-            break  # a line cut short by a crash: what follows it was not recorded
-    return rows
-
-
 def _known_frames(plans: list[_KindPlan]) -> dict[tuple[str, int], SubmapFrame]:
     """(kind, timestamp) -> the frame rows an earlier run recorded: its sidecar, then the
     journal of an interrupted run (for ``resume``)."""
@@ -511,7 +489,7 @@ def _known_frames(plans: list[_KindPlan]) -> dict[tuple[str, int], SubmapFrame]:
             except InputError as exc:
                 log.warning("ignoring the old frame sidecar: %s", exc)
         if _journal_path(res).is_file():
-            rows += _journal_rows(_journal_path(res))
+            rows += read_journal(_journal_path(res))
         known.update(((res.kind, f.timestamp), f) for f in rows)
     return known
 
@@ -549,7 +527,7 @@ def _make_submaps(
         # Rewritten with what is known, so that a crash now loses none of it either.
         journals[res.kind] = _journal_path(res).open("w", encoding="utf-8")
         journals[res.kind].writelines(
-            _journal_line(f) for (k, _), f in known.items() if k == res.kind
+            journal_line(f) for (k, _), f in known.items() if k == res.kind
         )
     bar = tqdm(windows, desc=desc, unit="submap", disable=None if progress else True)
     try:
@@ -595,7 +573,7 @@ def _make_window(
             continue
         write_submap(path, g.points)
         row = _frame(scan, g, poses, stamps, true)
-        journals[res.kind].write(_journal_line(row))
+        journals[res.kind].write(journal_line(row))
         journals[res.kind].flush()
         made.frames[(res.kind, scan)] = row
         res.written += 1

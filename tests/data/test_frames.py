@@ -103,3 +103,17 @@ def test_missing_column_and_timestamps_that_disagree(tmp_path: Path) -> None:
         check_frames(path, ts[:3])
     with pytest.raises(InputError, match="line 3: timestamp 1000001 where the locations CSV has 7"):
         check_frames(path, [ts[0], 7, ts[2], ts[3]])
+
+
+def test_journal_round_trip_stops_at_a_line_cut_short(tmp_path: Path) -> None:
+    from pnvlad_service.data.frames import journal_line, read_journal
+
+    frames = _frames()
+    text = "".join(journal_line(f) for f in frames)
+    path = tmp_path / "j.jsonl"
+    path.write_text(text + journal_line(frames[0])[:20])  # a crash mid-line
+    back = read_journal(path)
+    assert [f.timestamp for f in back] == [f.timestamp for f in frames]
+    for a, b in zip(frames, back, strict=True):
+        assert np.array_equal(a.origin, b.origin) and a.scale == b.scale
+        assert (a.true_position is None) == (b.true_position is None)
