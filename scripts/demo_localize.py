@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pnvlad_cli.serve import verdict
 from pnvlad_service.data.frames import SubmapFrame
 from pnvlad_service.data.splits import resolve_regions
 from pnvlad_service.data.tree import BenchmarkTree, Submap
@@ -31,19 +32,11 @@ from pnvlad_service.localization.client import LocalizeClient
 
 
 def pose_line(answer: dict, frame: SubmapFrame | None) -> str:
-    """The verdict, and for a verified answer the pose and its error against the truth."""
-    v = answer.get("verification")
-    if answer.get("verified") is None or v is None:
-        return "  not verified (the index carries no geometry)"
-    if not answer["verified"]:
-        why = v.get("reason") or f"best score {v['best_score']:.2f} < {v['threshold']:.2f}"
-        return f"  NOT verified: {why}"
-    p = answer["pose"]
-    line = (
-        f"  verified (score {p['fitness']:.2f}): pose N {p['northing']:.2f} E {p['easting']:.2f} "
-        f"yaw {p['yaw_deg']:.1f} deg"
-    )
-    if frame is not None and frame.true_pose is not None:
+    """`pnvlad localize`'s verdict line, and for a verified answer the pose's error against
+    the truth (the true pose of the query's frame, its origin moved to the centroid)."""
+    line = "  " + verdict(answer)
+    if answer.get("verified") and frame is not None and frame.true_pose is not None:
+        p = answer["pose"]
         true = frame.true_pose
         centroid = true[:3, :3] @ frame.centre + true[:3, 3]  # the query frame's true origin
         err = math.hypot(p["easting"] - centroid[0], p["northing"] - centroid[1])
