@@ -41,3 +41,26 @@ def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("synth") / "tiny"
     generate("tiny", root, seed=3, workers=2, progress=False)
     return root
+
+
+@pytest.fixture(scope="session")
+def tiny_maps(tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """Two bundles of the tiny city's runs but the first, built with one random model: ``map``
+    with geometry (verification), ``plain`` without; ``query_run`` is the run left out."""
+    from pnvlad_service.data.tree import BenchmarkTree
+    from pnvlad_service.index.build import build_bundle
+    from tests.index.helpers import make_checkpoint
+
+    base = tmp_path_factory.mktemp("tiny_maps")
+    tree = BenchmarkTree(tiny)
+    runs = tree.runs("business")
+    ckpt = make_checkpoint(base / "ckpt")
+    build_bundle(base / "map.index", ckpt, tiny, runs=runs[1:], progress=False)
+    build_bundle(base / "plain.index", ckpt, tiny, runs=runs[1:], progress=False, geometry="off")
+    return {
+        "base": base,
+        "tree": tree,
+        "query_run": runs[0],
+        "map": base / "map.index",
+        "plain": base / "plain.index",
+    }

@@ -5,33 +5,19 @@ it within the issue's 2 m and 5 degrees of the simulator's truth."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import read_submap
 from pnvlad_service.localization.localizer import Localizer
 from pnvlad_service.localization.rerank_eval import pose_error
 from pnvlad_service.localization.verify import VerifyConfig
-from tests.index.helpers import make_checkpoint
 
 
 @pytest.fixture(scope="module")
-def city(tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    from pnvlad_service.index.build import build_bundle
-
-    base = tmp_path_factory.mktemp("verified")
-    tree = BenchmarkTree(tiny)
-    runs = tree.runs("business")
-    ckpt = make_checkpoint(base / "ckpt")
-    bundle = base / "map.index"
-    build_bundle(bundle, ckpt, tiny, runs=runs[1:], progress=False)
-    plain = base / "plain.index"
-    build_bundle(plain, ckpt, tiny, runs=runs[1:], progress=False, geometry="off")
-    return {"tree": tree, "query_run": runs[0], "bundle": bundle, "plain": plain}
+def city(tiny_maps: dict) -> dict:
+    return {**tiny_maps, "bundle": tiny_maps["map"]}
 
 
 def _queries(city: dict) -> list[tuple[np.ndarray, object, object]]:

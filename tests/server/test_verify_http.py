@@ -13,25 +13,17 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.io.submap import read_submap
-from tests.index.helpers import free_port, make_checkpoint
+from tests.index.helpers import free_port
 from tests.server.test_app import start_server, stop_server
 
 
 @pytest.fixture(scope="module")
-def bundles(tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    from pnvlad_service.index.build import build_bundle
-
-    base = tmp_path_factory.mktemp("verify_http")
-    tree = BenchmarkTree(tiny)
-    runs = tree.runs("business")
-    ckpt = make_checkpoint(base / "ckpt")
-    build_bundle(base / "map.index", ckpt, tiny, runs=runs[1:], progress=False)
-    build_bundle(base / "plain.index", ckpt, tiny, runs=runs[1:], progress=False, geometry="off")
-    sub = tree.submaps("business", runs[0], "test")[2]
-    frame = tree.frames("business", runs[0], "test")[2]
-    return {"base": base, "query": read_submap(tiny / sub.path), "frame": frame}
+def bundles(tiny_maps: dict) -> dict:
+    tree, run = tiny_maps["tree"], tiny_maps["query_run"]
+    sub = tree.submaps("business", run, "test")[2]
+    frame = tree.frames("business", run, "test")[2]
+    return {"base": tiny_maps["base"], "query": read_submap(tree.root / sub.path), "frame": frame}
 
 
 def _serve(bundle: Path, env: dict[str, str] | None = None) -> Iterator[str]:
