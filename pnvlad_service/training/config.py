@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.training.augment import AugmentSection
 
 LossName = Literal["lazy_quadruplet", "lazy_triplet", "quadruplet", "triplet"]
 
@@ -36,6 +37,14 @@ class TrainSection(BaseModel):
         200_000, ge=1, description="Tuples seen between two learning-rate decays."
     )
     lr_min: float = Field(1e-5, ge=0, description="Floor of the learning rate.")
+    lr_schedule: Literal["staircase", "cosine"] = Field(
+        "staircase",
+        description="'staircase': the paper's decay by tuples seen; 'cosine': from lr down to "
+        "lr_min over the run's epochs.",
+    )
+    warmup_steps: int = Field(
+        0, ge=0, description="Steps over which the learning rate climbs linearly to lr."
+    )
     weight_decay: float = Field(0.0, ge=0)
     bn_init_decay: float = Field(0.5, description="1 - initial BN momentum (TF convention).")
     bn_decay_rate: float = Field(0.5, description="Staircase factor of the BN momentum.")
@@ -76,6 +85,10 @@ class TrainSection(BaseModel):
     keep_checkpoints: int = Field(2, ge=1, description="Step checkpoints kept on disk.")
     val_every: int = Field(1000, ge=0, description="Steps between validation recalls (0: off).")
     log_every: int = Field(10, ge=1, description="Steps between metrics-log lines.")
+    augment: AugmentSection = Field(
+        default_factory=AugmentSection,
+        description="Perturbations of each training cloud (training/augment.py); off by default.",
+    )
 
 
 class DataSection(BaseModel):

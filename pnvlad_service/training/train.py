@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -42,6 +43,7 @@ from pnvlad_service.data.dataset import EvalRun, TrainingSet
 from pnvlad_service.fileio import atomic_write_text
 from pnvlad_service.models.embedding import embed_in_chunks, module_embedder
 from pnvlad_service.training import mining
+from pnvlad_service.training.augment import augment
 from pnvlad_service.training.config import TrainConfig
 from pnvlad_service.training.runtime import (
     Runtime,
@@ -95,9 +97,19 @@ class TrainResult:
 # schedules
 
 
-def learning_rate(cfg: TrainConfig, step: int) -> float:
-    """Learning rate before step ``step`` (0-based): staircase decay on tuples seen."""
+def learning_rate(cfg: TrainConfig, step: int, total_steps: int | None = None) -> float:
+    """Learning rate before step ``step`` (0-based): the staircase decay on tuples seen, or
+    (``lr_schedule: cosine``) a half cosine from ``lr`` to ``lr_min`` over ``total_steps``
+    (the run's epochs), after ``warmup_steps`` of linear climb in either case."""
     t = cfg.train
+    if step < t.warmup_steps:
+        return t.lr * (step + 1) / t.warmup_steps
+    if t.lr_schedule == "cosine":
+        if total_steps is None:
+            raise ValueError("the cosine schedule needs the run's total steps")
+        span = max(total_steps - t.warmup_steps, 1)
+        done = min((step - t.warmup_steps) / span, 1.0)
+        return t.lr_min + (t.lr - t.lr_min) * 0.5 * (1.0 + math.cos(math.pi * done))
     seen = step * t.batch_size
     return max(t.lr * t.lr_decay_rate ** (seen // t.lr_decay_samples), t.lr_min)
 
@@ -164,12 +176,18 @@ StepOut = tuple["torch.Tensor", int, np.ndarray]
 
 
 def _embed(
-    net: torch.nn.Module, clouds: torch.Tensor, idx: np.ndarray, rt: Runtime
+    state: TrainState, clouds: torch.Tensor, idx: np.ndarray, rt: Runtime, cfg: TrainConfig
 ) -> torch.Tensor:
-    """float32 [len(idx), D]: one forward pass (training mode, autocast) over ``clouds[idx]``."""
+    """float32 [len(idx), D]: one forward pass (training mode, autocast) over ``clouds[idx]``,
+    each cloud augmented first when the config asks (the seed drawn from the tuple RNG, so a
+    resumed run repeats the augmentation)."""
     import torch
 
+    net = state.net
     x = clouds[torch.from_numpy(idx)].to(rt.device, non_blocking=True)
+    if cfg.train.augment.active:
+        seed = int(state.tuple_rng.integers(0, 2**62))
+        x = augment(x, cfg.train.augment, seed)
     with torch.autocast(rt.device.type, dtype=rt.amp_dtype, enabled=rt.amp_dtype is not None):
         emb = net(x)
     return emb.float()
@@ -202,7 +220,7 @@ def tuple_step(
     )
     table = tb.table()[rt.dist.rank :: rt.dist.world]
     uniq, inv = np.unique(table, return_inverse=True)
-    emb = _embed(state.net, data.clouds, uniq, rt)
+    emb = _embed(state, data.clouds, uniq, rt, cfg)
     e = emb[torch.from_numpy(inv.reshape(table.shape)).to(rt.device)]  # [b, 1 + P + Nn + 1, D]
     q, p = e[:, 0], e[:, 1 : 1 + t.positives]
     n, o = e[:, 1 + t.positives : -1], e[:, -1]
@@ -225,7 +243,7 @@ def in_batch_step(
     members = mining.in_batch_members(
         state.tuple_rng, data.training_set, batch_anchors[rt.dist.rank :: rt.dist.world]
     )
-    emb = _embed(state.net, data.clouds, members, rt)
+    emb = _embed(state, data.clouds, members, rt, cfg)
     pos_m, neg_m = mining.pair_masks(data.training_set, members)
     tb = mining.in_batch_tuples(emb.detach().cpu().numpy(), pos_m, neg_m, data.negatives)
     if tb is None:
@@ -252,11 +270,11 @@ def _refresh_cache_if_due(
     mlog.write(event="cache", step=state.step, seconds=round(time.monotonic() - tc, 3))
 
 
-def _apply_schedules(state: TrainState, cfg: TrainConfig) -> tuple[float, float]:
+def _apply_schedules(state: TrainState, cfg: TrainConfig, total_steps: int) -> tuple[float, float]:
     """Set this step's learning rate and batch-norm momentum; returns both."""
     import torch
 
-    lr = learning_rate(cfg, state.step)
+    lr = learning_rate(cfg, state.step, total_steps)
     mom = bn_momentum(cfg, state.step)
     for g in state.optim.param_groups:
         g["lr"] = lr
@@ -308,6 +326,7 @@ class _Loop:
     t0: float
     progress: bool
     on_step: Callable[[dict[str, Any]], None] | None
+    full: int = 0  # the steps of the configured epochs (the cosine schedule's span)
 
 
 def train(
@@ -346,7 +365,7 @@ def train(
     total = full if t.max_steps is None else min(full, t.max_steps)
     mlog = _start_log(cfg, out, rt, data, state, total, resumed=ckpt is not None)
     loop = _Loop(
-        cfg, out, rt, data, mlog, TrainResult(steps=state.step), total, t0, progress, on_step
+        cfg, out, rt, data, mlog, TrainResult(steps=state.step), total, t0, progress, on_step, full
     )
     try:
         stopped = _run_steps(loop, state)
@@ -416,7 +435,7 @@ def _run_steps(loop: _Loop, state: TrainState) -> str:
             if t.max_minutes is not None and any_rank(spent > 60 * t.max_minutes, rt):
                 return "max_minutes"
             _refresh_cache_if_due(state, cfg, loop.data, rt, loop.mlog)
-            lr, mom = _apply_schedules(state, cfg)
+            lr, mom = _apply_schedules(state, cfg, loop.full)
             batch_anchors = state.sampler.next(t.batch_size)
             loss, clouds, indices = step_fn(state, loop.data, rt, cfg, loss_fn, batch_anchors)
             _optimise(state, loss)

@@ -31,6 +31,28 @@ def test_schedules_hand_worked() -> None:
     assert bn_momentum(cfg, 10**7) == pytest.approx(0.01)  # decay clipped at 0.99
 
 
+def test_warmup_and_cosine_schedule_hand_worked() -> None:
+    from pnvlad_service.training.train import learning_rate
+
+    cfg = TrainConfig.from_mapping(
+        {"train": {"lr": 1e-3, "lr_min": 1e-5, "lr_schedule": "cosine", "warmup_steps": 10}}
+    )
+    assert learning_rate(cfg, 0, 110) == pytest.approx(1e-4)  # 1/10 of the way up
+    assert learning_rate(cfg, 9, 110) == pytest.approx(1e-3)
+    assert learning_rate(cfg, 10, 110) == pytest.approx(1e-3)  # the cosine starts at lr
+    # half way through the 100 cosine steps: the mean of lr and lr_min
+    assert learning_rate(cfg, 60, 110) == pytest.approx((1e-3 + 1e-5) / 2)
+    assert learning_rate(cfg, 35, 110) == pytest.approx(1e-5 + (1e-3 - 1e-5) * 0.5 * (1 + 2**-0.5))
+    assert learning_rate(cfg, 110, 110) == pytest.approx(1e-5)
+    assert learning_rate(cfg, 500, 110) == pytest.approx(1e-5)  # past the end: the floor
+    with pytest.raises(ValueError, match="total steps"):
+        learning_rate(cfg, 20)
+    # warm-up before the paper's staircase
+    stair = TrainConfig.from_mapping({"train": {"warmup_steps": 4}})
+    assert learning_rate(stair, 1) == pytest.approx(5e-5 / 2)
+    assert learning_rate(stair, 4) == pytest.approx(5e-5)
+
+
 def test_each_cloud_embedded_once_per_step(tiny_tree: tuple[Path, Path], tmp_path: Path) -> None:
     torch = pytest.importorskip("torch")
     from pnvlad_service.training.train import train
@@ -145,7 +167,10 @@ def test_resume_after_sigkill_continues_exactly(
 
     root, splits = tiny_tree
     cfg_path = tmp_path / "tiny.yaml"
-    cfg_path.write_text(tiny_config(root, splits).to_yaml())
+    # With augmentation and the cosine schedule: both must repeat after a resume.
+    aug = {"yaw_deg": 10.0, "jitter": 0.01, "dropout": 0.2, "erase_p": 0.5, "shift": 0.02}
+    cfg = tiny_config(root, splits, augment=aug, lr_schedule="cosine", warmup_steps=2)
+    cfg_path.write_text(cfg.to_yaml())
     # reference: an uninterrupted run of 9 steps (in this process: one torch start-up less)
     import torch
 
