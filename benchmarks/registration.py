@@ -183,7 +183,7 @@ def external(refine: Refine, config: reg.RegistrationConfig) -> Callable:
         src, tgt = reg.prepare(pair.source, config), reg.prepare(pair.target, config)
         t1 = time.perf_counter()
         yaws = reg.yaw_candidates(src, tgt, config)
-        placed = max((reg.place(src.points, tgt, y, config) for y in yaws), key=lambda p: p[1])
+        placed = max(reg.place(src, tgt, yaws, config), key=lambda p: p[1])
         transform = refine(src, tgt, placed[0])
         fit, _ = reg.fitness(src.points, tgt, transform, config.inlier_m, config.threads)
         return transform, fit, (t1 - t0, time.perf_counter() - t1)

@@ -49,6 +49,18 @@ def serve(
         help="Score (share of query points registered, 0-1) a best match needs to be verified "
         "(default: the one chosen on training-layout submaps, docs/VERIFY.md).",
     ),
+    verify_stop_score: float = typer.Option(
+        None,
+        "--verify-stop-score",
+        help="Candidates are registered in retrieval order, two at a time, and the rest skipped "
+        "once one scores this within the place radius (default 0.45; 1 registers all K).",
+    ),
+    verify_cache: int = typer.Option(
+        None,
+        "--verify-cache",
+        help="Prepared candidate clouds kept in memory for later queries (default 256, about "
+        "0.6 MB each; 0 keeps none).",
+    ),
     log_level: str = typer.Option("info", "--log-level", help="uvicorn log level."),
 ) -> None:
     """Serve POST /localize over HTTP: a point cloud in, the nearest map places out.
@@ -75,6 +87,8 @@ def serve(
         "BATCH_WAIT_MS": batch_wait_ms,
         "RERANK": rerank,
         "VERIFY_THRESHOLD": verify_threshold,
+        "VERIFY_STOP_SCORE": verify_stop_score,
+        "VERIFY_CACHE": verify_cache,
     }
     for name, value in options.items():
         if value is not None:
@@ -147,11 +161,15 @@ def verdict(answer: dict[str, Any]) -> str:
     if answer.get("verified") is None or v is None:
         return "not verified: verification off (or the index carries no geometry)"
     if not answer["verified"]:
-        why = v.get("reason") or f"best score {v['best_score']:.3f} < {v['threshold']:.3f}"
+        why = v.get("reason") or (
+            f"confidence {v['confidence']:.3f} < {v['threshold']:.3f} "
+            f"(best score {v['best_score']:.3f})"
+        )
         return f"not verified: {why}"
     p = answer["pose"]
     return (
-        f"verified (score {p['fitness']:.3f} >= {v['threshold']:.3f}): "
+        f"verified (confidence {v['confidence']:.3f} >= {v['threshold']:.3f}, "
+        f"score {p['fitness']:.3f}): "
         f"northing {p['northing']:.2f}, easting {p['easting']:.2f}, height {p['height']:.2f}, "
         f"yaw {p['yaw_deg']:.2f} deg ({p['frame']} frame, scale {p['scale']})"
     )

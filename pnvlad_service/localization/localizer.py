@@ -42,6 +42,7 @@ from pnvlad_service.localization.batching import Batching, BatchResult, MicroBat
 from pnvlad_service.localization.limits import Limits
 from pnvlad_service.localization.verify import (
     Candidate,
+    PreparedCache,
     QueryCloud,
     Verification,
     VerifyConfig,
@@ -159,9 +160,11 @@ class Answer:
 def verification_json(v: Verification) -> dict[str, Any]:
     """What the answer says of its verification besides ``verified`` and ``pose``."""
     return {
-        "candidates": len(v.checks),
+        "candidates": v.candidates,
+        "registered": v.registered,
         "threshold": v.threshold,
         "best_score": v.best_score,
+        "confidence": v.confidence,
         "reason": v.reason,
     }
 
@@ -281,6 +284,8 @@ class Localizer:
         self.encoder = encoder
         self.identity = identity
         self.verify_config = verify_config or VerifyConfig()
+        # Candidates' prepared clouds by bundle row (consecutive queries share candidates).
+        self._prepared = PreparedCache(self.verify_config.cache_entries)
         recorded = bundle.manifest.preprocess
         self._gconfig = GConfig.model_validate(dict(recorded)) if recorded else GConfig()
         self.info = LocalizerInfo(
@@ -433,11 +438,11 @@ class Localizer:
         k = self.verify_config.candidates
         ids = [int(i) for i in result.ids[:k] if i >= 0]
         cands = [
-            Candidate(rank, points, geometry.map_pose(i))
+            Candidate(rank, points, geometry.map_pose(i), key=i)
             for rank, (i, points) in enumerate(zip(ids, geometry.metres_many(ids), strict=True), 1)
         ]
         query = prepared.query([geometry.scale(i) for i in ids])
-        return verify(query, cands, self.verify_config)
+        return verify(query, cands, self.verify_config, cache=self._prepared)
 
     def answer(
         self,

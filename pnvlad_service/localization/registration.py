@@ -28,6 +28,7 @@ Clouds are float [N, 3] metres, z up, in any frame whose origin is near the clou
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -87,6 +88,10 @@ class Prepared:
     voxels: Any = None  # small_gicp.GaussianVoxelMap over ``fine`` (VGICP only)
     spectrum: np.ndarray | None = None  # complex rfft2 of the bird's-eye image
     polar: np.ndarray | None = None  # float [radii, polar_angles], band-passed |FFT|
+    # A source's bird's-eye spectra turned by each yaw tried so far, by yaw bin (filled by
+    # :func:`place`): the candidates of one query are mostly one place seen at one heading,
+    # so their yaw searches ask for the same few turns.
+    turned: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
 
 @dataclass(frozen=True)
@@ -98,7 +103,11 @@ class Registration:
     inliers (nan when none); ``converged``: the fine GICP stage converged; ``init``: how it
     was started ("given", "yaw search", or "none" when nothing ran) and ``init_transform``
     the 4x4 the fine stage started from; ``yaw_deg``: the yaw hypotheses tried;
-    ``reason``: why it could not run (a degenerate cloud), else None.
+    ``reason``: why it could not run (a degenerate cloud), else None; ``constraint``: how
+    evenly the alignment pins the translation, the smallest over the largest eigenvalue of
+    the translational block of the fine stage's Gauss-Newton Hessian (1: equally in every
+    direction; near 0: free along some direction, as a straight street's facades leave the
+    shift along the street; 0 when nothing ran).
     """
 
     transform: np.ndarray
@@ -109,6 +118,7 @@ class Registration:
     init_transform: np.ndarray
     yaw_deg: tuple[float, ...] = field(default_factory=tuple)
     reason: str | None = None
+    constraint: float = 0.0
 
 
 def _gicp() -> Any:
@@ -239,24 +249,36 @@ def yaw_candidates(source: Prepared, target: Prepared, config: RegistrationConfi
     return [k * step + half for k in peaks for half in (0.0, np.pi)]
 
 
+def _turned_spectrum(source: Prepared, yaw: float, config: RegistrationConfig) -> np.ndarray:
+    """The rfft2 of ``source``'s bird's-eye image turned by ``yaw`` (a yaw-search bin or its
+    180-degree twin), computed once per source and bin."""
+    key = round(yaw / (np.pi / config.polar_angles)) % (2 * config.polar_angles)
+    spectrum = source.turned.get(key)
+    if spectrum is None:
+        spectrum = np.fft.rfft2(bev_image(source.points @ _rot_z(yaw).T, config))
+        source.turned[key] = spectrum  # a race only computes it twice
+    return spectrum
+
+
 def place(
-    source_points: np.ndarray, target: Prepared, yaw: float, config: RegistrationConfig
-) -> tuple[np.ndarray, float]:
-    """The 4x4 (turn by ``yaw``, then the image shift that best lays the source onto the
-    target, by phase correlation) and its score (the correlation peak's height)."""
-    turned = source_points @ _rot_z(yaw).T
-    spectrum = np.fft.rfft2(bev_image(turned, config))
-    cross = target.spectrum * np.conj(spectrum)
-    corr = np.fft.irfft2(
-        cross / (np.abs(cross) ** config.whitening + 1e-9), s=(config.bev_cells,) * 2
-    )
-    peak = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    source: Prepared, target: Prepared, yaws: Sequence[float], config: RegistrationConfig
+) -> list[tuple[np.ndarray, float]]:
+    """For each of ``yaws``: the 4x4 (turn by the yaw, then the image shift that best lays
+    the source onto the target, by phase correlation) and its score (the correlation peak's
+    height over the mean). One inverse FFT for all of them."""
+    spectra = np.stack([_turned_spectrum(source, y, config) for y in yaws])
+    cross = target.spectrum[None] * np.conj(spectra)
     s = config.bev_cells
-    shift = [((p + s // 2) % s - s // 2) * config.bev_cell_m for p in peak]
-    transform = np.eye(4)
-    transform[:3, :3] = _rot_z(yaw)
-    transform[:2, 3] = shift
-    return transform, float(corr[peak] / (np.abs(corr).mean() + 1e-12))
+    corr = np.fft.irfft2(cross / (np.abs(cross) ** config.whitening + 1e-9), s=(s, s))
+    out = []
+    for yaw, c in zip(yaws, corr, strict=True):
+        peak = np.unravel_index(int(np.argmax(c)), c.shape)
+        shift = [((p + s // 2) % s - s // 2) * config.bev_cell_m for p in peak]
+        transform = np.eye(4)
+        transform[:3, :3] = _rot_z(yaw)
+        transform[:2, 3] = shift
+        out.append((transform, float(c[peak] / (np.abs(c).mean() + 1e-12))))
+    return out
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -323,7 +345,7 @@ def _best_start(
     """The yaw search, then the coarse GICP stage from each of the best hypotheses: the
     coarse result with the highest fitness, and the yaws (degrees) tried."""
     yaws = yaw_candidates(source, target, config)
-    placed = sorted((place(source.points, target, y, config) for y in yaws), key=lambda p: -p[1])
+    placed = sorted(place(source, target, yaws, config), key=lambda p: -p[1])
     best, best_fit = np.eye(4), -1
     for start, _ in placed[: config.hypotheses]:
         result = _align(
@@ -379,4 +401,24 @@ def register(
         return _failed(init, f"registration failed: {exc}")
     transform = np.asarray(result.T_target_source, dtype=np.float64)
     fit, rmse = fitness(src.points, tgt, transform, config.inlier_m, config.threads)
-    return Registration(transform, fit, rmse, bool(result.converged), how, np.asarray(start), yaws)
+    return Registration(
+        transform,
+        fit,
+        rmse,
+        bool(result.converged),
+        how,
+        np.asarray(start),
+        yaws,
+        constraint=translation_constraint(np.asarray(result.H)),
+    )
+
+
+def translation_constraint(hessian: np.ndarray) -> float:
+    """The smallest over the largest eigenvalue of the translational block of a 6x6
+    Gauss-Newton Hessian (small_gicp orders the parameters rotation, then translation): 0 to
+    1, 0 for a zero or non-finite Hessian."""
+    block = np.asarray(hessian, dtype=np.float64)[3:, 3:]
+    if not np.isfinite(block).all():
+        return 0.0
+    ev = np.linalg.eigvalsh((block + block.T) / 2)
+    return float(max(ev[0], 0.0) / ev[-1]) if ev[-1] > 0 else 0.0

@@ -84,6 +84,8 @@ class QueryOutcome:
     r1p_before: bool
     r1p_after: bool
     best_score: float
+    confidence: float = 0.0  # what verified is decided on (verify.confidence)
+    registered: int = 0  # candidates the cascade registered
     t_err: float | None = None
     yaw_err: float | None = None
     reversed: bool = False
@@ -135,17 +137,19 @@ def _one_query(
 def _outcome(
     pair: int, ranked: np.ndarray, truth: np.ndarray, n1: int, v: Any, q: SubmapFrame, dbf: list
 ) -> QueryOutcome:
-    k = len(v.checks)
+    k = len(v.checks)  # the first k in retrieval order (the cascade may stop before K)
     true = set(int(t) for t in truth)
     after = [int(ranked[c.rank - 1]) for c in v.checks] + [int(r) for r in ranked[k:]]
     out = QueryOutcome(
         pair=pair,
         r1_before=int(ranked[0]) in true,
         r1_after=after[0] in true,
-        rk_before=any(int(r) in true for r in ranked[:k]),
+        rk_before=any(int(r) in true for r in ranked[: max(v.candidates, k)]),
         r1p_before=any(int(r) in true for r in ranked[:n1]),
         r1p_after=any(r in true for r in after[:n1]),
         best_score=v.best_score,
+        confidence=v.confidence,
+        registered=v.registered,
     )
     best = v.checks[0]
     match = dbf[best.rank - 1]
@@ -234,7 +238,7 @@ def verified_figures(outcomes: list[QueryOutcome], threshold: float) -> dict[str
     relies on). ``recall``: the share of right top-1s that are verified; ``coverage``: the
     share of all queries verified."""
     n = len(outcomes)
-    ver = [o for o in outcomes if o.best_score >= threshold]
+    ver = [o for o in outcomes if o.confidence >= threshold]
     right = [o for o in outcomes if o.r1_after]
     good = [o for o in ver if o.r1_after]
     posed = [o for o in ver if o.pose_ok is not None]

@@ -59,12 +59,25 @@ class PoseOut(BaseModel):
     rmse_m: float = Field(..., description="RMS distance of those points, metres.")
     frame: str = Field(..., description="sensor (a raw scan) or centroid (a preprocessed cloud).")
     scale: str = Field(..., description="measured, or estimated from the candidates.")
+    constraint: float = Field(
+        ...,
+        description="How evenly the registration pins the translation: the smallest over the "
+        "largest eigenvalue of its translational Hessian (near 0: free along a direction).",
+    )
 
 
 class VerificationOut(BaseModel):
-    candidates: int = Field(..., description="Candidates registered (K).")
+    candidates: int = Field(..., description="Candidates offered for verification (K).")
+    registered: int = Field(
+        ..., description="Candidates registered: fewer than K when a sure match ended it early."
+    )
     threshold: float = Field(..., description="Score a best match needs to count as verified.")
-    best_score: float
+    best_score: float = Field(..., description="The best match's score.")
+    confidence: float = Field(
+        ...,
+        description="What verified is decided on (0-1): the best score less a rival place's, "
+        "scaled down when the alignment leaves the translation free along a direction.",
+    )
     reason: str | None = Field(None, description="Why nothing could be verified, if so.")
 
 

@@ -87,9 +87,27 @@ class ServerSettings(BaseSettings):
         "verified; the default was chosen on training-layout submaps (docs/VERIFY.md).",
     )
 
+    verify_stop_score: float | None = Field(
+        VerifyConfig.stop_score,
+        ge=0.0,
+        le=1.0,
+        description="Candidates are registered in retrieval order, two at a time; the rest are "
+        "skipped once one scores this within the place radius (1: register all).",
+    )
+    verify_cache: int = Field(
+        VerifyConfig.cache_entries,
+        ge=0,
+        description="Prepared candidate clouds kept in memory (about 0.6 MB each; 0: none).",
+    )
+
     def verify_config(self) -> VerifyConfig:
         """How candidates are verified."""
-        return VerifyConfig(candidates=self.rerank, threshold=self.verify_threshold)
+        return VerifyConfig(
+            candidates=self.rerank,
+            threshold=self.verify_threshold,
+            stop_score=self.verify_stop_score,
+            cache_entries=self.verify_cache,
+        )
 
     def limits(self) -> Limits:
         """The request limits these settings configure (the rest are the format's)."""

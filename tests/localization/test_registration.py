@@ -254,3 +254,50 @@ def test_kitti_pair_agrees_with_independent_icp(real_scans: Path) -> None:
     assert dt < 0.1 and dr < 0.2
     assert 3.4 < ours.transform[0, 3] < 3.8  # forward, as every method measured
     assert ours.fitness > 0.5
+
+
+def test_translation_constraint_of_hand_made_hessians() -> None:
+    h = np.diag([5.0, 6.0, 7.0, 1.0, 4.0, 9.0])  # rotation block first, then translation
+    assert reg.translation_constraint(h) == pytest.approx(1.0 / 9.0)
+    rot = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    h[3:, 3:] = rot @ np.diag([1.0, 4.0, 9.0]) @ rot.T  # the same block turned: same ratio
+    assert reg.translation_constraint(h) == pytest.approx(1.0 / 9.0)
+    assert reg.translation_constraint(np.zeros((6, 6))) == 0.0
+    assert reg.translation_constraint(np.full((6, 6), np.nan)) == 0.0
+
+
+def test_a_corridor_leaves_the_shift_along_it_unconstrained() -> None:
+    """Two long walls and a floor pin every shift but the one along the corridor: the
+    registration's constraint falls far below that of the street scene with its cross walls."""
+    rng = np.random.default_rng(3)
+    n = 4000
+    x = rng.uniform(-30, 30, n)
+    kind = rng.integers(0, 3, n)
+    y = np.where(kind == 0, 3.0, np.where(kind == 1, -3.0, rng.uniform(-3, 3, n)))
+    z = np.where(kind == 2, 0.0, rng.uniform(0, 4, n))
+    corridor = np.c_[x, y, z] + rng.normal(0, 0.02, (n, 3))
+    shifted = corridor + np.array([0.3, 0.0, 0.0])
+    tube = reg.register(shifted, corridor, init=np.eye(4))
+    t = sp.yaw_matrix(np.radians(3.0), np.array([1.0, 0.5, 0.0]))
+    scene = reg.register(moved(street(1), t, rng), street(1))
+    assert tube.constraint < 0.02, tube.constraint
+    assert scene.constraint > 5 * tube.constraint, (scene.constraint, tube.constraint)
+    assert 0.0 < scene.constraint <= 1.0
+
+
+def test_a_turned_spectrum_is_computed_once_per_yaw_bin() -> None:
+    src = reg.prepare(moved(street(1), np.eye(4), np.random.default_rng(1)), role="source")
+    tgt = reg.prepare(street(1), role="target")
+    yaws = reg.yaw_candidates(src, tgt, reg.DEFAULT)
+    first = reg.place(src, tgt, yaws, reg.DEFAULT)
+    assert len(src.turned) == len(set(yaws)) == len(yaws)
+    cached = dict(src.turned)
+    again = reg.place(src, tgt, yaws, reg.DEFAULT)
+    assert all(src.turned[k] is cached[k] for k in cached)  # nothing recomputed
+    for (t1, s1), (t2, s2) in zip(first, again, strict=True):
+        assert np.array_equal(t1, t2) and s1 == s2
+    # Placing one yaw at a time gives what the batched call gives.
+    fresh = reg.prepare(moved(street(1), np.eye(4), np.random.default_rng(1)), role="source")
+    for y, (t1, s1) in zip(yaws, first, strict=True):
+        ((t2, s2),) = reg.place(fresh, tgt, [y], reg.DEFAULT)
+        assert np.allclose(t1, t2) and s1 == pytest.approx(s2)

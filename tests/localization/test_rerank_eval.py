@@ -21,6 +21,8 @@ from pnvlad_service.localization.verify import Check, Verification, rerank
 
 
 def _o(pair: int, before: bool, after: bool, score: float, **kw: object) -> QueryOutcome:
+    """An outcome whose confidence (what verified is decided on) is its best score."""
+    kw.setdefault("confidence", score)
     return QueryOutcome(pair, before, after, after or before, before, after, score, **kw)
 
 

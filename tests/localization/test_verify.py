@@ -1,0 +1,129 @@
+"""localization.verify: the confidence worked by hand, the cascade's early stop, the bounded
+cache of prepared clouds. Registrations are real (small_gicp) on the street scenes of
+test_registration; what a test expects is known from how the scene was built."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pnvlad_service.localization import registration as reg
+from pnvlad_service.localization.verify import (
+    Candidate,
+    Check,
+    PreparedCache,
+    QueryCloud,
+    VerifyConfig,
+    confidence,
+    verify,
+)
+from tests.localization import submap_pairs as sp
+from tests.localization.test_registration import moved, street
+
+pytest.importorskip("small_gicp")
+
+
+def _at(x: float, y: float) -> np.ndarray:
+    t = np.eye(4)
+    t[:2, 3] = [x, y]
+    return t
+
+
+def test_confidence_by_hand() -> None:
+    cfg = VerifyConfig(constraint_ref=0.1, rival_m=10.0)
+    poses = {1: _at(100.0, 0.0), 2: _at(103.0, 0.0), 3: _at(0.0, 0.0)}
+    best = Check(1, 0.6, 0.1, np.eye(4), constraint=0.05)  # puts the query at (100, 0)
+    agree = Check(2, 0.5, 0.1, _at(-2.0, 0.0), constraint=0.5)  # (101, 0): 1 m away, no rival
+    rival = Check(3, 0.4, 0.1, _at(40.0, 0.0), constraint=0.5)  # (40, 0): 60 m away
+    # 0.6 scaled by min(1, 0.05 / 0.1) = 0.5
+    assert confidence([best, agree], poses, cfg) == pytest.approx(0.3)
+    # less the rival's 0.4, then scaled: (0.6 - 0.4) * 0.5
+    assert confidence([best, agree, rival], poses, cfg) == pytest.approx(0.1)
+    pinned = Check(1, 0.6, 0.1, np.eye(4), constraint=0.3)
+    assert confidence([pinned, rival], poses, cfg) == pytest.approx(0.2)
+    # A rival that scores more than the best (ranked after it for being too far) floors at 0.
+    assert confidence([pinned, Check(3, 0.9, 0.1, _at(40.0, 0.0))], poses, cfg) == 0.0
+    assert confidence([], poses, cfg) == 0.0
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict:
+    """A query seeing street(1) from 3 m and 4 degrees off, a true candidate (street(1)) and
+    unrelated ones (other streets), all at the map origin."""
+    rng = np.random.default_rng(11)
+    truth = sp.yaw_matrix(np.radians(4.0), np.array([3.0, -1.0, 0.0]))
+    return {
+        "query": QueryCloud(moved(street(1), truth, rng), "centroid", "measured"),
+        "true": street(1),
+        "others": [street(s) for s in (2, 3, 4, 5)],
+        "truth": truth,
+    }
+
+
+def _cands(clouds: list[np.ndarray]) -> list[Candidate]:
+    return [Candidate(k, c, np.eye(4), key=f"c{k}") for k, c in enumerate(clouds, 1)]
+
+
+def test_the_cascade_stops_after_the_wave_that_holds_a_sure_match(scene: dict) -> None:
+    cands = _cands([scene["true"], *scene["others"]])
+    cfg = VerifyConfig(candidates=5, workers=2, stop_score=0.5, threshold=0.2)
+    v = verify(scene["query"], cands, cfg)
+    assert v.registered == 2 and v.candidates == 5  # wave 1 (ranks 1 and 2) was sure
+    assert v.checks[0].rank == 1 and v.checks[0].score > 0.5 and v.verified
+    t_err = np.linalg.norm(v.checks[0].transform[:3, 3] - scene["truth"][:3, 3])
+    assert t_err < 0.3
+    # Without an early stop every candidate is registered, and the answer is the same.
+    full = verify(scene["query"], cands, VerifyConfig(candidates=5, workers=2, stop_score=None))
+    assert full.registered == 5 and full.checks[0].rank == 1
+    assert np.allclose(full.checks[0].transform, v.checks[0].transform)
+
+
+def test_the_cascade_goes_on_while_nothing_is_sure(scene: dict) -> None:
+    # The true place is retrieved 4th: waves (1, 2) and (3, 4) are needed, then it stops.
+    clouds = [*scene["others"][:3], scene["true"], scene["others"][3]]
+    cfg = VerifyConfig(candidates=5, workers=2, stop_score=0.5)
+    v = verify(scene["query"], _cands(clouds), cfg)
+    assert v.registered == 4 and v.checks[0].rank == 4
+    assert sorted(c.rank for c in v.checks) == [1, 2, 3, 4]
+    # Handed over in any order, candidates are registered in retrieval order.
+    shuffled = list(reversed(_cands(clouds)))
+    again = verify(scene["query"], shuffled, cfg)
+    assert sorted(c.rank for c in again.checks) == [1, 2, 3, 4]
+    # One worker: waves of one, so it stops right after rank 4.
+    one = verify(scene["query"], _cands(clouds), VerifyConfig(workers=1, stop_score=0.5))
+    assert one.registered == 4
+
+
+def test_prepared_cache_is_lru_and_bounded() -> None:
+    cache = PreparedCache(2)
+    cache["a"] = 1
+    cache["b"] = 2
+    assert cache.get("a") == 1  # a is now the most recent
+    cache["c"] = 3  # evicts b
+    assert cache.get("b") is None and cache.get("a") == 1 and cache.get("c") == 3
+    assert len(cache) == 2 and cache.hits == 3 and cache.misses == 1
+    none = PreparedCache(0)
+    none["a"] = 1
+    assert none.get("a") is None and len(none) == 0
+    with pytest.raises(ValueError, match="max_entries"):
+        PreparedCache(-1)
+
+
+def test_verify_reuses_prepared_candidates_from_the_cache(scene: dict, monkeypatch) -> None:
+    cands = _cands([scene["true"], *scene["others"]])
+    cfg = VerifyConfig(candidates=5, workers=1, stop_score=None)
+    cache = PreparedCache(16)
+    first = verify(scene["query"], cands, cfg, cache=cache)
+    assert len(cache) == 5  # the five targets (the query has no key)
+    made = []
+    real = reg.prepare
+
+    def counting(points, config=reg.DEFAULT, role="both"):
+        made.append(role)
+        return real(points, config, role)
+
+    monkeypatch.setattr(reg, "prepare", counting)
+    second = verify(scene["query"], cands, cfg, cache=cache)
+    assert made == ["source"]  # only the query was prepared again
+    assert [c.rank for c in second.checks] == [c.rank for c in first.checks]
+    assert [c.score for c in second.checks] == pytest.approx([c.score for c in first.checks])
