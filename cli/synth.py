@@ -34,6 +34,13 @@ def synth(
         help="Also render PNG previews (map with trajectories, submaps before and after G) "
         "into this folder. Needs the 'plot' extra.",
     ),
+    refresh_truth: bool = typer.Option(
+        False,
+        "--refresh-truth",
+        help="Do not generate: recompute the true poses in the frame sidecars of the existing "
+        "tree OUT (made by an older pnvlad, whose truth was the centre scan's) from its "
+        "synth.json, in seconds. Give --trajectories if the tree was made with them.",
+    ),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
     """Generate a synthetic LiDAR benchmark in the public PointNetVLAD layout.
@@ -53,10 +60,17 @@ def synth(
         pnvlad synth --preset demo --out city/
 
         pnvlad synth --preset benchmark --seed 1 --out bench/ --preview bench/preview/
+
+        pnvlad synth --refresh-truth --out bench/
     """
     from pnvlad_service.synth.generate import generate
+    from pnvlad_service.synth.generate import refresh_truth as refresh
 
     with user_errors():
+        if refresh_truth:
+            rows = refresh(out, trajectories=trajectories, progress=progress)
+            typer.echo(f"refreshed the true poses of {rows} submaps in {out}")
+            return
         summary = generate(
             preset,
             out,

@@ -238,10 +238,8 @@ def choose_test_regions(
     return centres
 
 
-def _run_job(job: dict[str, Any]) -> dict[str, Any]:
-    """Generate one run (in a worker process): world, route, drive, prepare_drive."""
-    from pnvlad_service.data.prepare import prepare_drive
-
+def _job_drive(job: dict[str, Any]) -> SimulatedDrive:
+    """The drive of one run job (no scan is cast until asked for)."""
     preset = SynthPreset.model_validate(job["preset"])
     area = AreaSpec.model_validate(job["area"])
     world = _world(area, job["seed"])
@@ -250,7 +248,7 @@ def _run_job(job: dict[str, Any]) -> dict[str, Any]:
         if job.get("trajectory")
         else make_route(world, area.route_m, job["seed"])
     )
-    drive = SimulatedDrive(
+    return SimulatedDrive(
         world,
         route,
         job["run"],
@@ -260,6 +258,37 @@ def _run_job(job: dict[str, Any]) -> dict[str, Any]:
         lidar=preset.lidar,
         scan_spacing=preset.scan_spacing,
     )
+
+
+def _run_jobs_of_area(
+    out: Path, area_index: int, area: AreaSpec, spec: SynthPreset, seed: int, traj: dict
+) -> list[dict[str, Any]]:
+    """One job per run of an area (what :func:`_run_job` generates)."""
+    jobs = []
+    for k in range(spec.runs):
+        name, start = run_name(area_index, k, seed)
+        jobs.append(
+            {
+                "preset": spec.model_dump(),
+                "area": area.model_dump(),
+                "seed": seed,
+                "run": name,
+                "run_seed": run_seed_of(seed, area_index, k),
+                "start_us": start,
+                "out": str(out),
+                "trajectory": str(traj[(area.name, k)]) if traj else None,
+            }
+        )
+    return jobs
+
+
+def _run_job(job: dict[str, Any]) -> dict[str, Any]:
+    """Generate one run (in a worker process): world, route, drive, prepare_drive."""
+    from pnvlad_service.data.prepare import prepare_drive
+
+    preset = SynthPreset.model_validate(job["preset"])
+    area = AreaSpec.model_validate(job["area"])
+    drive = _job_drive(job)
     t0 = time.perf_counter()
     res = prepare_drive(
         drive,
@@ -326,22 +355,7 @@ def _area_jobs(
     centres = tuple((float(y + area.origin[1]), float(x + area.origin[0])) for x, y in local)
     (tmp / area.name).mkdir(parents=True)
     save_regions(tmp / area.name / "test_regions.json", TestRegions(centres, spec.region_half_size))
-    jobs = []
-    for k in range(spec.runs):
-        name, start = run_name(area_index, k, seed)
-        jobs.append(
-            {
-                "preset": spec.model_dump(),
-                "area": area.model_dump(),
-                "seed": seed,
-                "run": name,
-                "run_seed": run_seed_of(seed, area_index, k),
-                "start_us": start,
-                "out": str(tmp),
-                "trajectory": str(traj_files[(area.name, k)]) if traj_files else None,
-            }
-        )
-    return jobs
+    return _run_jobs_of_area(tmp, area_index, area, spec, seed, traj_files)
 
 
 def _run_jobs(
@@ -437,3 +451,42 @@ def generate(
         out,
     )
     return summary
+
+
+def refresh_truth(
+    out: str | Path, *, trajectories: str | Path | None = None, progress: bool = True
+) -> int:
+    """Recompute the true poses in every frame sidecar of a ``pnvlad synth`` tree from its
+    ``synth.json`` (preset and seed; ``trajectories`` as given to :func:`generate`), by
+    re-simulating each run's poses (no scan is cast: seconds, not the generation's minutes).
+    For trees made before the truth became the window's (``data.prepare.frame_truth``); the
+    submaps, CSVs and splits are left as they are. Returns the rows rewritten."""
+    from tqdm.auto import tqdm
+
+    from pnvlad_service.data.prepare import refresh_truth as refresh_run
+
+    out = Path(out)
+    meta = out / "synth.json"
+    if not meta.is_file():
+        raise InputError("no synth.json: not a pnvlad synth tree", out)
+    try:
+        doc = json.loads(meta.read_text(encoding="utf-8"))
+        spec = SynthPreset.model_validate(doc["preset"])
+        seed = int(doc["seed"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"cannot read the preset and seed: {exc}", meta) from None
+    traj = _trajectory_files(spec, trajectories)
+    jobs = [
+        job
+        for ai, area in enumerate(spec.areas)
+        for job in _run_jobs_of_area(out, ai, area, spec, seed, traj)
+    ]
+    rows = 0
+    for job in tqdm(jobs, desc="truth", unit="run", disable=None if progress else True):
+        run_dir = out / job["area"]["name"] / job["run"]
+        if not run_dir.is_dir():
+            raise InputError("run folder missing (is this the tree synth.json describes?)", run_dir)
+        drive = _job_drive(job)
+        rows += refresh_run(run_dir, drive.poses, drive.true_poses, drive.timestamps)
+    log.info("refreshed the true poses of %d submaps in %s", rows, out)
+    return rows

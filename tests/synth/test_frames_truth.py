@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 from pnvlad_service.data.frames import frames_path
@@ -34,23 +35,94 @@ def test_every_run_has_a_sidecar_with_true_poses(tiny: Path) -> None:
                 assert abs(f.origin[0] - s.easting) < 1e-3 and abs(f.origin[1] - s.northing) < 1e-3
 
 
-def test_the_true_pose_is_the_centre_scans_true_sensor_pose(tiny: Path) -> None:
+def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rigid 4x4 that best maps points ``a`` [N, 3] onto ``b`` (least squares)."""
+    ca, cb = a.mean(0), b.mean(0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
+    r = vt.T @ d @ u.T
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = r, cb - r @ ca
+    return out
+
+
+def test_the_true_pose_best_lays_the_windows_scans_where_they_were_cast(tiny: Path) -> None:
+    """The frame's truth is the rigid motion that best maps the window's points, placed with
+    the recorded (noisy) poses in the local frame, onto where the simulator cast them: found
+    here by least squares over the scans' points (Kabsch), independently of frame_truth's
+    grid of points. It fits them better than the centre scan's true pose alone does."""
+    from pnvlad_service.data.prepare import submap_cuts, travelled_distance
+
     tree = BenchmarkTree(tiny)
     run = tree.runs("business")[0]
     drive = simulated_drive(get_preset("tiny"), 0, 0, seed=3)
     assert drive.name == run
     k = 3
     frame = tree.frames("business", run, "train")[k]
-    i = int(np.flatnonzero(drive.timestamps == frame.timestamp)[0])
-    p = drive.scan(i).astype(np.float64)
-    est = drive.poses[i]
-    local = p @ est[:3, :3].T + (est[:3, 3] - frame.origin)
-    yaw = drive.true_yaw[i]
-    r = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
-    t = np.array([*(drive.world.origin[:2] + drive.true_xy[i]), drive.true_z[i]])
-    truly = p @ r.T + t
-    mapped = local @ frame.true_pose[:3, :3].T + frame.true_pose[:3, 3]
-    assert np.abs(mapped - truly).max() < 1e-6
+    cut = next(
+        c
+        for c in submap_cuts(travelled_distance(drive.poses), 20.0, 10.0)
+        if drive.timestamps[c.scan] == frame.timestamp
+    )
+    local, truly = [], []
+    for i in range(cut.first, cut.last + 1):
+        p = drive.scan(i).astype(np.float64)[::7]
+        est, true = drive.poses[i], drive.true_poses[i]
+        local.append(p @ est[:3, :3].T + (est[:3, 3] - frame.origin))
+        truly.append(p @ true[:3, :3].T + true[:3, 3])
+    local, truly = np.concatenate(local), np.concatenate(truly)
+    best = _kabsch(local, truly)
+    assert np.linalg.norm(frame.true_pose[:3, 3] - best[:3, 3]) < 0.1
+    dyaw = np.degrees(np.arctan2(best[1, 0], best[0, 0])) - frame.true_yaw_deg
+    assert abs(dyaw) < 0.2
+
+    def residual(t: np.ndarray) -> float:  # RMS, what the least squares minimise
+        return float(np.sqrt(np.mean(np.sum((local @ t[:3, :3].T + t[:3, 3] - truly) ** 2, 1))))
+
+    i = cut.scan
+    shift = np.eye(4)
+    shift[:3, 3] = frame.origin
+    centre = drive.true_poses[i] @ np.linalg.inv(drive.poses[i]) @ shift
+    assert residual(best) <= residual(frame.true_pose) < residual(centre)
+
+
+def test_refresh_truth_restores_the_sidecars(tiny: Path, tmp_path: Path) -> None:
+    """A tree whose true columns hold another truth (an older pnvlad's) gets back exactly what
+    generation writes; a sidecar the drive does not reproduce is refused, nothing written."""
+    import shutil
+
+    from pnvlad_service.data.frames import read_frames_csv, write_frames_csv
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.synth.generate import refresh_truth
+
+    copy = tmp_path / "t"
+    shutil.copytree(tiny, copy)
+    tree = BenchmarkTree(copy)
+    sides = [
+        frames_path(tree.csv_path("business", r, kind))
+        for r in tree.runs("business")
+        for kind in ("train", "test")
+    ]
+    before = {p: p.read_text() for p in sides}
+    for p in sides:  # another truth: every true position 1 m east
+        rows = read_frames_csv(p)
+        for f in rows:
+            f.true_position[0] += 1.0  # the array itself is mutable
+        write_frames_csv(p, rows)
+    assert all(p.read_text() != before[p] for p in sides)
+    n = refresh_truth(copy, progress=False)
+    assert n == sum(len(read_frames_csv(p)) for p in sides)
+    assert all(p.read_text() == before[p] for p in sides)
+    # A row at a timestamp the drive has no submap at: refused, the sidecars untouched.
+    from dataclasses import replace
+
+    rows = read_frames_csv(sides[0])
+    rows[0] = replace(rows[0], timestamp=rows[0].timestamp + 1)
+    write_frames_csv(sides[0], rows)
+    broken = sides[0].read_text()
+    with pytest.raises(InputError, match="not a submap of this drive"):
+        refresh_truth(copy, progress=False)
+    assert sides[0].read_text() == broken and sides[1].read_text() == before[sides[1]]
 
 
 def test_the_metres_are_the_accumulated_cloud(tiny: Path) -> None:
