@@ -495,7 +495,21 @@ def _finish(loop: _Loop, state: TrainState, stopped: str) -> Path | None:
         )
     seconds = round(time.monotonic() - loop.t0, 3)
     loop.mlog.write(event="end", step=state.step, stopped=stopped, seconds=seconds)
+    if main:
+        _write_curve(loop.out)
     return model_dir
+
+
+def _write_curve(out: Path) -> None:
+    """``OUT/learning_curve.png`` from the run's log, when matplotlib (the plot extra) is
+    installed; a training run never fails for want of it."""
+    from pnvlad_service.errors import MissingDependencyError
+    from pnvlad_service.training.curves import read_curve, write_learning_curves
+
+    try:
+        write_learning_curves([read_curve(out)], out / "learning_curve.png", title=out.name)
+    except MissingDependencyError:
+        log.info("no learning_curve.png: matplotlib is not installed (pip install 'pnvlad[plot]')")
 
 
 def _validate(
