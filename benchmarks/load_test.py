@@ -12,13 +12,19 @@ or speeds up during the run (a shared VM does) weighs on both sides alike.
 With a bundle that carries geometry, each client count runs twice, re-ranking off
 (``verify=false``) then on (the top ``--rerank`` candidates registered to the query), and the
 script prints what re-ranking adds to the 1-client p50 and takes from the 8-client throughput
-(the #10 targets: +25 ms at most, -30 % at most). The queries are then the map's submaps
-turned by a random yaw and jittered (``--perturb``), so that verification does its whole work
-(a yaw search and the registration) rather than match a cloud against itself.
+(the #10 targets: +25 ms at most, -30 % at most), with the candidates registered a query
+(the cascade stops at a sure one) and the share verified. The queries are then the map's
+submaps turned by a random yaw and jittered (``--perturb``), so that verification does its
+whole work (a yaw search and the registration) rather than match a cloud against itself; or,
+with ``--query-run``, the submaps of a run the bundle left out, as a vehicle would send them.
+``--server-env PNVLAD_VERIFY_CACHE=0`` starts the server without its cache of prepared
+candidates (every candidate prepared afresh: the cold cost).
 
 Loopback only; bounded in time and count.
 
     python benchmarks/load_test.py --index demo/map.index --clients 1 8 --seconds 20
+    python benchmarks/load_test.py --index runs/demo/map.index \
+        --query-run runs/demo/city/business/HELD_OUT_RUN --server-env PNVLAD_VERIFY_CACHE=0
 """
 
 from __future__ import annotations
@@ -62,6 +68,24 @@ def load_queries(index: Path | None, count: int, seed: int = 0) -> list[np.ndarr
         if out:
             return out
     return [rng.uniform(-0.9, 0.9, (4096, 3)).astype(np.float32) for _ in range(count)]
+
+
+def run_queries(run: Path, count: int) -> tuple[list[np.ndarray], list[float | None]]:
+    """Up to ``count`` test-layout submaps of another run (``run``: a run folder of the tree
+    that the bundle left out), evenly spaced along it, and each one's scale from the run's
+    frame sidecar (None without one): queries as a vehicle that prepared its own submaps
+    sends them, at the places of the map but not its own clouds."""
+    from pnvlad_service.data.frames import read_frames_csv
+    from pnvlad_service.io.submap import read_submap
+
+    files = sorted((Path(run) / "pointcloud_20m").glob("*.bin"))
+    if not files:
+        raise SystemExit(f"{run}: no pointcloud_20m/*.bin submaps (give a run folder)")
+    sidecar = Path(run) / "pointcloud_locations_20m.frames.csv"
+    scales = {f.timestamp: f.scale for f in read_frames_csv(sidecar)} if sidecar.is_file() else {}
+    picks = np.linspace(0, len(files) - 1, min(count, len(files))).round().astype(int)
+    clouds = [read_submap(files[i]).astype(np.float32) for i in picks]
+    return clouds, [scales.get(int(files[i].stem)) for i in picks]
 
 
 def perturbed(clouds: list[np.ndarray], seed: int = 0) -> list[np.ndarray]:
@@ -113,11 +137,13 @@ def run_phase(
     clients: int,
     seconds: float,
     max_requests: int,
-    bodies: list[bytes],
+    bodies: list[tuple[bytes, str]],
     ctype: str,
-    path: str,
 ) -> dict:
+    """``bodies``: (body, path) pairs sent round-robin."""
     lat: list[float] = []
+    registered: list[int] = []
+    verified: list[bool] = []
     errors: list[str] = []
     lock = threading.Lock()
     stop = time.monotonic() + seconds
@@ -131,7 +157,7 @@ def run_phase(
                     if sent[0] >= max_requests:
                         break
                     sent[0] += 1
-                body = bodies[i % len(bodies)]
+                body, path = bodies[i % len(bodies)]
                 i += clients
                 t = time.perf_counter()
                 try:
@@ -140,6 +166,10 @@ def run_phase(
                     with lock:
                         if status == 200:
                             lat.append(dt)
+                            doc = json.loads(data)
+                            if doc.get("verification"):
+                                registered.append(int(doc["verification"]["registered"]))
+                                verified.append(bool(doc["verified"]))
                         else:
                             errors.append(f"{status}: {data[:200]!r}")
                 except ServerError as exc:
@@ -165,6 +195,8 @@ def run_phase(
         "p50_ms": float(p50),
         "p95_ms": float(p95),
         "p99_ms": float(p99),
+        "registered_mean": float(np.mean(registered)) if registered else 0.0,
+        "verified_share": float(np.mean(verified)) if verified else 0.0,
     }
 
 
@@ -204,7 +236,20 @@ def main() -> None:
         "--perturb",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="Turn and jitter the queries (default: when re-ranking).",
+        help="Turn and jitter the queries (default: when re-ranking the map's own submaps).",
+    )
+    ap.add_argument(
+        "--query-run",
+        type=Path,
+        help="Queries from this run folder of the tree (one the bundle left out) instead of "
+        "the map's own submaps; not perturbed unless --perturb.",
+    )
+    ap.add_argument(
+        "--server-env",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="Environment of the started server, e.g. PNVLAD_VERIFY_CACHE=0 (repeatable).",
     )
     args = ap.parse_args()
     if not args.url and not args.index:
@@ -212,8 +257,13 @@ def main() -> None:
     both = args.rerank == "both" or (args.rerank == "auto" and has_geometry(args.index))
     modes = ["off", "on"] if both else [None]
 
-    clouds = load_queries(args.index, args.queries)
-    if args.perturb or (args.perturb is None and both):
+    scales: list[float | None] = []
+    if args.query_run is not None:
+        clouds, scales = run_queries(args.query_run, args.queries)
+    else:
+        clouds = load_queries(args.index, args.queries)
+    scales = scales or [None] * len(clouds)
+    if args.perturb or (args.perturb is None and both and args.query_run is None):
         clouds = perturbed(clouds)
     checkpoint = args.checkpoint
     if checkpoint is None and args.index is not None:
@@ -237,29 +287,45 @@ def main() -> None:
     proc = None
     url, pid = args.url, args.pid
     if url is None:
-        proc, url = start_server(args.index, checkpoint=args.checkpoint)
+        env = dict(kv.split("=", 1) for kv in args.server_env)
+        proc, url = start_server(args.index, checkpoint=args.checkpoint, env=env)
         pid = proc.pid
     if urlparse(url).hostname not in ("127.0.0.1", "localhost", "::1"):
         raise SystemExit("loopback only: the load test refuses other hosts")
     try:
 
-        def request(mode: str | None) -> tuple[list[bytes], str, str]:
+        def request(mode: str | None) -> tuple[list[tuple[bytes, str]], str]:
+            """The bodies (and their paths) of a phase: re-ranking off, on, or the server's
+            default; each query's scale sent when known (the cloud's own, as its frame
+            sidecar has it)."""
             flag = {None: {}, "off": {"verify": False}, "on": {"verify": True}}[mode]
             if args.body == "binary":
                 q = "&verify=" + str(flag["verify"]).lower() if flag else ""
-                bodies = [c.astype("<f4").tobytes() for c in clouds]
-                return bodies, "application/octet-stream", f"/localize?top_n=5{q}"
-            bodies = [
-                json.dumps({"points": c.tolist(), "top_n": 5, **flag}).encode() for c in clouds
-            ]
-            return bodies, "application/json", "/localize"
+                return [
+                    (
+                        c.astype("<f4").tobytes(),
+                        f"/localize?top_n=5{q}" + (f"&scale={sc!r}" if sc is not None else ""),
+                    )
+                    for c, sc in zip(clouds, scales, strict=True)
+                ], "application/octet-stream"
+            return [
+                (
+                    json.dumps(
+                        {"points": c.tolist(), "top_n": 5, **flag}
+                        | ({"scale": sc} if sc is not None else {})
+                    ).encode(),
+                    "/localize",
+                )
+                for c, sc in zip(clouds, scales, strict=True)
+            ], "application/json"
 
         for mode in modes:
             run_phase(url, 1, 2.0, 10, *request(mode))  # warm-up
         result["phases"] = []
         print(
             f"{'clients':>7} {'rerank':>6} {'requests':>8} {'errors':>6} {'req/s':>7} "
-            f"{'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'mean batch':>10}"
+            f"{'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'mean batch':>10} {'registered':>10} "
+            f"{'verified':>8}"
         )
         for n in args.clients:
             for mode in modes:  # off then on, side by side for each client count
@@ -273,7 +339,8 @@ def main() -> None:
                 print(
                     f"{n:>7} {ph['rerank']:>6} {ph['requests']:>8} {ph['errors']:>6} "
                     f"{ph['throughput']:>7.2f} {ph['p50_ms']:>8.1f} {ph['p95_ms']:>8.1f} "
-                    f"{ph['p99_ms']:>8.1f} {ph['mean_batch']:>10.2f}",
+                    f"{ph['p99_ms']:>8.1f} {ph['mean_batch']:>10.2f} "
+                    f"{ph['registered_mean']:>10.2f} {100 * ph['verified_share']:>7.0f}%",
                     flush=True,
                 )
                 for e in ph["first_errors"]:

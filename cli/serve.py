@@ -58,8 +58,8 @@ def serve(
     verify_cache: int = typer.Option(
         None,
         "--verify-cache",
-        help="Prepared candidate clouds kept in memory for later queries (default 256, about "
-        "0.6 MB each; 0 keeps none).",
+        help="Prepared candidate clouds kept in memory for later queries (default 128, about "
+        "1 MB each; 0 keeps none).",
     ),
     log_level: str = typer.Option("info", "--log-level", help="uvicorn log level."),
 ) -> None:

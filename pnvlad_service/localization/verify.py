@@ -59,13 +59,13 @@ class VerifyConfig:
     """
 
     candidates: int = DEFAULT_CANDIDATES
-    threshold: float = 0.30
+    threshold: float = 0.10
     place_radius_m: float = 25.0
     workers: int = 2
     stop_score: float | None = 0.25
     constraint_ref: float = 0.1
     rival_m: float = 10.0
-    cache_entries: int = 256
+    cache_entries: int = 128
     registration: reg.RegistrationConfig = field(default_factory=reg.RegistrationConfig)
 
     def __post_init__(self) -> None:
@@ -229,8 +229,8 @@ class PreparedCache:
     A server verifies a moving vehicle's queries against the map: consecutive queries share
     most of their candidates, and a candidate's preparation (downsampling, covariances,
     kd-tree, voxel map, image spectra) is a third to a half of its registration's cost. A
-    prepared 4,096-point submap holds about 0.6 MB (measured in docs/VERIFY.md), so the
-    default 256 entries keep about 150 MB. ``max_entries`` 0 keeps nothing."""
+    prepared 4,096-point submap holds about 1 MB (measured in docs/VERIFY.md), so the
+    default 128 entries keep about 130 MB. ``max_entries`` 0 keeps nothing."""
 
     def __init__(self, max_entries: int) -> None:
         if max_entries < 0:
@@ -321,17 +321,29 @@ def verify(
             cache[(key, role)] = made
         return made
 
+    step = max(1, config.workers)
+    # The first wave's candidates are prepared on the pool while this thread prepares the
+    # query (with 2 workers: three clouds at once on 2 cores, not one then two).
+    early: dict[int, Any] = {}
+    if step > 1 and len(candidates) > 1:
+        pool = _pool(config.workers)
+        early = {
+            c.rank: pool.submit(prepared, c.points_m, c.key, "target") for c in candidates[:step]
+        }
     source = prepared(query.points_m, query_key, "source")
     if source.reason is not None:  # a line, a plane, too few distinct points (reg.prepare)
         return refused(f"query: {source.reason}")
 
     def check(cand: Candidate) -> Check:
-        r = reg.register(source, prepared(cand.points_m, cand.key, "target"), config.registration)
+        pending = early.get(cand.rank)
+        target = pending.result() if pending is not None else None
+        if target is None:
+            target = prepared(cand.points_m, cand.key, "target")
+        r = reg.register(source, target, config.registration)
         return Check(cand.rank, float(r.fitness), float(r.rmse_m), r.transform, r.constraint)
 
     checks: list[Check] = []
     ordered: tuple[Check, ...] = ()
-    step = max(1, config.workers)
     for start in range(0, len(candidates), step):
         wave = candidates[start : start + step]
         if len(wave) > 1:

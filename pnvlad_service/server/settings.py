@@ -97,7 +97,7 @@ class ServerSettings(BaseSettings):
     verify_cache: int = Field(
         VerifyConfig.cache_entries,
         ge=0,
-        description="Prepared candidate clouds kept in memory (about 0.6 MB each; 0: none).",
+        description="Prepared candidate clouds kept in memory (about 1 MB each; 0: none).",
     )
 
     def verify_config(self) -> VerifyConfig:
