@@ -323,6 +323,7 @@ def summarise(outcomes: list[QueryOutcome], threshold: float, candidates: int) -
         "recall_at_1_after_reversed": _pair_mean(rev, "r1_after") if rev else float("nan"),
         "recall_at_1_before_reversed": _pair_mean(rev, "r1_before") if rev else float("nan"),
         "verified": verified_figures(outcomes, threshold),
+        "registered_mean": float(np.mean([o.registered for o in outcomes])) if outcomes else 0.0,
     }
 
 

@@ -206,11 +206,8 @@ class Verification:
     seconds: float = 0.0
     candidates: int = 0
     confidence: float = 0.0
-
-    @property
-    def registered(self) -> int:
-        """Candidates registered (at most ``candidates``: the cascade stops at a sure one)."""
-        return len(self.checks)
+    registered: int = 0  # candidates registered: at most ``candidates`` (the cascade stops
+    # at a sure one), 0 when the query itself could not be registered
 
     @property
     def order(self) -> list[int]:
@@ -305,7 +302,9 @@ def verify(
     def refused(reason: str) -> Verification:
         checks = tuple(Check(c.rank, 0.0, math.inf, np.eye(4)) for c in candidates)
         seconds = time.perf_counter() - t0
-        return Verification(False, checks, None, config.threshold, reason, seconds, len(candidates))
+        return Verification(
+            False, checks, None, config.threshold, reason, seconds, len(candidates), 0.0, 0
+        )
 
     if not candidates:
         return refused("no candidates")
@@ -362,7 +361,7 @@ def verify(
         pose = Pose.from_check(best, cand, query)
     seconds = time.perf_counter() - t0
     return Verification(
-        verified, ordered, pose, config.threshold, None, seconds, len(candidates), sure
+        verified, ordered, pose, config.threshold, None, seconds, len(candidates), sure, len(checks)
     )
 
 

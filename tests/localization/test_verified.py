@@ -73,6 +73,7 @@ def test_a_degenerate_query_is_not_verified_and_does_not_raise(city: dict) -> No
         for cloud in (plane, line):
             ans = loc.localize(cloud, top_n=2)
             assert ans.verified is False and ans.verification.pose is None
+            assert ans.verification.registered == 0 and ans.verification.confidence == 0.0
             assert "plane" in ans.verification.reason or "line" in ans.verification.reason
             assert ans.to_json()["verified"] is False
         # A raw scan that G leaves nearly empty: 80 points in a 1 m box, refilled to 4096.
