@@ -57,12 +57,19 @@ def test_a_verified_answer_with_scores_and_a_pose(geo: str, bundles: dict) -> No
     assert r.status_code == 200, r.text
     doc = r.json()
     assert doc["verified"] is True, doc["verification"]
-    assert doc["verification"]["candidates"] == 26
+    v = doc["verification"]
+    assert v["candidates"] == 26 and 1 <= v["registered"] <= 26
+    assert v["threshold"] == 0.25 <= v["confidence"] <= v["best_score"]
     ms = doc["matches"]
+    # The cascade's unregistered candidates have no score; the registered ones come first.
+    assert [m["score"] is not None for m in ms] == sorted(
+        [m["score"] is not None for m in ms], reverse=True
+    )
     assert [m["rank"] for m in ms] == [1, 2, 3]
     assert ms[0]["score"] == doc["verification"]["best_score"] >= ms[1]["score"]
     pose = doc["pose"]
     assert pose["scale"] == "measured" and pose["frame"] == "centroid"
+    assert 0.0 < pose["constraint"] <= 1.0
     t = np.array(pose["transform"])
     assert t.shape == (4, 4) and np.allclose(t[3], [0, 0, 0, 1])
     assert pose["northing"] == t[1, 3] and pose["easting"] == t[0, 3]
