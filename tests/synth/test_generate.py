@@ -73,6 +73,24 @@ def test_cli_synth_refuses_an_existing_tree_and_an_unknown_preset(
     assert res.exit_code == 2 and "tiny" in res.output
 
 
+def test_cli_refresh_truth_leaves_a_current_tree_as_it_is_and_names_a_bad_one(
+    tiny: Path, tmp_path: Path
+) -> None:
+    import shutil
+
+    copy = tmp_path / "t"
+    shutil.copytree(tiny, copy)
+    sides = sorted(copy.rglob("*.frames.csv"))
+    before = [p.read_bytes() for p in sides]
+    res = CliRunner().invoke(app, ["synth", "--refresh-truth", "--out", str(copy), "--no-progress"])
+    assert res.exit_code == 0, res.output
+    assert "refreshed the true poses of" in res.output
+    assert [p.read_bytes() for p in sides] == before  # made by this version: nothing changes
+    (tmp_path / "plain").mkdir()
+    res = CliRunner().invoke(app, ["synth", "--refresh-truth", "--out", str(tmp_path / "plain")])
+    assert res.exit_code == 2 and "synth.json" in res.output
+
+
 def test_eval_scores_every_area_of_a_multi_area_tree(tiny: Path, tmp_path: Path) -> None:
     """Two identical areas must score identically: ground truth of the second set must point
     at its own runs, not at the first set's (a bug once scored only the first area)."""
