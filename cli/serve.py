@@ -52,7 +52,7 @@ def serve(
     verify_stop_score: float = typer.Option(
         None,
         "--verify-stop-score",
-        help="Candidates are registered in retrieval order, two at a time, and the rest skipped "
+        help="Candidates are registered in retrieval order, one at a time, and the rest skipped "
         "once one scores this within the place radius (default 0.45; 1 registers all K).",
     ),
     verify_cache: int = typer.Option(

@@ -463,7 +463,7 @@ def summary_lines(rep: dict[str, Any]) -> list[str]:
             f"{r['median_translation_m']:.3f} m, {r['median_yaw_deg']:.3f} deg"
         )
     lines.append(
-        f"verified (score >= {v['threshold']:.2f}): precision {v['precision']:.1f} % (place), "
+        f"verified (confidence >= {v['threshold']:.2f}): precision {v['precision']:.1f} % (place), "
         f"{v['pose_precision']:.1f} % (pose < 2 m, 5 deg), coverage {v['coverage']:.1f} % of "
         f"queries, recall {v['recall']:.1f} % of true top-1"
     )

@@ -44,25 +44,31 @@ class VerifyConfig:
     """How candidates are verified.
 
     ``candidates``: how many of the nearest (by descriptor) are registered (K);
-    ``threshold``: the score at or above which the best match counts as verified;
+    ``threshold``: the :func:`confidence` at or above which the best match is verified;
     ``place_radius_m``: a candidate whose registration puts the query farther than this from
     its own origin is another place that shares some geometry with the query (a street seen
     from 30 m on): it ranks after the candidates that place the query within the radius;
-    ``workers``: candidates registered at once (threads: small_gicp and NumPy's FFT release
-    the GIL); ``stop_score``: candidates are registered in retrieval order, ``workers`` at a
-    time, and the rest are skipped once the best so far places the query within the radius
-    with at least this score (a sure match: nothing further down the list would beat it
+    ``workers``: candidates registered at once on a pool of threads (1 by default:
+    small_gicp's Python binding holds the GIL, so its calls do not overlap in threads; it
+    parallelises each call with its own ``registration.threads`` instead);
+    ``stop_score``: candidates are registered in retrieval order, ``workers`` at a time,
+    and the rest are skipped once the best so far places the query within the radius with
+    at least this score (a sure match: nothing further down the list would beat it
     often enough to pay for registering it; ``None`` registers all ``candidates``);
+    ``min_registered``: the cascade never stops before this many are registered (the
+    second is the rival the confidence needs: stopping after one sure candidate verified
+    98.7 % right at 80.8 % coverage on the benchmark, after two 99.5 % at 86.8 %);
     ``constraint_ref`` and ``rival_m``: see :func:`confidence`;
     ``cache_entries``: prepared candidate clouds a :class:`~..localizer.Localizer` keeps
     (:class:`PreparedCache`; 0 keeps none); ``registration``: the registration's settings.
     """
 
     candidates: int = DEFAULT_CANDIDATES
-    threshold: float = 0.10
+    threshold: float = 0.09
     place_radius_m: float = 25.0
-    workers: int = 2
+    workers: int = 1
     stop_score: float | None = 0.25
+    min_registered: int = 2
     constraint_ref: float = 0.1
     rival_m: float = 10.0
     cache_entries: int = 128
@@ -77,6 +83,8 @@ class VerifyConfig:
             raise ValueError(f"stop_score must be in [0, 1] or None, got {self.stop_score}")
         if self.cache_entries < 0:
             raise ValueError(f"cache_entries must be >= 0, got {self.cache_entries}")
+        if self.min_registered < 1:
+            raise ValueError(f"min_registered must be at least 1, got {self.min_registered}")
         if self.workers < 1:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
 
@@ -321,8 +329,8 @@ def verify(
         return made
 
     step = max(1, config.workers)
-    # The first wave's candidates are prepared on the pool while this thread prepares the
-    # query (with 2 workers: three clouds at once on 2 cores, not one then two).
+    # With a pool, the first wave's candidates are prepared on it while this thread prepares
+    # the query (overlapping only where NumPy releases the GIL).
     early: dict[int, Any] = {}
     if step > 1 and len(candidates) > 1:
         pool = _pool(config.workers)
@@ -350,7 +358,8 @@ def verify(
         else:
             checks += [check(c) for c in wave]
         ordered = rerank(checks, config.place_radius_m)
-        if config.stop_score is not None and _sure(ordered[0], config):
+        enough = len(checks) >= config.min_registered
+        if enough and config.stop_score is not None and _sure(ordered[0], config):
             break
     best = ordered[0]
     sure = confidence(ordered, {c.rank: c.map_pose for c in candidates}, config)

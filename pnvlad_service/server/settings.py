@@ -91,7 +91,7 @@ class ServerSettings(BaseSettings):
         VerifyConfig.stop_score,
         ge=0.0,
         le=1.0,
-        description="Candidates are registered in retrieval order, two at a time; the rest are "
+        description="Candidates are registered in retrieval order, one at a time; the rest are "
         "skipped once one scores this within the place radius (1: register all).",
     )
     verify_cache: int = Field(

@@ -78,6 +78,18 @@ def test_the_cascade_stops_after_the_wave_that_holds_a_sure_match(scene: dict) -
     assert np.allclose(full.checks[0].transform, v.checks[0].transform)
 
 
+def test_one_at_a_time_the_cascade_still_registers_a_second_candidate(scene: dict) -> None:
+    """The second registered candidate is the rival the confidence is measured against, so
+    by default the cascade stops after two even when the first is sure; asked to, after one."""
+    cands = _cands([scene["true"], *scene["others"]])
+    v = verify(scene["query"], cands, VerifyConfig(candidates=5, workers=1, stop_score=0.5))
+    assert v.registered == 2 and v.checks[0].rank == 1 and v.verified
+    single = VerifyConfig(candidates=5, workers=1, stop_score=0.5, min_registered=1)
+    assert verify(scene["query"], cands, single).registered == 1
+    with pytest.raises(ValueError, match="min_registered"):
+        VerifyConfig(min_registered=0)
+
+
 def test_the_cascade_goes_on_while_nothing_is_sure(scene: dict) -> None:
     # The true place is retrieved 4th: waves (1, 2) and (3, 4) are needed, then it stops.
     clouds = [*scene["others"][:3], scene["true"], scene["others"][3]]
