@@ -17,7 +17,8 @@ _CONFIG = typer.Option(
     None,
     "--config",
     "-c",
-    help="YAML/TOML config file, or a shipped preset name: 'paper' (default) or 'compact'.",
+    help="YAML/TOML config file, or a shipped preset name: 'paper' (default), 'compact', or "
+    "'cpu' (the best CPU recipe: compact + in-batch mining, augmentation, cosine schedule).",
     rich_help_panel=_RUN,
 )
 _OUT = typer.Option(

@@ -119,10 +119,14 @@ class TrainConfig(BaseModel):
 
     @classmethod
     def preset(cls, name: str) -> TrainConfig:
-        """A shipped config: ``paper`` or ``compact`` (pnvlad_service/configs/<name>.yaml)."""
-        ref = resources.files("pnvlad_service") / "configs" / f"{name}.yaml"
+        """A shipped config: ``paper``, ``compact`` or ``cpu`` (pnvlad_service/configs/)."""
+        folder = resources.files("pnvlad_service") / "configs"
+        ref = folder / f"{name}.yaml"
         if not ref.is_file():
-            raise InputError(f"no shipped config named {name!r} (paper, compact)", source="config")
+            names = sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+            raise InputError(
+                f"no shipped config named {name!r} ({', '.join(names)})", source="config"
+            )
         return cls.from_mapping(_parse(ref.read_text(encoding="utf-8"), f"{name}.yaml"), name)
 
     @classmethod

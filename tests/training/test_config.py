@@ -46,6 +46,15 @@ def test_shipped_configs_load() -> None:
     assert paper.train.lr == 5e-5 and paper.train.negatives == 18 and paper.train.positives == 2
     assert paper.model.cluster_size == 64
     assert TrainConfig.preset("compact").model.cluster_size == 16
+    # The CPU recipe: the compact model, in-batch mining, augmentation, the cosine schedule;
+    # the same numbers as the benchmark config its figures were measured with.
+    cpu = TrainConfig.preset("cpu")
+    run8 = TrainConfig.from_file(Path(__file__).parents[2] / "benchmarks/configs/compact-aug.yaml")
+    assert cpu.model == TrainConfig.preset("compact").model
+    assert cpu.train.model_copy(update={"threads": 1}) == run8.train
+    assert cpu.train.augment.active and cpu.train.lr_schedule == "cosine"
+    with pytest.raises(InputError, match="compact, cpu, paper"):
+        TrainConfig.preset("gpu")
 
 
 def test_run_config_file_then_the_resumed_runs_then_the_paper(tmp_path: Path) -> None:
