@@ -53,7 +53,7 @@ def serve(
         None,
         "--verify-stop-score",
         help="Candidates are registered in retrieval order, one at a time, and the rest skipped "
-        "once one scores this within the place radius (default 0.45; 1 registers all K).",
+        "once one scores this within the place radius (default 0.25; 1 registers all K).",
     ),
     verify_cache: int = typer.Option(
         None,

@@ -513,10 +513,17 @@ def _frame(
     origin = snap_m(poses[cut.scan, :3, 3])
     true_pos = true_yaw = None
     if true is not None:
-        t = frame_truth(poses, true, cut, origin, use)
-        true_pos, true_yaw = t[:3, 3].copy(), math.degrees(math.atan2(t[1, 0], t[0, 0]))
+        true_pos, true_yaw = _true_columns(poses, true, cut, origin, use)
     stamp = int(stamps[cut.scan])
     return SubmapFrame(stamp, origin, g.centre, g.scale, "enu", true_pos, true_yaw)
+
+
+def _true_columns(
+    poses: np.ndarray, true: np.ndarray, cut: Cut, origin: np.ndarray, use: np.ndarray | None
+) -> tuple[np.ndarray, float]:
+    """The sidecar's true position [3] and yaw (degrees) of :func:`frame_truth`."""
+    t = frame_truth(poses, true, cut, origin, use)
+    return t[:3, 3].copy(), math.degrees(math.atan2(t[1, 0], t[0, 0]))
 
 
 def refresh_truth(
@@ -556,9 +563,8 @@ def refresh_truth(
                     "by another version or other options?)",
                     sidecar,
                 )
-            t = frame_truth(poses, true, cut, origin, use)
-            yaw = math.degrees(math.atan2(t[1, 0], t[0, 0]))
-            rows.append(replace(f, true_position=t[:3, 3].copy(), true_yaw_deg=yaw))
+            pos, yaw = _true_columns(poses, true, cut, origin, use)
+            rows.append(replace(f, true_position=pos, true_yaw_deg=yaw))
         updates.append((sidecar, rows))
     for sidecar, rows in updates:  # only once every sidecar of the run checked out
         write_frames_csv(sidecar, rows)

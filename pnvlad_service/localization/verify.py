@@ -282,14 +282,16 @@ def _pool(workers: int) -> ThreadPoolExecutor:
         return _POOLS[workers]
 
 
+def _near(check: Check, place_radius_m: float) -> bool:
+    """Whether the registration puts the query within ``place_radius_m`` of the candidate's
+    own origin."""
+    return bool(np.hypot(check.transform[0, 3], check.transform[1, 3]) <= place_radius_m)
+
+
 def rerank(checks: Sequence[Check], place_radius_m: float = math.inf) -> tuple[Check, ...]:
     """Candidates that place the query within ``place_radius_m`` of their origin first, each
     group best score first; the retrieval rank breaks ties (stable)."""
-
-    def far(c: Check) -> bool:
-        return bool(np.hypot(c.transform[0, 3], c.transform[1, 3]) > place_radius_m)
-
-    return tuple(sorted(checks, key=lambda c: (far(c), -c.score, c.rank)))
+    return tuple(sorted(checks, key=lambda c: (not _near(c, place_radius_m), -c.score, c.rank)))
 
 
 def verify(
@@ -358,8 +360,7 @@ def verify(
         else:
             checks += [check(c) for c in wave]
         ordered = rerank(checks, config.place_radius_m)
-        enough = len(checks) >= config.min_registered
-        if enough and config.stop_score is not None and _sure(ordered[0], config):
+        if len(checks) >= config.min_registered and _sure(ordered[0], config):
             break
     best = ordered[0]
     sure = confidence(ordered, {c.rank: c.map_pose for c in candidates}, config)
@@ -404,6 +405,8 @@ def confidence(
 
 
 def _sure(best: Check, config: VerifyConfig) -> bool:
-    """Whether ``best`` ends the cascade: within the place radius, score >= ``stop_score``."""
-    near = bool(np.hypot(best.transform[0, 3], best.transform[1, 3]) <= config.place_radius_m)
-    return near and config.stop_score is not None and best.score >= config.stop_score
+    """Whether ``best`` ends the cascade: within the place radius, score >= ``stop_score``
+    (never with ``stop_score`` None)."""
+    if config.stop_score is None:
+        return False
+    return _near(best, config.place_radius_m) and best.score >= config.stop_score

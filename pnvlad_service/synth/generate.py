@@ -148,20 +148,8 @@ def run_seed_of(seed: int, area_index: int, run: int) -> int:
 def simulated_drive(spec: SynthPreset, area_index: int, run: int, seed: int) -> SimulatedDrive:
     """Rebuild run ``run`` of area ``area_index`` exactly as :func:`generate` drove it
     (generated routes only), e.g. to look at its raw scans."""
-    area = spec.areas[area_index]
-    world = _world(area, seed)
-    route = make_route(world, area.route_m, seed)
-    name, start = run_name(area_index, run, seed)
-    return SimulatedDrive(
-        world,
-        route,
-        name,
-        seed=run_seed_of(seed, area_index, run),
-        start_us=start,
-        conditions=spec.conditions,
-        lidar=spec.lidar,
-        scan_spacing=spec.scan_spacing,
-    )
+    jobs = _run_jobs_of_area(Path("."), area_index, spec.areas[area_index], spec, seed, {})
+    return _job_drive(jobs[run])
 
 
 def _world(area: AreaSpec, seed: int) -> World:
