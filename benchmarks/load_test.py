@@ -75,13 +75,16 @@ def run_queries(run: Path, count: int) -> tuple[list[np.ndarray], list[float | N
     that the bundle left out), evenly spaced along it, and each one's scale from the run's
     frame sidecar (None without one): queries as a vehicle that prepared its own submaps
     sends them, at the places of the map but not its own clouds."""
-    from pnvlad_service.data.frames import read_frames_csv
+    from pnvlad_service.data.frames import frames_path, read_frames_csv
+    from pnvlad_service.data.tree import LAYOUTS
     from pnvlad_service.io.submap import read_submap
 
-    files = sorted((Path(run) / "pointcloud_20m").glob("*.bin"))
+    names = LAYOUTS["oxford"]
+    folder = names.folder("test")
+    files = sorted((Path(run) / folder).glob("*.bin"))
     if not files:
-        raise SystemExit(f"{run}: no pointcloud_20m/*.bin submaps (give a run folder)")
-    sidecar = Path(run) / "pointcloud_locations_20m.frames.csv"
+        raise SystemExit(f"{run}: no {folder}/*.bin submaps (give a run folder)")
+    sidecar = frames_path(Path(run) / names.csv("test"))
     scales = {f.timestamp: f.scale for f in read_frames_csv(sidecar)} if sidecar.is_file() else {}
     picks = np.linspace(0, len(files) - 1, min(count, len(files))).round().astype(int)
     clouds = [read_submap(files[i]).astype(np.float32) for i in picks]
