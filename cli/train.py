@@ -79,6 +79,14 @@ _WORKERS = typer.Option(
     help="Threads reading submaps into RAM (default 4).",
     rich_help_panel=_RUN,
 )
+_SET = typer.Option(
+    None,
+    "--set",
+    help="FIELD=VALUE: any config field, dotted as in --dump-config, the value read as YAML "
+    "(repeatable; after the file, before the options above): --set model.output_dim=128 "
+    "--set train.augment.yaw_deg=0 --set 'model.trunk_widths=[64, 128, 512]'.",
+    rich_help_panel=_MODEL,
+)
 _DUMP = typer.Option(
     False,
     "--dump-config",
@@ -106,6 +114,7 @@ def train(
     device: str = _DEVICE,
     seed: int = _SEED,
     workers: int = _WORKERS,
+    assignments: list[str] = _SET,
     dump_config: bool = _DUMP,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
@@ -126,14 +135,17 @@ def train(
       pnvlad train -c compact --root city/ --splits city/splits.json -o runs/a --max-minutes 10
 
       pnvlad train -c compact -o runs/a --resume
+
+      pnvlad train -c compact --set model.output_dim=128 --dump-config
     """
     with user_errors():
         from pnvlad_service.errors import InputError
-        from pnvlad_service.training.config import run_config
+        from pnvlad_service.training.config import parse_assignments, run_config
 
         if resume and out is None:
             raise InputError("--resume needs --out, the run directory to continue", "--out")
-        cfg = run_config(config, out if resume else None).with_overrides(
+        cfg = run_config(config, out if resume else None)
+        cfg = cfg.with_overrides(parse_assignments(assignments or [])).with_overrides(
             {
                 "data.root": root,
                 "data.splits": splits,

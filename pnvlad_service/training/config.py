@@ -162,15 +162,19 @@ class TrainConfig(BaseModel):
             raise InputError(f"{field}: {err['msg']}", source=source) from None
 
     def with_overrides(self, overrides: dict[str, Any]) -> TrainConfig:
-        """Return a copy with dotted fields (``"train.lr"``) replaced; ``None`` values ignored."""
+        """Return a copy with dotted fields (``"train.lr"``, ``"train.augment.yaw_deg"``)
+        replaced; ``None`` values ignored."""
         data = self.model_dump()
         for key, value in overrides.items():
             if value is None:
                 continue
-            section, _, field = key.partition(".")
-            if section not in data or not isinstance(data[section], dict) or not field:
+            *sections, field = key.split(".")
+            node = data
+            for name in sections:
+                node = node.get(name) if isinstance(node, dict) else None
+            if not sections or not isinstance(node, dict) or field not in node:
                 raise InputError(f"unknown config field {key!r}", source=key)
-            data[section][field] = value
+            node[field] = value
         return TrainConfig.from_mapping(data, "command line")
 
     def to_yaml(self) -> str:
@@ -188,6 +192,25 @@ def run_config(config: str | Path | None, resumed_run: Path | None = None) -> Tr
     if resumed_run is not None and (Path(resumed_run) / "config.yaml").is_file():
         return TrainConfig.from_file(Path(resumed_run) / "config.yaml")
     return TrainConfig.preset("paper")
+
+
+def parse_assignments(assignments: list[str]) -> dict[str, Any]:
+    """``["model.output_dim=128", "train.augment.yaw_deg=0"]`` -> ``{field: value}``, each value
+    read as a YAML scalar or list (``128`` an int, ``true`` a bool, ``[64, 128]`` a list)."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for text in assignments:
+        key, eq, value = text.partition("=")
+        if not eq or not key.strip():
+            raise InputError(f"{text!r} is not FIELD=VALUE (e.g. model.output_dim=128)", "--set")
+        try:
+            out[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError as exc:
+            raise InputError(
+                f"{key.strip()}: {value!r} is not a YAML value ({exc})", "--set"
+            ) from None
+    return out
 
 
 def _parse(text: str, name: str) -> Any:

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.training.config import TrainConfig
+from pnvlad_service.training.config import TrainConfig, parse_assignments
 
 
 def test_config_file_partial_fields_and_overrides(tmp_path: Path) -> None:
@@ -38,6 +38,34 @@ def test_config_errors_name_the_field(tmp_path: Path) -> None:
         TrainConfig().with_overrides({"nope.x": 1})
     with pytest.raises(InputError):
         TrainConfig.from_file(tmp_path / "missing.yaml")
+
+
+def test_set_assignments_reach_nested_fields_as_yaml_values() -> None:
+    sets = parse_assignments(
+        ["model.output_dim=128", "train.augment.yaw_deg=2.5", "model.trunk_widths=[8, 16]"]
+    )
+    assert sets == {
+        "model.output_dim": 128,
+        "train.augment.yaw_deg": 2.5,
+        "model.trunk_widths": [8, 16],
+    }
+    cfg = TrainConfig.preset("compact").with_overrides(sets)
+    assert cfg.model.output_dim == 128 and cfg.train.augment.yaw_deg == 2.5
+    assert tuple(cfg.model.trunk_widths) == (8, 16)
+    # everything else is the preset's
+    rest = cfg.with_overrides({"model.output_dim": 256, "train.augment.yaw_deg": 0.0})
+    rest = rest.with_overrides(
+        {"model.trunk_widths": TrainConfig.preset("compact").model.trunk_widths}
+    )
+    assert rest == TrainConfig.preset("compact")
+    with pytest.raises(InputError, match=r"train\.augment\.nope"):
+        TrainConfig().with_overrides({"train.augment.nope": 1})
+    with pytest.raises(InputError, match=r"model\.output_dim"):
+        TrainConfig().with_overrides({"model.output_dim.x": 1})
+    with pytest.raises(InputError, match="FIELD=VALUE"):
+        parse_assignments(["model.output_dim"])
+    with pytest.raises(InputError, match=r"model\.output_dim"):
+        TrainConfig().with_overrides(parse_assignments(["model.output_dim=[1"]))
 
 
 def test_shipped_configs_load() -> None:
