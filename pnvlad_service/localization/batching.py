@@ -85,6 +85,7 @@ class MicroBatcher:
         self.on_batch = on_batch
         self._queue: queue.Queue[_Item | None] = queue.Queue()
         self._announced = 0
+        self._processing = 0
         self._lock = threading.Lock()
         self._collecting = threading.Lock()
         self._threads = [
@@ -105,6 +106,12 @@ class MicroBatcher:
         finally:
             with self._lock:
                 self._announced -= count
+
+    @property
+    def busy(self) -> bool:
+        """Whether clouds are announced, queued or being embedded (a snapshot)."""
+        with self._lock:
+            return self._processing > 0 or self._announced > 0 or not self._queue.empty()
 
     def submit(self, cloud: np.ndarray, top_n: int) -> Future:
         """Queue one cloud float32 [N, 3]; the future resolves to a :class:`BatchResult`."""
@@ -164,6 +171,8 @@ class MicroBatcher:
 
     def _process(self, batch: list[_Item]) -> None:
         start = time.perf_counter()
+        with self._lock:
+            self._processing += 1
         try:
             clouds = np.stack([it.cloud for it in batch]).astype(np.float32, copy=False)
             k = max(it.top_n for it in batch)
@@ -173,6 +182,9 @@ class MicroBatcher:
             for it in batch:
                 it.future.set_exception(exc)
             return
+        finally:
+            with self._lock:
+                self._processing -= 1
         if self.on_batch:
             self.on_batch(len(batch))
         for row, it in enumerate(batch):

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
@@ -286,6 +287,11 @@ class Localizer:
         self.verify_config = verify_config or VerifyConfig()
         # Candidates' prepared clouds by bundle row (consecutive queries share candidates).
         self._prepared = PreparedCache(self.verify_config.cache_entries)
+        # Verifications in flight: with another one, or the encoder busy, small_gicp runs on
+        # VerifyConfig.crowded_threads (the cores are taken).
+        self._verifying = 0
+        self._verifying_lock = threading.Lock()
+        self._crowded_config = self.verify_config.crowded()
         recorded = bundle.manifest.preprocess
         self._gconfig = GConfig.model_validate(dict(recorded)) if recorded else GConfig()
         self.info = LocalizerInfo(
@@ -442,7 +448,15 @@ class Localizer:
             for rank, (i, points) in enumerate(zip(ids, geometry.metres_many(ids), strict=True), 1)
         ]
         query = prepared.query([geometry.scale(i) for i in ids])
-        return verify(query, cands, self.verify_config, cache=self._prepared)
+        with self._verifying_lock:
+            crowded = self._verifying > 0 or (self._batcher is not None and self._batcher.busy)
+            self._verifying += 1
+        try:
+            config = self._crowded_config if crowded else self.verify_config
+            return verify(query, cands, config, cache=self._prepared)
+        finally:
+            with self._verifying_lock:
+                self._verifying -= 1
 
     def answer(
         self,

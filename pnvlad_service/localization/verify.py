@@ -29,7 +29,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -59,6 +59,10 @@ class VerifyConfig:
     second is the rival the confidence needs: stopping after one sure candidate verified
     98.7 % right at 80.8 % coverage on the benchmark, after two 99.5 % at 86.8 %);
     ``constraint_ref`` and ``rival_m``: see :func:`confidence`;
+    ``crowded_threads``: small_gicp's OpenMP threads per call while other queries are being
+    embedded or verified (:meth:`~..localizer.Localizer.verify` decides; the cores are taken
+    then, and a second thread only waits for a busy core at each of small_gicp's barriers;
+    ``None`` keeps ``registration.threads`` always);
     ``cache_entries``: prepared candidate clouds a :class:`~..localizer.Localizer` keeps
     (:class:`PreparedCache`; 0 keeps none); ``registration``: the registration's settings.
     """
@@ -71,6 +75,7 @@ class VerifyConfig:
     min_registered: int = 2
     constraint_ref: float = 0.1
     rival_m: float = 10.0
+    crowded_threads: int | None = 1
     cache_entries: int = 128
     registration: reg.RegistrationConfig = field(default_factory=reg.RegistrationConfig)
 
@@ -87,6 +92,14 @@ class VerifyConfig:
             raise ValueError(f"min_registered must be at least 1, got {self.min_registered}")
         if self.workers < 1:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
+        if self.crowded_threads is not None and self.crowded_threads < 1:
+            raise ValueError(f"crowded_threads must be at least 1, got {self.crowded_threads}")
+
+    def crowded(self) -> VerifyConfig:
+        """This config as used while other queries run: ``crowded_threads`` a call."""
+        if self.crowded_threads is None or self.crowded_threads == self.registration.threads:
+            return self
+        return replace(self, registration=replace(self.registration, threads=self.crowded_threads))
 
 
 @dataclass(frozen=True)

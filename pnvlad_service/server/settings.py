@@ -100,6 +100,14 @@ class ServerSettings(BaseSettings):
         description="Prepared candidate clouds kept in memory (about 1 MB each; 0: none).",
     )
 
+    verify_crowded_threads: int = Field(
+        VerifyConfig.crowded_threads or 0,
+        ge=0,
+        le=64,
+        description="small_gicp threads a registration gets while other queries are being "
+        "embedded or verified (the cores are taken; 2 otherwise). 0: always 2.",
+    )
+
     def verify_config(self) -> VerifyConfig:
         """How candidates are verified."""
         return VerifyConfig(
@@ -107,6 +115,7 @@ class ServerSettings(BaseSettings):
             threshold=self.verify_threshold,
             stop_score=self.verify_stop_score,
             cache_entries=self.verify_cache,
+            crowded_threads=self.verify_crowded_threads or None,
         )
 
     def limits(self) -> Limits:

@@ -97,3 +97,28 @@ def test_a_failing_batch_reaches_its_callers_and_the_worker_lives_on() -> None:
         assert b.submit(np.zeros((4, 3), np.float32), 1).result(5).ids.tolist() == [0]
     with pytest.raises(RuntimeError, match="closed"):
         b.submit(np.zeros((4, 3), np.float32), 1)
+
+
+def test_busy_while_announced_queued_or_embedding() -> None:
+    """``busy`` (what Localizer.verify reads to give small_gicp one thread) is true exactly
+    while a cloud is announced, waiting or in a batch."""
+    entered, release = threading.Event(), threading.Event()
+
+    def held(clouds: np.ndarray, k: int):
+        entered.set()
+        release.wait(5)
+        return echo([])(clouds, k)
+
+    with closing(MicroBatcher(held, max_size=8, wait_ms=0.0, lanes=1)) as b:
+        assert not b.busy
+        with b.announce():
+            assert b.busy
+        assert not b.busy
+        fut = b.submit(np.zeros((4, 3), np.float32), 1)
+        assert entered.wait(5) and b.busy  # in the batch function
+        release.set()
+        fut.result(5)
+        deadline = time.monotonic() + 5
+        while b.busy and time.monotonic() < deadline:  # the lane leaves _process after
+            time.sleep(0.001)  # resolving the future
+        assert not b.busy

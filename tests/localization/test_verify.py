@@ -106,6 +106,25 @@ def test_the_cascade_goes_on_while_nothing_is_sure(scene: dict) -> None:
     assert one.registered == 4
 
 
+def test_the_crowded_config_gives_the_same_answer_on_one_thread(scene: dict) -> None:
+    """Under load the Localizer registers on ``crowded_threads`` (1) instead of
+    ``registration.threads`` (2): only the speed may change, not the answer."""
+    cfg = VerifyConfig(candidates=5, stop_score=None)
+    crowded = cfg.crowded()
+    assert crowded.registration.threads == 1 and cfg.registration.threads == 2
+    assert crowded.candidates == cfg.candidates and crowded.threshold == cfg.threshold
+    assert VerifyConfig(crowded_threads=None).crowded().registration.threads == 2
+    cands = _cands([*scene["others"][:2], scene["true"], *scene["others"][2:]])
+    a, b = verify(scene["query"], cands, cfg), verify(scene["query"], cands, crowded)
+    assert [c.rank for c in a.checks] == [c.rank for c in b.checks] and a.checks[0].rank == 3
+    for x, y in zip(a.checks, b.checks, strict=True):
+        assert x.score == pytest.approx(y.score, abs=2e-3)
+        assert np.allclose(x.transform, y.transform, atol=1e-3)
+    assert a.verified == b.verified and a.confidence == pytest.approx(b.confidence, abs=2e-3)
+    with pytest.raises(ValueError, match="crowded_threads"):
+        VerifyConfig(crowded_threads=0)
+
+
 def test_prepared_cache_is_lru_and_bounded() -> None:
     cache = PreparedCache(2)
     cache["a"] = 1
