@@ -96,3 +96,35 @@ def test_run_config_file_then_the_resumed_runs_then_the_paper(tmp_path: Path) ->
     (run / "config.yaml").write_text(TrainConfig().with_overrides({"train.seed": 7}).to_yaml())
     assert run_config(None, run).train.seed == 7
     assert run_config("compact", run) == TrainConfig.preset("compact")  # a given file wins
+
+
+def test_train_cli_set_reaches_the_config_and_names_a_bad_field() -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    runner = CliRunner()
+    res = runner.invoke(
+        app,
+        [
+            "train",
+            "-c",
+            "compact",
+            "--set",
+            "model.output_dim=128",
+            "--set",
+            "train.augment.dropout=0.1",
+            "--lr",
+            "0.002",
+            "--dump-config",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    cfg = TrainConfig.from_mapping(yaml.safe_load(res.output))
+    assert cfg.model.output_dim == 128 and cfg.train.augment.dropout == 0.1
+    assert cfg.train.lr == 0.002 and cfg.model.cluster_size == 16  # the rest: the preset's
+    # A named option wins over --set for the same field.
+    res = runner.invoke(app, ["train", "--set", "train.lr=1", "--lr", "0.5", "--dump-config"])
+    assert TrainConfig.from_mapping(yaml.safe_load(res.output)).train.lr == 0.5
+    res = runner.invoke(app, ["train", "--set", "model.outdim=3", "--dump-config"])
+    assert res.exit_code == 2 and "model.outdim" in res.output
