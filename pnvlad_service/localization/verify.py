@@ -61,8 +61,9 @@ class VerifyConfig:
     ``constraint_ref`` and ``rival_m``: see :func:`confidence`;
     ``crowded_threads``: small_gicp's OpenMP threads per call while other queries are being
     embedded or verified (:meth:`~..localizer.Localizer.verify` decides; the cores are taken
-    then, and a second thread only waits for a busy core at each of small_gicp's barriers;
-    ``None`` keeps ``registration.threads`` always);
+    then, and a second thread would mostly wait for a busy core at small_gicp's barriers: a
+    reasoning, not a profile; measured in docs/VERIFY.md; ``None`` keeps
+    ``registration.threads`` always);
     ``cache_entries``: prepared candidate clouds a :class:`~..localizer.Localizer` keeps
     (:class:`PreparedCache`; 0 keeps none); ``registration``: the registration's settings.
     """
