@@ -49,6 +49,14 @@ def vmhwm_mb(pid: int) -> float:
     return int(m.group(1)) / 1024 if m else float("nan")
 
 
+def children(pid: int) -> list[int]:
+    """The pids of ``pid``'s child processes (verification, multiprocessing's resource tracker)."""
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        out += [int(k) for k in (task / "children").read_text().split()]
+    return out
+
+
 def load_queries(index: Path | None, count: int, seed: int = 0) -> list[np.ndarray]:
     """Submaps of the bundle's map (read from the indexed tree), else random clouds."""
     rng = np.random.default_rng(seed)
@@ -147,6 +155,7 @@ def run_phase(
     lat: list[float] = []
     registered: list[int] = []
     verified: list[bool] = []
+    stages: dict[str, list[float]] = {"embed": [], "verify": []}  # the server's own ms
     errors: list[str] = []
     lock = threading.Lock()
     stop = time.monotonic() + seconds
@@ -170,6 +179,8 @@ def run_phase(
                         if status == 200:
                             lat.append(dt)
                             doc = json.loads(data)
+                            for name, got in stages.items():
+                                got.append(float(doc.get("timings_ms", {}).get(name, np.nan)))
                             if doc.get("verification"):
                                 registered.append(int(doc["verification"]["registered"]))
                                 verified.append(bool(doc["verified"]))
@@ -200,6 +211,7 @@ def run_phase(
         "p99_ms": float(p99),
         "registered_mean": float(np.mean(registered)) if registered else 0.0,
         "verified_share": float(np.mean(verified)) if verified else 0.0,
+        **{f"{k}_p50_ms": float(np.nanmedian(v)) if v else float("nan") for k, v in stages.items()},
     }
 
 
@@ -328,7 +340,7 @@ def main() -> None:
         print(
             f"{'clients':>7} {'rerank':>6} {'requests':>8} {'errors':>6} {'req/s':>7} "
             f"{'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'mean batch':>10} {'registered':>10} "
-            f"{'verified':>8}"
+            f"{'verified':>8} {'embed p50':>9} {'verify p50':>10}"
         )
         for n in args.clients:
             for mode in modes:  # off then on, side by side for each client count
@@ -343,14 +355,20 @@ def main() -> None:
                     f"{n:>7} {ph['rerank']:>6} {ph['requests']:>8} {ph['errors']:>6} "
                     f"{ph['throughput']:>7.2f} {ph['p50_ms']:>8.1f} {ph['p95_ms']:>8.1f} "
                     f"{ph['p99_ms']:>8.1f} {ph['mean_batch']:>10.2f} "
-                    f"{ph['registered_mean']:>10.2f} {100 * ph['verified_share']:>7.0f}%",
+                    f"{ph['registered_mean']:>10.2f} {100 * ph['verified_share']:>7.0f}% "
+                    f"{ph['embed_p50_ms']:>9.1f} {ph['verify_p50_ms']:>10.1f}",
                     flush=True,
                 )
                 for e in ph["first_errors"]:
                     print(f"  error: {e}")
         if pid:
             result["server_peak_rss_mb"] = vmhwm_mb(pid)
-            print(f"server peak RSS (VmHWM): {result['server_peak_rss_mb']:.0f} MB")
+            kids = {k: vmhwm_mb(k) for k in children(pid)}
+            result["child_peak_rss_mb"] = kids
+            print(
+                f"server peak RSS (VmHWM): {result['server_peak_rss_mb']:.0f} MB"
+                + "".join(f", child process {k} {mb:.0f} MB" for k, mb in kids.items())
+            )
     finally:
         if proc is not None:
             proc.terminate()

@@ -29,6 +29,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -42,13 +43,13 @@ from pnvlad_service.index.manifest import Manifest
 from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
 from pnvlad_service.localization.limits import Limits
 from pnvlad_service.localization.verify import (
-    Candidate,
     PreparedCache,
     QueryCloud,
     Verification,
     VerifyConfig,
     verify,
 )
+from pnvlad_service.localization.verify_process import VerifyProcess, bundle_candidates
 from pnvlad_service.models.store import ModelIdentity, model_identity
 
 log = logging.getLogger(__name__)
@@ -273,6 +274,7 @@ class Localizer:
         batching: Batching | None = None,
         on_batch: Callable[[int], None] | None = None,
         verify_config: VerifyConfig | None = None,
+        verify_process: bool = False,
     ) -> None:
         if getattr(encoder, "dim", bundle.dim) != bundle.dim:
             raise InputError(
@@ -292,6 +294,13 @@ class Localizer:
         self._verifying = 0
         self._verifying_lock = threading.Lock()
         self._crowded_config = self.verify_config.crowded()
+        # small_gicp holds the GIL: with verify_process, registrations run in a child process
+        # so that they do not stop the threads that embed and answer (verify_process.py).
+        self._verify_process = (
+            VerifyProcess(bundle.path, self.verify_config.cache_entries)
+            if verify_process and bundle.geometry is not None
+            else None
+        )
         recorded = bundle.manifest.preprocess
         self._gconfig = GConfig.model_validate(dict(recorded)) if recorded else GConfig()
         self.info = LocalizerInfo(
@@ -327,11 +336,14 @@ class Localizer:
         batching: Batching | None = None,
         on_batch: Callable[[int], None] | None = None,
         verify_config: VerifyConfig | None = None,
+        verify_process: bool = False,
     ) -> Localizer:
         """Load the bundle at ``index`` and ``model`` (default: the one the bundle records),
         after checking that the bundle was built with these weights (:func:`checked_model`);
         ``verify``: check the bundle's files against their sha256; ``verify_config``: how
-        candidates are verified (:class:`VerifyConfig`)."""
+        candidates are verified (:class:`VerifyConfig`); ``verify_process``: verify in a child
+        process (:class:`VerifyProcess`: for a server whose threads embed while others
+        verify)."""
         ident = checked_model(index, model)
         t0 = time.perf_counter()
         bundle = IndexBundle.load(index, verify=verify)
@@ -351,6 +363,7 @@ class Localizer:
             batching=batching,
             on_batch=on_batch,
             verify_config=verify_config,
+            verify_process=verify_process,
         )
 
     def close(self) -> None:
@@ -360,6 +373,8 @@ class Localizer:
         self._closed = True
         if self._batcher is not None:
             self._batcher.close()
+        if self._verify_process is not None:
+            self._verify_process.close()
         close = getattr(self.encoder, "close", None)
         if close is not None:
             close()
@@ -443,17 +458,21 @@ class Localizer:
             raise InputError("the bundle carries no geometry", "verify")
         k = self.verify_config.candidates
         ids = [int(i) for i in result.ids[:k] if i >= 0]
-        cands = [
-            Candidate(rank, points, geometry.map_pose(i), key=i)
-            for rank, (i, points) in enumerate(zip(ids, geometry.metres_many(ids), strict=True), 1)
-        ]
         query = prepared.query([geometry.scale(i) for i in ids])
         with self._verifying_lock:
             crowded = self._verifying > 0 or (self._batcher is not None and self._batcher.busy)
             self._verifying += 1
         try:
             config = self._crowded_config if crowded else self.verify_config
-            return verify(query, cands, config, cache=self._prepared)
+            if self._verify_process is not None:
+                try:
+                    return self._verify_process.verify(query, ids, config)
+                except BrokenProcessPool:
+                    log.error(
+                        "the verification process died; this query is verified in the "
+                        "server's process, the next one starts a new child"
+                    )
+            return verify(query, bundle_candidates(geometry, ids), config, cache=self._prepared)
         finally:
             with self._verifying_lock:
                 self._verifying -= 1

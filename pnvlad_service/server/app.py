@@ -53,6 +53,7 @@ def load_localizer(
         batching=settings.batching(),
         on_batch=on_batch,
         verify_config=settings.verify_config(),
+        verify_process=settings.verify_process,
     )
 
 

@@ -108,6 +108,12 @@ class ServerSettings(BaseSettings):
         "embedded or verified (the cores are taken; 2 otherwise). 0: always 2.",
     )
 
+    verify_process: bool = Field(
+        True,
+        description="Register in a child process: small_gicp holds the GIL, so in the "
+        "server's process a registration stops the threads that embed and answer.",
+    )
+
     def verify_config(self) -> VerifyConfig:
         """How candidates are verified."""
         return VerifyConfig(

@@ -5,6 +5,10 @@ it within the issue's 2 m and 5 degrees of the simulator's truth."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -96,3 +100,54 @@ def test_verification_asked_of_a_bundle_without_geometry_names_the_field(city: d
         assert ans.verified is None
         with pytest.raises(InputError, match="scale"):
             loc.localize(cloud, top_n=2, scale=-1.0)
+
+
+def test_the_child_process_verifies_as_the_server_process_does(city: dict) -> None:
+    """``verify_process``: the same checks (order, scores, transforms) and poses as in the
+    caller's process; when the child is killed, the query that finds it dead is still
+    answered (in the caller's process) and the next one starts a new child."""
+    import os
+    import signal
+
+    config = VerifyConfig(candidates=6, threshold=0.1, stop_score=None)
+    queries = _queries(city)[:4]
+    with Localizer.load(city["bundle"], verify_config=config) as here:
+        expected = [here.localize(c, top_n=3, scale=qf.scale) for c, _, qf in queries]
+    with Localizer.load(city["bundle"], verify_config=config, verify_process=True) as loc:
+        child = loc._verify_process
+        assert child is not None
+        for (cloud, _, qf), want in zip(queries, expected, strict=True):
+            got = loc.localize(cloud, top_n=3, scale=qf.scale)
+            assert got.verification.order == want.verification.order
+            assert got.verified == want.verified
+            for g, w in zip(got.verification.checks, want.verification.checks, strict=True):
+                assert g.score == pytest.approx(w.score, abs=1e-9)
+                assert np.allclose(g.transform, w.transform, atol=1e-6)
+            if want.verified:
+                assert np.allclose(
+                    got.verification.pose.transform, want.verification.pose.transform
+                )
+        (pid,) = [p.pid for p in child._pool._processes.values()]
+        os.kill(pid, signal.SIGKILL)
+        cloud, _, qf = queries[0]
+        again = loc.localize(cloud, top_n=3, scale=qf.scale)  # answered here
+        assert again.verification.order == expected[0].verification.order
+        after = loc.localize(cloud, top_n=3, scale=qf.scale)  # a new child
+        assert after.verification.order == expected[0].verification.order
+        (new_pid,) = [p.pid for p in child._pool._processes.values()]
+        assert new_pid != pid
+
+
+def test_a_script_without_a_main_guard_gets_an_error_that_says_so(
+    city: dict, tmp_path: Path
+) -> None:
+    """spawn imports the parent's script again in the child: without ``if __name__ ==
+    "__main__":`` the child would start another child; the parent's error says what to do."""
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from pnvlad_service.localization.localizer import Localizer\n"
+        f"Localizer.load({str(city['bundle'])!r}, verify_process=True).close()\n"
+    )
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert out.returncode != 0
+    assert "if __name__ == '__main__':" in out.stderr and "verification process" in out.stderr

@@ -1,0 +1,140 @@
+"""Verification in a child process, away from the GIL of the process that embeds.
+
+small_gicp's Python binding holds the GIL for the whole of each call (measured: a Python
+thread spinning beside ``preprocess_points`` ran at 2.4 % of its idle rate). In the server's
+process a registration therefore stops every other Python thread for milliseconds at a time:
+the micro-batcher's lanes between the encoder's operators, the event loop parsing the next
+requests. Under load the cores then wait on the lock rather than work. A child process has a
+GIL of its own: it registers while the parent embeds and answers (docs/VERIFY.md, "Where the
+re-ranking time went").
+
+:class:`VerifyProcess` starts one child (``spawn``: nothing of the parent's torch or OpenMP
+state is inherited) that maps the bundle's geometry itself, read-only, and keeps its own
+:class:`~.verify.PreparedCache`. A query crosses as its metres (about 100 KB) and the
+candidates' bundle rows; the :class:`~.verify.Verification` comes back. Verifications queue
+for the one child, as they queued for the GIL before.
+
+The pipe carries pickles between this process and the child it started: both ends are this
+code, nothing else can write to it.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import threading
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any
+
+from pnvlad_service.localization.verify import (
+    Candidate,
+    PreparedCache,
+    QueryCloud,
+    Verification,
+    VerifyConfig,
+    verify,
+)
+
+log = logging.getLogger(__name__)
+
+# The child's state, set by _start (one bundle per child).
+_GEOMETRY: Any = None
+_CACHE: PreparedCache | None = None
+
+
+def _start(bundle_dir: str, cache_entries: int) -> None:
+    """The child's initialiser: map the geometry of ``bundle_dir`` (the parent checked the
+    bundle's files at its own start-up; the size check runs again)."""
+    global _GEOMETRY, _CACHE
+    from pnvlad_service.index.geometry import BundleGeometry
+    from pnvlad_service.index.manifest import Manifest
+
+    manifest = Manifest.read(Path(bundle_dir))
+    if manifest.geometry is None:
+        raise RuntimeError(f"{bundle_dir} carries no geometry")
+    _GEOMETRY = BundleGeometry.open(bundle_dir, manifest.geometry, verify=False)
+    _CACHE = PreparedCache(cache_entries)
+
+
+def _ready() -> int:
+    return 0 if _GEOMETRY is None else _GEOMETRY.count
+
+
+def bundle_candidates(geometry: Any, ids: Sequence[int]) -> list[Candidate]:
+    """The :class:`Candidate` of each bundle row in ``ids``, ranked 1.. in that order."""
+    return [
+        Candidate(rank, points, geometry.map_pose(i), key=i)
+        for rank, (i, points) in enumerate(zip(ids, geometry.metres_many(ids), strict=True), 1)
+    ]
+
+
+def _verify(query: QueryCloud, ids: list[int], config: VerifyConfig) -> Verification:
+    return verify(query, bundle_candidates(_GEOMETRY, ids), config, cache=_CACHE)
+
+
+class VerifyProcess:
+    """One child process that verifies queries against the geometry of the bundle at
+    ``bundle_dir`` (see the module doc). :meth:`verify` blocks its caller until the answer is
+    back; callers from many threads queue. If the child dies, the call that saw it raises
+    :class:`BrokenProcessPool` and the next call starts a new child.
+
+    The child is started with ``spawn``, which imports the parent's main script again: a
+    script that makes one must do it under ``if __name__ == "__main__":`` (servers, the CLI
+    and pytest do)."""
+
+    def __init__(self, bundle_dir: str | Path, cache_entries: int = 0) -> None:
+        self.bundle_dir = str(bundle_dir)
+        self.cache_entries = cache_entries
+        self._lock = threading.Lock()
+        self._pool: ProcessPoolExecutor | None = None
+        self._closed = False
+        self._started()  # start now: the first query should not wait for an interpreter
+
+    def _started(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("the verification process is closed")
+            if self._pool is None:
+                pool = ProcessPoolExecutor(
+                    max_workers=1,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_start,
+                    initargs=(self.bundle_dir, self.cache_entries),
+                )
+                try:
+                    count = pool.submit(_ready).result()
+                except (BrokenProcessPool, RuntimeError) as exc:
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise RuntimeError(
+                        f"the verification process for {self.bundle_dir} did not start ({exc}); "
+                        "a script that loads a Localizer with verify_process=True must do it "
+                        "under `if __name__ == '__main__':` (multiprocessing's spawn imports "
+                        "the script again in the child)"
+                    ) from exc
+                log.info("verification process started (%d submaps mapped)", count)
+                self._pool = pool
+            return self._pool
+
+    def verify(self, query: QueryCloud, ids: Sequence[int], config: VerifyConfig) -> Verification:
+        """:func:`~.verify.verify` of ``query`` against the bundle rows ``ids`` (retrieval
+        order), run in the child."""
+        pool = self._started()
+        try:
+            return pool.submit(_verify, query, [int(i) for i in ids], config).result()
+        except BrokenProcessPool:
+            with self._lock:
+                if self._pool is pool:
+                    self._pool = None
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+
+    def close(self) -> None:
+        """Stop the child (waits for the verification in flight)."""
+        with self._lock:
+            self._closed = True
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
