@@ -41,6 +41,7 @@ import numpy as np
 from local_server import start_server
 
 from pnvlad_service.localization.client import LocalizeClient, ServerError
+from pnvlad_service.server.metrics import STAGES
 
 
 def vmhwm_mb(pid: int) -> float:
@@ -155,7 +156,9 @@ def run_phase(
     lat: list[float] = []
     registered: list[int] = []
     verified: list[bool] = []
-    stages: dict[str, list[float]] = {"embed": [], "verify": []}  # the server's own ms
+    # The server's own stage times (ms), and the rest of each request's time (HTTP, the
+    # client): where a request's time goes.
+    stages: dict[str, list[float]] = {k: [] for k in (*STAGES, "outside")}
     errors: list[str] = []
     lock = threading.Lock()
     stop = time.monotonic() + seconds
@@ -179,8 +182,10 @@ def run_phase(
                         if status == 200:
                             lat.append(dt)
                             doc = json.loads(data)
-                            for name, got in stages.items():
-                                got.append(float(doc.get("timings_ms", {}).get(name, np.nan)))
+                            timings = doc.get("timings_ms", {})
+                            for name in STAGES:
+                                stages[name].append(float(timings.get(name, np.nan)))
+                            stages["outside"].append(1000 * dt - timings.get("total", np.nan))
                             if doc.get("verification"):
                                 registered.append(int(doc["verification"]["registered"]))
                                 verified.append(bool(doc["verified"]))
@@ -361,6 +366,14 @@ def main() -> None:
                 )
                 for e in ph["first_errors"]:
                     print(f"  error: {e}")
+        names = (*STAGES, "outside")
+        print("where a request's time goes, p50 ms (the server's stages; outside: HTTP, client)")
+        print(f"{'clients':>7} {'rerank':>6} " + " ".join(f"{n:>10}" for n in names))
+        for ph in result["phases"]:
+            print(
+                f"{ph['clients']:>7} {ph['rerank']:>6} "
+                + " ".join(f"{ph[n + '_p50_ms']:>10.1f}" for n in names)
+            )
         if pid:
             result["server_peak_rss_mb"] = vmhwm_mb(pid)
             kids = {k: vmhwm_mb(k) for k in children(pid)}
