@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import signal
 import threading
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -49,6 +50,9 @@ def _start(bundle_dir: str, cache_entries: int) -> None:
     """The child's initialiser: map the geometry of ``bundle_dir`` (the parent checked the
     bundle's files at its own start-up; the size check runs again)."""
     global _GEOMETRY, _CACHE
+    # Ctrl-C reaches the whole process group: the parent stops the child (close), so the
+    # child does not die mid-call with a traceback of its own.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     from pnvlad_service.index.geometry import BundleGeometry
     from pnvlad_service.index.manifest import Manifest
 
