@@ -47,9 +47,10 @@ from pnvlad_service.localization.verify import (
     QueryCloud,
     Verification,
     VerifyConfig,
+    bundle_candidates,
     verify,
 )
-from pnvlad_service.localization.verify_process import VerifyProcess, bundle_candidates
+from pnvlad_service.localization.verify_process import VerifyProcess
 from pnvlad_service.models.store import ModelIdentity, model_identity
 
 log = logging.getLogger(__name__)

@@ -150,6 +150,15 @@ class Candidate:
     key: Any = None
 
 
+def bundle_candidates(geometry: Any, ids: Sequence[int]) -> list[Candidate]:
+    """The :class:`Candidate` of each row in ``ids`` of a bundle's geometry (a
+    :class:`~pnvlad_service.index.geometry.BundleGeometry`), ranked 1.. in that order."""
+    return [
+        Candidate(rank, points, geometry.map_pose(i), key=i)
+        for rank, (i, points) in enumerate(zip(ids, geometry.metres_many(ids), strict=True), 1)
+    ]
+
+
 @dataclass(frozen=True)
 class Check:
     """The registration of the query to one candidate (``transform``: query -> candidate

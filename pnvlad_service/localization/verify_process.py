@@ -1,12 +1,12 @@
 """Verification in a child process, away from the GIL of the process that embeds.
 
-small_gicp's Python binding holds the GIL for the whole of each call (measured: a Python
-thread spinning beside ``preprocess_points`` ran at 2.4 % of its idle rate). In the server's
-process a registration therefore stops every other Python thread for milliseconds at a time:
-the micro-batcher's lanes between the encoder's operators, the event loop parsing the next
-requests. Under load the cores then wait on the lock rather than work. A child process has a
-GIL of its own: it registers while the parent embeds and answers (docs/VERIFY.md, "Where the
-re-ranking time went").
+small_gicp's Python binding holds the GIL for the whole of each call (measured by
+benchmarks/gil_hold.py: a Python thread spinning beside ``preprocess_points`` ran at 2.1-2.4 %
+of its idle rate). In the server's process a registration therefore stops every other Python
+thread for milliseconds at a time: the micro-batcher's lanes between the encoder's operators,
+the event loop parsing the next requests. Under load the cores then wait on the lock rather
+than work. A child process has a GIL of its own: it registers while the parent embeds and
+answers (docs/VERIFY.md, "Where the re-ranking time went").
 
 :class:`VerifyProcess` starts one child (``spawn``: nothing of the parent's torch or OpenMP
 state is inherited) that maps the bundle's geometry itself, read-only, and keeps its own
@@ -31,11 +31,11 @@ from pathlib import Path
 from typing import Any
 
 from pnvlad_service.localization.verify import (
-    Candidate,
     PreparedCache,
     QueryCloud,
     Verification,
     VerifyConfig,
+    bundle_candidates,
     verify,
 )
 
@@ -64,15 +64,8 @@ def _start(bundle_dir: str, cache_entries: int) -> None:
 
 
 def _ready() -> int:
-    return 0 if _GEOMETRY is None else _GEOMETRY.count
-
-
-def bundle_candidates(geometry: Any, ids: Sequence[int]) -> list[Candidate]:
-    """The :class:`Candidate` of each bundle row in ``ids``, ranked 1.. in that order."""
-    return [
-        Candidate(rank, points, geometry.map_pose(i), key=i)
-        for rank, (i, points) in enumerate(zip(ids, geometry.metres_many(ids), strict=True), 1)
-    ]
+    """The rows the child mapped (its first call: the parent waits for it)."""
+    return int(_GEOMETRY.count)
 
 
 def _verify(query: QueryCloud, ids: list[int], config: VerifyConfig) -> Verification:
