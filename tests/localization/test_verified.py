@@ -16,7 +16,7 @@ from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import read_submap
 from pnvlad_service.localization.localizer import Localizer
 from pnvlad_service.localization.rerank_eval import pose_error
-from pnvlad_service.localization.verify import VerifyConfig
+from pnvlad_service.localization.verify import VerifyConfig, bundle_candidates
 
 
 @pytest.fixture(scope="module")
@@ -100,6 +100,42 @@ def test_verification_asked_of_a_bundle_without_geometry_names_the_field(city: d
         assert ans.verified is None
         with pytest.raises(InputError, match="scale"):
             loc.localize(cloud, top_n=2, scale=-1.0)
+
+
+def test_candidates_are_read_only_when_registered_and_not_cached(city: dict) -> None:
+    """``bundle_candidates`` reads a submap's points when the cascade registers it and its
+    prepared cloud is not cached: once per registered candidate on a cold cache, never on a
+    warm one; and the answers are those of candidates read up front."""
+    from pnvlad_service.localization.verify import Candidate, PreparedCache, verify
+
+    cloud, _, qf = _queries(city)[0]
+    with Localizer.load(city["bundle"]) as loc:
+        geometry = loc.bundle.geometry
+        ids = [int(i) for i in loc.submit(loc.prepare(cloud, False, qf.scale), 10).result().ids]
+        query = loc.prepare(cloud, False, qf.scale).query([])
+        read: list[int] = []
+        real = geometry.metres
+
+        def counted(i: int) -> np.ndarray:
+            read.append(i)
+            return real(i)
+
+        geometry.metres = counted  # the real reader, counted
+        try:
+            cache = PreparedCache(32)
+            cold = verify(query, bundle_candidates(geometry, ids), loc.verify_config, cache=cache)
+            assert 2 <= cold.registered < len(ids)  # the cascade stopped early
+            assert sorted(read) == sorted(ids[: cold.registered])
+            read.clear()
+            warm = verify(query, bundle_candidates(geometry, ids), loc.verify_config, cache=cache)
+            assert read == []
+        finally:
+            geometry.metres = real
+        eager = [Candidate(k, real(i), geometry.map_pose(i), key=i) for k, i in enumerate(ids, 1)]
+        plain = verify(query, eager, loc.verify_config)
+        for got in (cold, warm):
+            assert got.order == plain.order and got.verified == plain.verified
+            assert [c.score for c in got.checks] == pytest.approx([c.score for c in plain.checks])
 
 
 def test_the_child_process_verifies_as_the_server_process_does(city: dict) -> None:
