@@ -28,6 +28,7 @@ Clouds are float [N, 3] metres, z up, in any frame whose origin is near the clou
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -254,13 +255,37 @@ def yaw_candidates(source: Prepared, target: Prepared, config: RegistrationConfi
 
 def _turned_spectrum(source: Prepared, yaw: float, config: RegistrationConfig) -> np.ndarray:
     """The rfft2 of ``source``'s bird's-eye image turned by ``yaw`` (a yaw-search bin or its
-    180-degree twin), computed once per source and bin."""
-    key = round(yaw / (np.pi / config.polar_angles)) % (2 * config.polar_angles)
+    180-degree twin), computed once per source and bin; a bin whose twin is known is made from
+    it (:func:`half_turn_spectrum`: no image, no FFT)."""
+    bins = 2 * config.polar_angles
+    key = round(yaw / (np.pi / config.polar_angles)) % bins
     spectrum = source.turned.get(key)
     if spectrum is None:
-        spectrum = np.fft.rfft2(bev_image(source.points @ _rot_z(yaw).T, config))
+        twin = source.turned.get((key + config.polar_angles) % bins)
+        if twin is not None:
+            spectrum = half_turn_spectrum(twin, config.bev_cells)
+        else:
+            spectrum = np.fft.rfft2(bev_image(source.points @ _rot_z(yaw).T, config))
         source.turned[key] = spectrum  # a race only computes it twice
     return spectrum
+
+
+def half_turn_spectrum(spectrum: np.ndarray, cells: int) -> np.ndarray:
+    """The rfft2 of a ``cells`` x ``cells`` bird's-eye image turned by 180 degrees, from the
+    image's own rfft2 ``spectrum``.
+
+    Turning the cloud by 180 degrees takes (x, y) to (-x, -y); a point in cell i along an axis
+    (i = floor(x / cell) + cells // 2) lands in cell cells - 1 - i, so the turned image is the
+    image flipped along both axes. For a real image f and g(n) = f(cells - 1 - n), the DFT is
+    G(k) = exp(2 pi i (k1 + k2) / cells) * conj(F(k)), element by element."""
+    return _half_turn_phase(spectrum.shape, cells, spectrum.dtype.str) * np.conj(spectrum)
+
+
+@functools.lru_cache(maxsize=8)
+def _half_turn_phase(shape: tuple[int, ...], cells: int, dtype: str) -> np.ndarray:
+    k1 = np.arange(shape[0])[:, None]
+    k2 = np.arange(shape[1])[None, :]
+    return np.exp(2j * np.pi * (k1 + k2) / cells).astype(dtype)
 
 
 def place(

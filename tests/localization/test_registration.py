@@ -301,3 +301,27 @@ def test_a_turned_spectrum_is_computed_once_per_yaw_bin() -> None:
     for y, (t1, s1) in zip(yaws, first, strict=True):
         ((t2, s2),) = reg.place(fresh, tgt, [y], reg.DEFAULT)
         assert np.allclose(t1, t2) and s1 == pytest.approx(s2)
+
+
+def test_the_half_turn_spectrum_is_the_turned_clouds_own() -> None:
+    """A bin's 180-degree twin is made from the bin's spectrum: it equals the rfft2 of the
+    image of the cloud turned by 180 degrees (computed the long way), and the image of the
+    turned cloud is the image flipped along both axes."""
+    cfg = reg.DEFAULT
+    pts = moved(street(1), np.eye(4), np.random.default_rng(2))
+    for yaw in (0.0, 0.4, 2.9):
+        image = reg.bev_image(pts @ reg._rot_z(yaw).T, cfg)
+        turned = reg.bev_image(pts @ reg._rot_z(yaw + np.pi).T, cfg)
+        assert np.array_equal(turned, image[::-1, ::-1])
+        want = np.fft.rfft2(turned)
+        got = reg.half_turn_spectrum(np.fft.rfft2(image), cfg.bev_cells)
+        assert np.allclose(got, want, atol=1e-3 * np.abs(want).max())
+    # In place(): the twin of a known bin is derived, and places as the long way does.
+    src = reg.prepare(pts, role="source")
+    tgt = reg.prepare(street(1), role="target")
+    yaw = 0.4
+    ((t_direct, s_direct),) = reg.place(src, tgt, [yaw + np.pi], cfg)
+    fresh = reg.prepare(pts, role="source")
+    reg.place(fresh, tgt, [yaw], cfg)
+    ((t_twin, s_twin),) = reg.place(fresh, tgt, [yaw + np.pi], cfg)
+    assert np.allclose(t_twin, t_direct) and s_twin == pytest.approx(s_direct, rel=1e-4)
