@@ -10,10 +10,12 @@ phases and again after them: the targets use the mean of the two, so a machine t
 or speeds up during the run (a shared VM does) weighs on both sides alike.
 
 With a bundle that carries geometry, each client count runs twice, re-ranking off
-(``verify=false``) then on (the top ``--rerank`` candidates registered to the query), and the
-script prints what re-ranking adds to the 1-client p50 and takes from the 8-client throughput
-(the #10 targets: +25 ms at most, -30 % at most), with the candidates registered a query
-(the cascade stops at a sure one) and the share verified. The queries are then the map's
+(``verify=false``) and on (the top ``--rerank`` candidates registered to the query), the two
+alternating in ``--rounds`` slices (off, on, off, on, ...) that are pooled per mode, so that
+a machine whose speed drifts during the run weighs on both alike; the script prints what
+re-ranking adds to the 1-client p50 and takes from the 8-client throughput (the #10
+targets: +25 ms at most, -30 % at most), with the candidates registered a query (the cascade
+stops at a sure one) and the share verified. The queries are then the map's
 submaps turned by a random yaw and jittered (``--perturb``), so that verification does its
 whole work (a yaw search and the registration) rather than match a cloud against itself; or,
 with ``--query-run``, the submaps of a run the bundle left out, as a vehicle would send them.
@@ -152,7 +154,8 @@ def run_phase(
     bodies: list[tuple[bytes, str]],
     ctype: str,
 ) -> dict:
-    """``bodies``: (body, path) pairs sent round-robin."""
+    """``bodies``: (body, path) pairs sent round-robin. The raw samples of one slice of a
+    phase (:func:`summarise` turns slices into figures)."""
     lat: list[float] = []
     registered: list[int] = []
     verified: list[bool] = []
@@ -201,11 +204,31 @@ def run_phase(
         t.start()
     for t in threads:
         t.join()
-    wall = time.perf_counter() - t0
+    return {
+        "clients": clients,
+        "lat": lat,
+        "registered": registered,
+        "verified": verified,
+        "stages": stages,
+        "errors": errors,
+        "wall": time.perf_counter() - t0,
+    }
+
+
+def summarise(slices: list[dict]) -> dict:
+    """The figures of one or more slices of a phase (same client count and mode), pooled:
+    throughput is all their requests over all their seconds, percentiles over all their
+    requests."""
+    lat = [x for sl in slices for x in sl["lat"]]
+    registered = [x for sl in slices for x in sl["registered"]]
+    verified = [x for sl in slices for x in sl["verified"]]
+    errors = [x for sl in slices for x in sl["errors"]]
+    stages = {k: [x for sl in slices for x in sl["stages"][k]] for k in slices[0]["stages"]}
+    wall = sum(sl["wall"] for sl in slices)
     ms = np.array(lat) * 1000 if lat else np.array([np.nan])
     p50, p95, p99 = np.percentile(ms, [50, 95, 99])
     return {
-        "clients": clients,
+        "clients": slices[0]["clients"],
         "requests": len(lat),
         "errors": len(errors),
         "first_errors": errors[:3],
@@ -239,8 +262,17 @@ def main() -> None:
     ap.add_argument("--url", help="Use a running server instead (no RSS unless --pid).")
     ap.add_argument("--pid", type=int, help="The running server's pid, for its peak RSS.")
     ap.add_argument("--clients", type=int, nargs="+", default=[1, 8])
-    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument(
+        "--seconds", type=float, default=20.0, help="Per client count and re-ranking mode."
+    )
     ap.add_argument("--max-requests", type=int, default=5000, help="Per phase.")
+    ap.add_argument(
+        "--rounds",
+        type=int,
+        default=3,
+        help="With re-ranking off and on: each phase's seconds cut into this many slices, the "
+        "two modes alternating slice by slice and each pooled (one --seconds block each: 1).",
+    )
     ap.add_argument("--body", choices=["binary", "json"], default="binary")
     ap.add_argument("--queries", type=int, default=64, help="Distinct query clouds.")
     ap.add_argument("--baseline", action=argparse.BooleanOptionalAction, default=True)
@@ -342,28 +374,51 @@ def main() -> None:
         for mode in modes:
             run_phase(url, 1, 2.0, 10, *request(mode))  # warm-up
         result["phases"] = []
+        rounds = args.rounds if len(modes) > 1 else 1
         print(
-            f"{'clients':>7} {'rerank':>6} {'requests':>8} {'errors':>6} {'req/s':>7} "
-            f"{'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'mean batch':>10} {'registered':>10} "
-            f"{'verified':>8} {'embed p50':>9} {'verify p50':>10}"
+            f"{'clients':>7} {'rerank':>6} {'round':>5} {'requests':>8} {'errors':>6} "
+            f"{'req/s':>7} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'mean batch':>10} "
+            f"{'registered':>10} {'verified':>8} {'embed p50':>9} {'verify p50':>10}"
         )
+
+        def row(ph: dict, label: str) -> None:
+            print(
+                f"{ph['clients']:>7} {ph['rerank']:>6} {label:>5} {ph['requests']:>8} "
+                f"{ph['errors']:>6} {ph['throughput']:>7.2f} {ph['p50_ms']:>8.1f} "
+                f"{ph['p95_ms']:>8.1f} {ph['p99_ms']:>8.1f} {ph['mean_batch']:>10.2f} "
+                f"{ph['registered_mean']:>10.2f} {100 * ph['verified_share']:>7.0f}% "
+                f"{ph['embed_p50_ms']:>9.1f} {ph['verify_p50_ms']:>10.1f}",
+                flush=True,
+            )
+
         for n in args.clients:
-            for mode in modes:  # off then on, side by side for each client count
-                b0 = batch_sizes(url)
-                ph = run_phase(url, n, args.seconds, args.max_requests, *request(mode))
-                b1 = batch_sizes(url)
-                nb = b1.get("batches", 0) - b0.get("batches", 0)
-                ph["mean_batch"] = (b1.get("clouds", 0) - b0.get("clouds", 0)) / nb if nb else 0.0
+            # Off and on alternate in `rounds` slices each (off, on, off, on, ...), pooled:
+            # a machine that drifts during the phase weighs on both alike.
+            slices: dict = {mode: [] for mode in modes}
+            batches: dict = {mode: [0.0, 0.0] for mode in modes}
+            for r in range(rounds):
+                for mode in modes:
+                    b0 = batch_sizes(url)
+                    sl = run_phase(
+                        url, n, args.seconds / rounds, args.max_requests // rounds, *request(mode)
+                    )
+                    b1 = batch_sizes(url)
+                    nb = b1.get("batches", 0) - b0.get("batches", 0)
+                    nc = b1.get("clouds", 0) - b0.get("clouds", 0)
+                    batches[mode][0] += nb
+                    batches[mode][1] += nc
+                    slices[mode].append(sl)
+                    if rounds > 1:
+                        one = summarise([sl]) | {"rerank": mode or "-"}
+                        row(one | {"mean_batch": nc / nb if nb else 0.0}, str(r + 1))
+            for mode in modes:
+                ph = summarise(slices[mode])
+                nb, nc = batches[mode]
+                ph["mean_batch"] = nc / nb if nb else 0.0
                 ph["rerank"] = mode or "-"
+                ph["rounds"] = rounds
                 result["phases"].append(ph)
-                print(
-                    f"{n:>7} {ph['rerank']:>6} {ph['requests']:>8} {ph['errors']:>6} "
-                    f"{ph['throughput']:>7.2f} {ph['p50_ms']:>8.1f} {ph['p95_ms']:>8.1f} "
-                    f"{ph['p99_ms']:>8.1f} {ph['mean_batch']:>10.2f} "
-                    f"{ph['registered_mean']:>10.2f} {100 * ph['verified_share']:>7.0f}% "
-                    f"{ph['embed_p50_ms']:>9.1f} {ph['verify_p50_ms']:>10.1f}",
-                    flush=True,
-                )
+                row(ph, "all")
                 for e in ph["first_errors"]:
                     print(f"  error: {e}")
         names = (*STAGES, "outside")
