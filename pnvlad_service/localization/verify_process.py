@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import signal
 import threading
 from collections.abc import Sequence
@@ -44,12 +45,21 @@ log = logging.getLogger(__name__)
 # The child's state, set by _start (one bundle per child).
 _GEOMETRY: Any = None
 _CACHE: PreparedCache | None = None
+_GOMP_BEFORE: bool | None = None
 
 
 def _start(bundle_dir: str, cache_entries: int) -> None:
     """The child's initialiser: map the geometry of ``bundle_dir`` (the parent checked the
     bundle's files at its own start-up; the size check runs again)."""
-    global _GEOMETRY, _CACHE
+    global _GEOMETRY, _CACHE, _GOMP_BEFORE
+    # small_gicp's OpenMP runtime (libgomp) lets a thread that reaches a barrier first spin
+    # there. While the parent embeds on the other core, the thread it waits for has no core,
+    # and each call stalls for scheduler slices: preparing a query on 2 threads took 47 ms
+    # with a core busy, 6.6 ms with the threads sleeping at barriers instead, and 4.4-5.5 ms
+    # either way on idle cores (docs/VERIFY.md). libgomp reads this when it loads, and nothing
+    # in the child has loaded it yet (_runtime says so); a value the user set is kept.
+    _GOMP_BEFORE = _gomp_loaded()
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     # Ctrl-C reaches the whole process group: the parent stops the child (close), so the
     # child does not die mid-call with a traceback of its own.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -61,6 +71,20 @@ def _start(bundle_dir: str, cache_entries: int) -> None:
         raise RuntimeError(f"{bundle_dir} carries no geometry")
     _GEOMETRY = BundleGeometry.open(bundle_dir, manifest.geometry, verify=False)
     _CACHE = PreparedCache(cache_entries)
+
+
+def _gomp_loaded() -> bool:
+    """Whether an OpenMP runtime (libgomp) is mapped into this process (Linux; else False)."""
+    try:
+        with open("/proc/self/maps") as fh:
+            return any("libgomp" in line for line in fh)
+    except OSError:
+        return False
+
+
+def _runtime() -> dict[str, Any]:
+    """The child's OpenMP wait policy and whether libgomp was loaded before it was set."""
+    return {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"), "gomp_before": _GOMP_BEFORE}
 
 
 def _ready() -> int:

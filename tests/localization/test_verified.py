@@ -163,6 +163,12 @@ def test_the_child_process_verifies_as_the_server_process_does(city: dict) -> No
                 assert np.allclose(
                     got.verification.pose.transform, want.verification.pose.transform
                 )
+        # The child's OpenMP threads sleep at barriers, set before libgomp loaded there.
+        from pnvlad_service.localization.verify_process import _runtime
+
+        runtime = child._started().submit(_runtime).result()
+        policy = os.environ.get("OMP_WAIT_POLICY", "PASSIVE")  # a value set outside is kept
+        assert runtime == {"OMP_WAIT_POLICY": policy, "gomp_before": False}
         (pid,) = [p.pid for p in child._pool._processes.values()]
         os.kill(pid, signal.SIGKILL)
         cloud, _, qf = queries[0]
