@@ -54,10 +54,11 @@ def _start(bundle_dir: str, cache_entries: int) -> None:
     global _GEOMETRY, _CACHE, _GOMP_BEFORE
     # small_gicp's OpenMP runtime (libgomp) lets a thread that reaches a barrier first spin
     # there. While the parent embeds on the other core, the thread it waits for has no core,
-    # and each call stalls for scheduler slices: preparing a query on 2 threads took 47 ms
+    # and each call stalls for scheduler slices: preparing a query on 2 threads took 40-61 ms
     # with a core busy, 6.6 ms with the threads sleeping at barriers instead, and 4.4-5.5 ms
-    # either way on idle cores (docs/VERIFY.md). libgomp reads this when it loads, and nothing
-    # in the child has loaded it yet (_runtime says so); a value the user set is kept.
+    # either way on idle cores (docs/VERIFY.md). libgomp reads this when it loads; the child
+    # loads small_gicp (and its libgomp) only after this line (the tests check, through
+    # _runtime, that no libgomp at all was mapped here before). A value the user set is kept.
     _GOMP_BEFORE = _gomp_loaded()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     # Ctrl-C reaches the whole process group: the parent stops the child (close), so the
@@ -83,7 +84,10 @@ def _gomp_loaded() -> bool:
 
 
 def _runtime() -> dict[str, Any]:
-    """The child's OpenMP wait policy and whether libgomp was loaded before it was set."""
+    """The child's OpenMP wait policy, and whether any libgomp (torch's own, or the copy that
+    faiss and small_gicp share) was mapped before it was set: a main script that imports
+    torch or faiss at its top loads one in the child too (spawn imports it again); only the
+    small_gicp one matters here."""
     return {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"), "gomp_before": _GOMP_BEFORE}
 
 
