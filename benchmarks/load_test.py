@@ -218,13 +218,16 @@ def run_phase(
 def summarise(slices: list[dict]) -> dict:
     """The figures of one or more slices of a phase (same client count and mode), pooled:
     throughput is all their requests over all their seconds, percentiles over all their
-    requests."""
+    requests, the mean batch all their clouds over all their encoder passes (the ``batches``
+    and ``clouds`` the caller counted on the server for each slice)."""
     lat = [x for sl in slices for x in sl["lat"]]
     registered = [x for sl in slices for x in sl["registered"]]
     verified = [x for sl in slices for x in sl["verified"]]
     errors = [x for sl in slices for x in sl["errors"]]
     stages = {k: [x for sl in slices for x in sl["stages"][k]] for k in slices[0]["stages"]}
     wall = sum(sl["wall"] for sl in slices)
+    batches = sum(sl.get("batches", 0) for sl in slices)
+    clouds = sum(sl.get("clouds", 0) for sl in slices)
     ms = np.array(lat) * 1000 if lat else np.array([np.nan])
     p50, p95, p99 = np.percentile(ms, [50, 95, 99])
     return {
@@ -239,6 +242,7 @@ def summarise(slices: list[dict]) -> dict:
         "p99_ms": float(p99),
         "registered_mean": float(np.mean(registered)) if registered else 0.0,
         "verified_share": float(np.mean(verified)) if verified else 0.0,
+        "mean_batch": clouds / batches if batches else 0.0,  # clouds an encoder pass
         **{f"{k}_p50_ms": float(np.nanmedian(v)) if v else float("nan") for k, v in stages.items()},
     }
 
@@ -395,7 +399,6 @@ def main() -> None:
             # Off and on alternate in `rounds` slices each (off, on, off, on, ...), pooled:
             # a machine that drifts during the phase weighs on both alike.
             slices: dict = {mode: [] for mode in modes}
-            batches: dict = {mode: [0.0, 0.0] for mode in modes}
             for r in range(rounds):
                 for mode in modes:
                     b0 = batch_sizes(url)
@@ -403,20 +406,13 @@ def main() -> None:
                         url, n, args.seconds / rounds, args.max_requests // rounds, *request(mode)
                     )
                     b1 = batch_sizes(url)
-                    nb = b1.get("batches", 0) - b0.get("batches", 0)
-                    nc = b1.get("clouds", 0) - b0.get("clouds", 0)
-                    batches[mode][0] += nb
-                    batches[mode][1] += nc
+                    sl["batches"] = b1.get("batches", 0) - b0.get("batches", 0)
+                    sl["clouds"] = b1.get("clouds", 0) - b0.get("clouds", 0)
                     slices[mode].append(sl)
                     if rounds > 1:
-                        one = summarise([sl]) | {"rerank": mode or "-"}
-                        row(one | {"mean_batch": nc / nb if nb else 0.0}, str(r + 1))
+                        row(summarise([sl]) | {"rerank": mode or "-"}, str(r + 1))
             for mode in modes:
-                ph = summarise(slices[mode])
-                nb, nc = batches[mode]
-                ph["mean_batch"] = nc / nb if nb else 0.0
-                ph["rerank"] = mode or "-"
-                ph["rounds"] = rounds
+                ph = summarise(slices[mode]) | {"rerank": mode or "-", "rounds": rounds}
                 result["phases"].append(ph)
                 row(ph, "all")
                 for e in ph["first_errors"]:
