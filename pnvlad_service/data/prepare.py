@@ -47,6 +47,7 @@ from pnvlad_service.data.frames import (
 from pnvlad_service.data.preprocess import GConfig, GResult, apply_g
 from pnvlad_service.data.run_folder import claim_folders
 from pnvlad_service.data.tree import LAYOUTS, write_locations_csv
+from pnvlad_service.data.truth import drive_true_poses, true_columns
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import write_submap
 
@@ -441,64 +442,6 @@ def _window_submap(
         return None
 
 
-def _true_poses(drive: Drive, n: int) -> np.ndarray | None:
-    """The drive's true sensor poses (float64 [T, 4, 4]) where it knows them (the simulator,
-    before its GNSS/INS error), else ``None``."""
-    true = getattr(drive, "true_poses", None)
-    if true is None:
-        return None
-    true = np.asarray(true, dtype=np.float64)
-    if true.shape != (n, 4, 4) or not np.isfinite(true).all():
-        raise InputError(f"true_poses must be finite [{n}, 4, 4], got {true.shape}", "drive")
-    return true
-
-
-#: Where :func:`frame_truth` samples each scan of a window: a grid in the sensor's plane,
-#: +-15 m every 3 m, where most of a submap's points lie.
-_TRUTH_GRID = np.stack(
-    [g.ravel() for g in np.meshgrid(np.arange(-15.0, 15.1, 3.0), np.arange(-15.0, 15.1, 3.0))]
-    + [np.zeros(121)],
-    axis=1,
-)
-
-
-def frame_truth(
-    poses: np.ndarray,
-    true: np.ndarray,
-    cut: Cut,
-    origin: np.ndarray,
-    use: np.ndarray | None = None,
-) -> np.ndarray:
-    """float64 [4, 4]: the true pose of the local frame (UTM axes at ``origin``) of the
-    submap cut at ``cut``, from the drive's recorded ``poses`` and ``true`` poses [T, 4, 4];
-    ``use`` (bool [T]): the scans accumulated (default all).
-
-    The submap is accumulated from the window's scans, each placed with its recorded pose, so
-    each scan is off by its own error. The frame's truth is the one rigid motion that best
-    lays the window, as accumulated, onto where its scans really were: the least-squares
-    (Kabsch) fit of a grid of points about each scan's sensor (``_TRUTH_GRID``) placed with
-    the recorded pose in the local frame onto the same points placed with the true pose. Not
-    the centre scan's truth alone: a GNSS/INS error that drifts along the window bends the
-    cloud, and a drift across the window's length fits as a turn. On the benchmark preset
-    the registration of true matches is 0.49 m (median) from the centre-scan truth and 0.30 m
-    from this one (docs/VERIFY.md); the grid fit is within 0.1 m and 0.2 degrees of the same
-    fit over the scans' real points."""
-    idx = np.arange(cut.first, cut.last + 1)
-    if use is not None and use[idx].any():
-        idx = idx[use[idx]]
-    rec, tru = poses[idx], true[idx]  # [W, 4, 4]
-    g = _TRUTH_GRID
-    local = (g @ rec[:, :3, :3].transpose(0, 2, 1) + (rec[:, None, :3, 3] - origin)).reshape(-1, 3)
-    world = (g @ tru[:, :3, :3].transpose(0, 2, 1) + tru[:, None, :3, 3]).reshape(-1, 3)
-    ca, cb = local.mean(axis=0), world.mean(axis=0)
-    u, _, vt = np.linalg.svd((local - ca).T @ (world - cb))
-    rot = vt.T @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(vt.T @ u.T)))]) @ u.T
-    out = np.eye(4)
-    out[:3, :3] = rot
-    out[:3, 3] = cb - rot @ ca
-    return out
-
-
 def _frame(
     cut: Cut,
     g: GResult,
@@ -509,21 +452,13 @@ def _frame(
 ) -> SubmapFrame:
     """The sidecar row of the submap cut at ``cut`` (see :mod:`..frames`). The local frame has
     UTM axes at the snapped centre-scan position (what :func:`accumulate` used); its true pose
-    is :func:`frame_truth`'s."""
+    is :func:`..truth.frame_truth`'s."""
     origin = snap_m(poses[cut.scan, :3, 3])
     true_pos = true_yaw = None
     if true is not None:
-        true_pos, true_yaw = _true_columns(poses, true, cut, origin, use)
+        true_pos, true_yaw = true_columns(poses, true, cut, origin, use)
     stamp = int(stamps[cut.scan])
     return SubmapFrame(stamp, origin, g.centre, g.scale, "enu", true_pos, true_yaw)
-
-
-def _true_columns(
-    poses: np.ndarray, true: np.ndarray, cut: Cut, origin: np.ndarray, use: np.ndarray | None
-) -> tuple[np.ndarray, float]:
-    """The sidecar's true position [3] and yaw (degrees) of :func:`frame_truth`."""
-    t = frame_truth(poses, true, cut, origin, use)
-    return t[:3, 3].copy(), math.degrees(math.atan2(t[1, 0], t[0, 0]))
 
 
 def refresh_truth(
@@ -537,7 +472,7 @@ def refresh_truth(
     scan_step: int = 1,
 ) -> int:
     """Rewrite the true-pose columns of a prepared run's frame sidecars (every kind of
-    ``layout`` that has one) with :func:`frame_truth`, from the drive's recorded ``poses``,
+    ``layout`` that has one) with :func:`..truth.frame_truth`, from the drive's recorded ``poses``,
     ``true`` poses and ``stamps``, cut as :func:`prepare_drive` cut it (same ``layout`` and
     scan options); the rest of each row is kept. Returns the rows rewritten. A row that the
     drive does not reproduce (no cut at its timestamp, or another origin) is refused, naming
@@ -563,7 +498,7 @@ def refresh_truth(
                     "by another version or other options?)",
                     sidecar,
                 )
-            pos, yaw = _true_columns(poses, true, cut, origin, use)
+            pos, yaw = true_columns(poses, true, cut, origin, use)
             rows.append(replace(f, true_position=pos, true_yaw_deg=yaw))
         updates.append((sidecar, rows))
     for sidecar, rows in updates:  # only once every sidecar of the run checked out
@@ -782,7 +717,7 @@ def prepare_drive(
     made = _make_submaps(
         windows,
         cache,
-        (poses, stamps, _true_poses(drive, len(stamps))),
+        (poses, stamps, drive_true_poses(drive, len(stamps))),
         use,
         opts,
         known=known,

@@ -447,7 +447,7 @@ def refresh_truth(
     """Recompute the true poses in every frame sidecar of a ``pnvlad synth`` tree from its
     ``synth.json`` (preset and seed; ``trajectories`` as given to :func:`generate`), by
     re-simulating each run's poses (no scan is cast: seconds, not the generation's minutes).
-    For trees made before the truth became the window's (``data.prepare.frame_truth``); the
+    For trees made before the truth became the window's (``data.truth.frame_truth``); the
     submaps, CSVs and splits are left as they are. Returns the rows rewritten."""
     from tqdm.auto import tqdm
 
