@@ -69,12 +69,30 @@ def test_verified_figures_by_hand() -> None:
 
 
 def test_choose_threshold_takes_the_lowest_that_stays_precise() -> None:
-    # Right answers score from 0.3 up; wrong ones up to 0.32 (one among the right ones).
-    outs = [_o(0, True, True, s) for s in np.linspace(0.3, 1.0, 200)]
-    outs += [_o(0, False, False, s) for s in (0.1, 0.2, 0.25, 0.32)]
+    # Right answers score from 0.3 up; wrong ones up to 0.32 (six among the right ones).
+    outs = [_o(0, True, True, s) for s in np.linspace(0.3, 1.0, 1000)]
+    outs += [_o(0, False, False, s) for s in (0.1, 0.2, 0.25) + (0.32,) * 6]
     t = choose_threshold(outs, target=0.995, key="precision")
     assert t == pytest.approx(0.33)
     assert verified_figures(outs, t)["precision"] == 100.0
+    # One wrong answer among the surest (above 0.99: a few answers, under 90 % precise
+    # there) says nothing of a 99.5 % precision: the lowest precise threshold, 0.11 (past
+    # three wrong answers at 0.1; 99.7 % with the three others), is kept, not 0.32 (the most
+    # precise covering 85 %, which a rule that asked it of every set would fall back on).
+    sure = [_o(0, True, True, s) for s in np.linspace(0.3, 1.0, 1000)]
+    sure += [_o(0, False, False, s) for s in (0.1, 0.1, 0.1, 0.30, 0.31, 0.999)]
+    assert verified_figures(sure, 0.99)["precision"] < 95.0
+    assert choose_threshold(sure, target=0.995, key="precision") == pytest.approx(0.11)
+    # ... but wrong answers in a set of 200 or more above it still count: with two wrong at
+    # 0.8, every threshold from 0.73 to 0.8 verifies 200-390 answers under 99.5 % precise, so
+    # 0.30 (99.6 % with all four wrong answers) does not stay there; nothing above 0.8 covers
+    # 85 %, and the most precise threshold that does is 0.32 (past the two low wrong ones).
+    dip = [_o(0, True, True, s) for s in np.linspace(0.3, 1.0, 1000)]
+    dip += [_o(0, False, False, s) for s in (0.30, 0.31, 0.8, 0.8)]
+    assert verified_figures(dip, 0.30)["precision"] >= 99.5
+    assert verified_figures(dip, 0.75)["n_verified"] >= 200
+    assert verified_figures(dip, 0.75)["precision"] < 99.5
+    assert choose_threshold(dip, target=0.995, key="precision") == pytest.approx(0.32)
     # Nothing precise enough at 85 % coverage: the most precise threshold that covers it.
     mixed = [_o(0, True, True, s) for s in np.linspace(0.3, 1.0, 90)]
     mixed += [_o(0, False, False, s) for s in (0.1, 0.2, 0.95, 0.99)]
