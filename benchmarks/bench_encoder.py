@@ -27,7 +27,12 @@ import numpy as np
 import torch
 
 from pnvlad_service.models.config import ModelConfig
-from pnvlad_service.models.inference import Encoder, bf16_supported, top1_agreement
+from pnvlad_service.models.inference import (
+    Encoder,
+    bf16_supported,
+    other_distances,
+    top1_agreement,
+)
 from pnvlad_service.models.pointnetvlad import build_model
 
 REPO = Path(__file__).resolve().parents[1]
@@ -135,10 +140,13 @@ def bench_config(name: str, cfg: ModelConfig, reps: int, dtypes: list[str]) -> N
     print(f"  train step (1 tuple = 22 clouds, fwd+bwd+Adam): {dt:.2f} s")
 
 
-def compare_bf16(enc: Encoder, clouds: np.ndarray) -> tuple[float, float, float, float]:
+def compare_bf16(
+    enc: Encoder, clouds: np.ndarray
+) -> tuple[float, float, float, float, np.ndarray, np.ndarray]:
     """Embed ``clouds`` in float32 and in bfloat16 with ``enc``: (leave-one-out top-1
     agreement, smallest cosine between the two descriptors of a cloud, ms a cloud in float32,
-    ms a cloud in bfloat16). ``enc`` is left in float32."""
+    ms a cloud in bfloat16, the float32 and the bfloat16 descriptors). ``enc`` is left in
+    float32."""
     out = {}
     for dtype in ("float32", "bfloat16"):
         enc.dtype = dtype
@@ -146,7 +154,42 @@ def compare_bf16(enc: Encoder, clouds: np.ndarray) -> tuple[float, float, float,
         out[dtype] = (enc.embed(clouds), 1e3 * (time.perf_counter() - t) / len(clouds))
     enc.dtype = "float32"
     (ref, ms32), (low, ms16) = out["float32"], out["bfloat16"]
-    return top1_agreement(ref, low), float((ref * low).sum(1).min()), ms32, ms16
+    return top1_agreement(ref, low), float((ref * low).sum(1).min()), ms32, ms16, ref, low
+
+
+def near_ties(ref: np.ndarray, low: np.ndarray, seed: int = 1) -> None:
+    """Print why leave-one-out top-1s change between descriptors ``ref`` and ``low`` [M, D]:
+    how far ``low`` moves each descriptor, the float32 margin of each top-1 over its
+    runner-up, the margins of the rows that change, and the agreement of ``ref`` with random
+    noise of each row's own movement added (is it the precision's error, or any error of that
+    size?)."""
+    dist = other_distances(ref)
+    two = np.sort(dist, axis=1)[:, :2]
+    margin = two[:, 1] - two[:, 0]
+    moved = np.linalg.norm(ref.astype(np.float64) - low, axis=1)
+    changed = np.flatnonzero(dist.argmin(1) != other_distances(low).argmin(1))
+    print(
+        f"  descriptor movement: median {np.median(moved):.4f}, p99 "
+        f"{np.percentile(moved, 99):.4f}, max {moved.max():.4f}; float32 top-1 margin over "
+        f"the runner-up: median {np.median(margin):.4f}"
+    )
+    if len(changed):
+        worst = float(margin[changed].max())
+        print(
+            f"  {len(changed)} top-1s change, float32 margins {margin[changed].min():.5f}-"
+            f"{worst:.5f}; {int((margin <= worst).sum())} of {len(ref)} rows have a margin "
+            f"that small"
+        )
+    rng = np.random.default_rng(seed)
+    for _ in range(3):
+        noise = rng.standard_normal(ref.shape)
+        noise *= (moved / np.linalg.norm(noise, axis=1))[:, None]
+        noisy = ref + noise
+        noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+        print(
+            f"  float32 + random noise of each row's movement: agreement "
+            f"{100 * top1_agreement(ref, noisy):.1f} %"
+        )
 
 
 def bf16_check(cfg: ModelConfig, count: int) -> None:
@@ -161,7 +204,7 @@ def bf16_check(cfg: ModelConfig, count: int) -> None:
         )
         source = "uniform random clouds"
     torch.manual_seed(0)
-    agree, cos, _, _ = compare_bf16(Encoder(build_model(cfg).eval(), cfg), clouds)
+    agree, cos, *_ = compare_bf16(Encoder(build_model(cfg).eval(), cfg), clouds)
     print(
         f"\nbfloat16 vs float32 ({source}, {count} clouds, untrained paper weights): top-1 "
         f"agreement {100 * agree:.1f} %, min cosine {cos:.5f}"
@@ -184,13 +227,14 @@ def bf16_check_trained(checkpoint: Path, tree: Path, count: int, emulated: bool 
     pick = sorted(rng.choice(len(files), min(count, len(files)), replace=False))
     clouds = np.stack([read_submap(files[i]) for i in pick]).astype(np.float32)
     enc = Encoder.from_checkpoint(checkpoint)
-    agree, cos, ms32, ms16 = compare_bf16(enc, clouds)
+    agree, cos, ms32, ms16, ref, low = compare_bf16(enc, clouds)
     print(
         f"\nbfloat16 vs float32, trained weights {checkpoint} ({enc.cfg.arch}), {len(pick)} "
         f"submaps of {tree}: top-1 agreement {100 * agree:.1f} % "
         f"({'used' if agree >= 0.99 else 'refused'} by dtype=auto), min cosine {cos:.5f}, "
         f"{ms16:.1f} ms/cloud bfloat16 vs {ms32:.1f} float32"
     )
+    near_ties(ref, low)
 
 
 def main(argv: list[str] | None = None) -> int:

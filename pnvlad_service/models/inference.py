@@ -420,15 +420,17 @@ class Encoder:
         return chosen
 
 
+def other_distances(desc: np.ndarray) -> np.ndarray:
+    """float64 [M, M]: the Euclidean distance of each row of ``desc`` [M, D] to every other
+    row, inf on the diagonal (a row is not its own neighbour)."""
+    d = desc.astype(np.float64)
+    sq = (d * d).sum(1)
+    dist = np.sqrt(np.maximum(sq[:, None] + sq[None, :] - 2 * d @ d.T, 0.0))
+    np.fill_diagonal(dist, np.inf)
+    return dist
+
+
 def top1_agreement(ref: np.ndarray, other: np.ndarray) -> float:
     """Share of rows whose nearest other row (leave-one-out, Euclidean) is the same under
     descriptors ``ref`` and ``other`` (both float [M, D], M >= 2)."""
-
-    def nn1(d: np.ndarray) -> np.ndarray:
-        d = d.astype(np.float64)
-        sq = (d * d).sum(1)
-        dist = sq[:, None] + sq[None, :] - 2 * d @ d.T
-        np.fill_diagonal(dist, np.inf)
-        return dist.argmin(1)
-
-    return float((nn1(ref) == nn1(other)).mean())
+    return float((other_distances(ref).argmin(1) == other_distances(other).argmin(1)).mean())
