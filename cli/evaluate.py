@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import typer
@@ -122,6 +123,12 @@ def evaluate(
 
       pnvlad eval -m runs/a --root city/ --splits city/splits.json --rerank 10 --figures f/
     """
+    if rerank is not None:
+        # Before torch, faiss and small_gicp load their OpenMP runtimes: registration's two
+        # threads otherwise spin at each barrier and stall for scheduler slices whenever
+        # another process holds a core (8+ min against 5 beside a training run); at batch 32
+        # the embedding is as fast either way (docs/VERIFY.md). A value the user set is kept.
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     with user_errors():
         from pnvlad_service.errors import InputError
         from pnvlad_service.evaluation import evaluate as ev

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -585,6 +586,9 @@ def evaluate_rerank(
         progress=progress,
         reversed_runs=reversed_runs,
     )
+    # How the registration's OpenMP threads waited (``pnvlad eval --rerank`` sets PASSIVE
+    # unless the user chose): it decides the run's time on shared cores, not its figures.
+    rep["omp_wait_policy"] = os.environ.get("OMP_WAIT_POLICY")
     return rep
 
 

@@ -128,9 +128,10 @@ def test_outcome_uses_the_reranked_top1_and_the_true_relative_pose() -> None:
     assert _outcome(0, ranked, np.array([3]), 1, v, q, dbf).pose_ok is False
 
 
-def test_eval_rerank_on_the_tiny_city(tiny, tmp_path) -> None:
+def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
     """`pnvlad eval --rerank` end to end: the threshold comes from the training layout, the
-    report holds every figure the issue names, and the figures are drawn."""
+    report holds every figure the issue names, and the figures are drawn; the registration's
+    OpenMP threads sleep at barriers unless the user said otherwise."""
     import json
 
     from typer.testing import CliRunner
@@ -138,6 +139,8 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path) -> None:
     from pnvlad_cli.main import app
     from tests.index.helpers import make_checkpoint
 
+    monkeypatch.setenv("OMP_WAIT_POLICY", "unset")  # restored after the test, then cleared
+    monkeypatch.delenv("OMP_WAIT_POLICY")
     ckpt = make_checkpoint(tmp_path / "ckpt")
     out = tmp_path / "rep.json"
     args = ["eval", "-m", str(ckpt), "-r", str(tiny), "--rerank", "5", "--no-progress"]
@@ -146,6 +149,7 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path) -> None:
     assert res.exit_code == 0, res.output
     rep = json.loads(out.read_text())["rerank"]
     assert rep["candidates"] == 5
+    assert rep["omp_wait_policy"] == "PASSIVE"
     cal = rep["calibration"]
     assert cal["n_queries"] > 0 and 0.0 <= cal["threshold"] <= 1.0
     assert rep["verified"]["threshold"] == cal["threshold"]
