@@ -160,6 +160,11 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
     assert "re-ranking top 5" in res.output
     assert (tmp_path / "f" / "verified_pr.png").stat().st_size > 1000
     assert (tmp_path / "f" / "pose_errors.png").stat().st_size > 1000
+    # The help names the library's calibration default, not a copy that drifts from it.
+    from pnvlad_service.localization.rerank_eval import CALIBRATION_QUERIES
+
+    helped = CliRunner().invoke(app, ["eval", "--help"], env={"COLUMNS": "200"})
+    assert f"(default: {CALIBRATION_QUERIES}," in helped.output
     # Asked of a tree without sidecars, or without --root: exit 2 naming the flag.
     res = CliRunner().invoke(app, ["eval", "-m", str(ckpt), "--rerank", "0", "-r", str(tiny)])
     assert res.exit_code == 2 and "--rerank" in res.output
