@@ -548,8 +548,8 @@ def evaluate_rerank(
 ) -> dict[str, Any]:
     """The ``rerank`` section of ``pnvlad eval --rerank K``: the threshold (``threshold``, or
     chosen on ``calibration_queries`` (None: :data:`CALIBRATION_QUERIES`) training-layout
-    queries a run of each dataset of
-    ``training``), then :func:`rerank_report` on the evaluation runs."""
+    queries a run of each dataset of ``training``), then :func:`rerank_report` on the
+    evaluation runs."""
     from pnvlad_service.data.tree import BenchmarkTree
 
     frames = BenchmarkTree(root).frames_by_path()
