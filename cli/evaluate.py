@@ -57,6 +57,13 @@ _CAL_QUERIES = typer.Option(
     "keeps the 99.5 % precision rule steady; see docs/VERIFY.md).",
     rich_help_panel=_VERIFY,
 )
+_SAVE_THRESHOLD = typer.Option(
+    False,
+    "--save-threshold",
+    help="Write the threshold chosen on the training layout to MODEL/verification.json, "
+    "where pnvlad serve and pnvlad localize --index take it from (for these weights only).",
+    rich_help_panel=_VERIFY,
+)
 _OUT_OPT = typer.Option(
     None,
     "--out",
@@ -102,6 +109,7 @@ def evaluate(
     rerank: int = _RERANK,
     verify_threshold: float = _THRESHOLD,
     calibration_queries: int | None = _CAL_QUERIES,
+    save_threshold: bool = _SAVE_THRESHOLD,
     device: str = typer.Option(None, "--device", help="cpu | cuda (default: cpu)."),
     workers: int = typer.Option(4, "--workers", help="Threads reading submaps."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
@@ -122,6 +130,8 @@ def evaluate(
       pnvlad eval --plot a.json --plot base.json --figures figs/
 
       pnvlad eval -m runs/a --root city/ --splits city/splits.json --rerank 10 --figures f/
+
+      pnvlad eval -m runs/a --root city/ --splits city/splits.json --rerank 10 --save-threshold
     """
     if rerank is not None:
         # Before torch, faiss and small_gicp load their OpenMP runtimes: registration's two
@@ -153,6 +163,11 @@ def evaluate(
             raise InputError("re-ranking reads the tree's frame sidecars: give --root", "--root")
         if rerank is None and verify_threshold is not None:
             raise InputError("applies with --rerank only", "--verify-threshold")
+        if save_threshold and (rerank is None or model is None or verify_threshold is not None):
+            raise InputError(
+                "needs --model and --rerank K, and a threshold chosen here (no --verify-threshold)",
+                "--save-threshold",
+            )
         enc = ev.baseline_encoder() if baseline else ev.model_encoder(model, device)
         runs = load_eval_runs(root, splits, pickles, sets)
         points = enc.num_points if num_points is None else num_points
@@ -185,6 +200,16 @@ def evaluate(
                 workers=workers,
                 progress=progress,
             )
+        if save_threshold:
+            from pnvlad_service.localization import calibration as cal
+            from pnvlad_service.models.store import model_identity
+
+            ident = model_identity(model)
+            record = cal.Calibration.from_report(
+                rep["rerank"]["calibration"], ident.weights_sha256, rerank
+            )
+            where = cal.write_calibration(ident.checkpoint, record)
+            typer.echo(f"verification threshold {record.threshold:.2f} written to {where}")
         if out is not None:
             ev.write_report(rep, out)
         for line in ev.summary_lines(enc.label, rep):

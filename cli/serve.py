@@ -46,8 +46,9 @@ def serve(
     verify_threshold: float = typer.Option(
         None,
         "--verify-threshold",
-        help="Score (share of query points registered, 0-1) a best match needs to be verified "
-        "(default: the one chosen on training-layout submaps, docs/VERIFY.md).",
+        help="Confidence (0-1) a best match needs to be verified (default: the one chosen for "
+        "the model on training-layout submaps, MODEL/verification.json from pnvlad eval "
+        "--rerank K --save-threshold; else 0.09, docs/VERIFY.md).",
     ),
     verify_stop_score: float = typer.Option(
         None,

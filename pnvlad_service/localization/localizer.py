@@ -41,6 +41,7 @@ from pnvlad_service.index.build import load_encoder
 from pnvlad_service.index.bundle import IndexBundle, Match
 from pnvlad_service.index.manifest import Manifest
 from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
+from pnvlad_service.localization.calibration import CALIBRATION_FILE, read_calibration
 from pnvlad_service.localization.limits import Limits
 from pnvlad_service.localization.verify import (
     PreparedCache,
@@ -338,14 +339,25 @@ class Localizer:
         on_batch: Callable[[int], None] | None = None,
         verify_config: VerifyConfig | None = None,
         verify_process: bool = False,
+        threshold: float | None = None,
     ) -> Localizer:
         """Load the bundle at ``index`` and ``model`` (default: the one the bundle records),
         after checking that the bundle was built with these weights (:func:`checked_model`);
         ``verify``: check the bundle's files against their sha256; ``verify_config``: how
         candidates are verified (:class:`VerifyConfig`); ``verify_process``: verify in a child
         process (:class:`VerifyProcess`: for a server whose threads embed while others
-        verify)."""
+        verify); ``threshold``: the verification threshold, replacing ``verify_config``'s;
+        None takes the one chosen for these weights when the model directory records it
+        (:mod:`.calibration`), else ``verify_config``'s."""
         ident = checked_model(index, model)
+        verify_config = verify_config or VerifyConfig()
+        source = "given"
+        if threshold is None:
+            cal = read_calibration(ident.checkpoint, ident.weights_sha256)
+            threshold = verify_config.threshold if cal is None else cal.threshold
+            source = "default" if cal is None else CALIBRATION_FILE
+        verify_config = replace(verify_config, threshold=threshold)
+        log.info("verification threshold %.2f (%s)", threshold, source)
         t0 = time.perf_counter()
         bundle = IndexBundle.load(index, verify=verify)
         encoder = load_encoder(ident.checkpoint, device=device, identity=ident)

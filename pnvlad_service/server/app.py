@@ -54,6 +54,7 @@ def load_localizer(
         on_batch=on_batch,
         verify_config=settings.verify_config(),
         verify_process=settings.verify_process,
+        threshold=settings.verify_threshold,
     )
 
 

@@ -79,12 +79,14 @@ class ServerSettings(BaseSettings):
         le=100,
         description="Candidates registered to each query and re-ranked (bundles with geometry).",
     )
-    verify_threshold: float = Field(
-        VerifyConfig.threshold,
+    verify_threshold: float | None = Field(
+        None,
         ge=0.0,
         le=1.0,
-        description="Score (share of query points registered) a best match needs to count as "
-        "verified; the default was chosen on training-layout submaps (docs/VERIFY.md).",
+        description="Confidence a best match needs to count as verified. Default: the one "
+        "chosen for the model's weights on training-layout submaps (MODEL/verification.json, "
+        "written by pnvlad eval --rerank K --save-threshold), else "
+        f"{VerifyConfig.threshold} (docs/VERIFY.md).",
     )
 
     verify_stop_score: float | None = Field(
@@ -118,7 +120,9 @@ class ServerSettings(BaseSettings):
         """How candidates are verified."""
         return VerifyConfig(
             candidates=self.rerank,
-            threshold=self.verify_threshold,
+            threshold=(
+                VerifyConfig.threshold if self.verify_threshold is None else self.verify_threshold
+            ),
             stop_score=self.verify_stop_score,
             cache_entries=self.verify_cache,
             crowded_threads=self.verify_crowded_threads or None,

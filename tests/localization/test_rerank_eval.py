@@ -145,9 +145,17 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
     out = tmp_path / "rep.json"
     args = ["eval", "-m", str(ckpt), "-r", str(tiny), "--rerank", "5", "--no-progress"]
     args += ["--calibration-queries", "8", "-o", str(out), "--figures", str(tmp_path / "f")]
-    res = CliRunner().invoke(app, args)
+    res = CliRunner().invoke(app, [*args, "--save-threshold"])
     assert res.exit_code == 0, res.output
     rep = json.loads(out.read_text())["rerank"]
+    # --save-threshold: the chosen threshold beside the weights, for these weights.
+    from pnvlad_service.localization.calibration import read_calibration
+    from pnvlad_service.models.store import weights_sha256
+
+    saved = read_calibration(ckpt, weights_sha256(ckpt))
+    assert saved is not None and saved.threshold == rep["calibration"]["threshold"]
+    assert saved.candidates == 5 and saved.n_queries == rep["calibration"]["n_queries"]
+    assert f"written to {ckpt / 'verification.json'}" in res.output
     assert rep["candidates"] == 5
     assert rep["omp_wait_policy"] == "PASSIVE"
     cal = rep["calibration"]
@@ -165,6 +173,14 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
 
     helped = CliRunner().invoke(app, ["eval", "--help"], env={"COLUMNS": "200"})
     assert f"(default: {CALIBRATION_QUERIES}," in helped.output
+    # ... and serve's help the library's fallback threshold.
+    from pnvlad_service.localization.verify import VerifyConfig
+
+    served = CliRunner().invoke(app, ["serve", "--help"], env={"COLUMNS": "200"})
+    assert f"else {VerifyConfig.threshold}," in " ".join(served.output.split())
+    # A threshold to save must be chosen here.
+    res = CliRunner().invoke(app, [*args, "--save-threshold", "--verify-threshold", "0.2"])
+    assert res.exit_code == 2 and "--save-threshold" in res.output
     # Asked of a tree without sidecars, or without --root: exit 2 naming the flag.
     res = CliRunner().invoke(app, ["eval", "-m", str(ckpt), "--rerank", "0", "-r", str(tiny)])
     assert res.exit_code == 2 and "--rerank" in res.output

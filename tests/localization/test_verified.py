@@ -193,3 +193,46 @@ def test_a_script_without_a_main_guard_gets_an_error_that_says_so(
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
     assert out.returncode != 0
     assert "if __name__ == '__main__':" in out.stderr and "verification process" in out.stderr
+
+
+def test_the_models_calibrated_threshold_is_taken_unless_one_is_given(city, tmp_path) -> None:
+    """A model directory's verification.json sets the threshold for its weights; a given
+    threshold wins; a record of other weights is ignored; a malformed one is refused, naming
+    the file."""
+    import json
+    import shutil
+
+    from pnvlad_service.localization.calibration import (
+        Calibration,
+        read_calibration,
+        write_calibration,
+    )
+    from pnvlad_service.models.store import weights_sha256
+
+    model = tmp_path / "model"
+    shutil.copytree(city["base"] / "ckpt", model)
+    sha = weights_sha256(model)
+    record = Calibration(0.37, sha, 10, 99.5, 120, {"precision": 99.6, "coverage": 88.0})
+    path = write_calibration(model, record)
+    assert read_calibration(model, sha) == record  # round trip
+    with Localizer.load(city["bundle"], model) as loc:
+        assert loc.verify_config.threshold == 0.37
+        assert loc.localize(_queries(city)[0][0], top_n=1).verification.threshold == 0.37
+    with Localizer.load(city["bundle"], model, threshold=0.2) as loc:
+        assert loc.verify_config.threshold == 0.2
+    # Chosen for other weights: not used.
+    doc = json.loads(path.read_text())
+    path.write_text(json.dumps({**doc, "weights_sha256": "0" * 64}))
+    assert read_calibration(model, sha) is None
+    with Localizer.load(city["bundle"], model) as loc:
+        assert loc.verify_config.threshold == VerifyConfig.threshold
+    for bad in ({**doc, "threshold": 1.5}, {**doc, "format": "x"}, {"format": doc["format"]}):
+        path.write_text(json.dumps(bad))
+        with pytest.raises(InputError, match="verification"):
+            Localizer.load(city["bundle"], model)
+        with pytest.raises(InputError) as err:
+            read_calibration(model, sha)
+        assert str(path) in str(err.value)
+    path.write_text("{not json")
+    with pytest.raises(InputError, match="unreadable"):
+        read_calibration(model, sha)
