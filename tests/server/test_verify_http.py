@@ -180,3 +180,32 @@ def test_bad_verify_fields_name_themselves(
         f"{geo}/localize", content=_json(pts, **extra), headers={"content-type": "application/json"}
     )
     assert r.status_code == 422 and r.json()["field"] == field, r.text
+
+
+def test_the_server_takes_the_models_calibrated_threshold(bundles: dict, tmp_path) -> None:
+    """A model directory with verification.json for its weights sets the server's threshold
+    (no PNVLAD_VERIFY_THRESHOLD); a malformed record stops the start, naming the file."""
+    import shutil
+
+    from pnvlad_service.localization.calibration import Calibration, write_calibration
+    from pnvlad_service.models.store import weights_sha256
+
+    model = tmp_path / "model"
+    shutil.copytree(bundles["base"] / "ckpt", model)
+    record = Calibration(0.33, weights_sha256(model), 26, 99.5, 40, {"precision": 99.7})
+    path = write_calibration(model, record)
+    env = {"PNVLAD_RERANK": "26", "PNVLAD_CHECKPOINT": str(model)}
+    served = _serve(bundles["base"] / "map.index", env)
+    url = next(served)
+    try:
+        body = _json(bundles["query"], top_n=1, scale=bundles["frame"].scale)
+        r = httpx.post(
+            f"{url}/localize", content=body, headers={"content-type": "application/json"}
+        )
+        assert r.status_code == 200, r.text
+        assert r.json()["verification"]["threshold"] == 0.33
+    finally:
+        served.close()
+    path.write_text('{"format": "pnvlad-verification", "version": 1}')
+    with pytest.raises(RuntimeError, match=r"verification\.json"):
+        next(_serve(bundles["base"] / "map.index", env))
