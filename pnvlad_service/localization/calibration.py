@@ -45,7 +45,9 @@ class Calibration:
         return {"format": FORMAT, "version": VERSION, **asdict(self)}
 
     @classmethod
-    def from_report(cls, calibration: dict[str, Any], weights_sha256: str, candidates: int):
+    def from_report(
+        cls, calibration: dict[str, Any], weights_sha256: str, candidates: int
+    ) -> Calibration:
         """The record of a ``rerank`` report's ``calibration`` section."""
         at = calibration["at_threshold"]
         keep = ("precision", "pose_precision", "coverage", "n_verified")

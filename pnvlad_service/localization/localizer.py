@@ -355,7 +355,7 @@ class Localizer:
         if threshold is None:
             cal = read_calibration(ident.checkpoint, ident.weights_sha256)
             threshold = verify_config.threshold if cal is None else cal.threshold
-            source = "default" if cal is None else CALIBRATION_FILE
+            source = "the verify config" if cal is None else CALIBRATION_FILE
         verify_config = replace(verify_config, threshold=threshold)
         log.info("verification threshold %.2f (%s)", threshold, source)
         t0 = time.perf_counter()
