@@ -202,13 +202,12 @@ def evaluate(
             )
         if save_threshold:
             from pnvlad_service.localization import calibration as cal
-            from pnvlad_service.models.store import model_identity
 
-            ident = model_identity(model)
+            # The directory and weights the encoder evaluated (not hashed again here).
             record = cal.Calibration.from_report(
-                rep["rerank"]["calibration"], ident.weights_sha256, rerank
+                rep["rerank"]["calibration"], enc.info["weights_sha256"], rerank
             )
-            where = cal.write_calibration(ident.checkpoint, record)
+            where = cal.write_calibration(enc.info["path"], record)
             typer.echo(f"verification threshold {record.threshold:.2f} written to {where}")
         if out is not None:
             ev.write_report(rep, out)
