@@ -117,12 +117,10 @@ class ServerSettings(BaseSettings):
     )
 
     def verify_config(self) -> VerifyConfig:
-        """How candidates are verified."""
+        """How candidates are verified, but for the threshold: ``Localizer.load`` takes
+        ``verify_threshold``, else the model's calibration (see :func:`..app.load_localizer`)."""
         return VerifyConfig(
             candidates=self.rerank,
-            threshold=(
-                VerifyConfig.threshold if self.verify_threshold is None else self.verify_threshold
-            ),
             stop_score=self.verify_stop_score,
             cache_entries=self.verify_cache,
             crowded_threads=self.verify_crowded_threads or None,
