@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pnvlad_service.data.dataset import load_eval_runs
 from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.localization import registration as reg
-from pnvlad_service.localization.rerank_eval import pose_error, stored_metres
+from pnvlad_service.localization.rerank_eval import _Store, pose_error
 
 VARIANTS = {"default": {}, "hyp2": {"hypotheses": 2}, "local": {}}
 LOCAL_M = 20.0
@@ -67,23 +67,16 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     runs = load_eval_runs(args.tree, args.tree / "splits.json")
-    frames = BenchmarkTree(args.tree).frames_by_path()
-    metres: dict[str, tuple[np.ndarray, object]] = {}
-
-    def get(path):
-        key = str(Path(path).resolve())
-        if key not in metres:
-            metres[key] = (stored_metres(path, frames[key]), frames[key])
-        return metres[key]
+    # Metres as a bundle stores them, read once per submap (the re-ranking evaluation's store).
+    get = _Store(BenchmarkTree(args.tree).frames_by_path()).get
 
     def local_points(i: int, row: int) -> np.ndarray:
         pts, f = get(runs[i].db_paths[row])
         d = np.linalg.norm(runs[i].db_positions - runs[i].db_positions[row], axis=1)
-        near = np.flatnonzero((d <= LOCAL_M) & (d > 0))
-        parts = [pts] + [
-            get(runs[i].db_paths[n])[0] + (get(runs[i].db_paths[n])[1].origin - f.origin)
-            for n in near
-        ]
+        parts = [pts]
+        for n in np.flatnonzero((d <= LOCAL_M) & (d > 0)):
+            near, nf = get(runs[i].db_paths[n])
+            parts.append(near + (nf.origin - f.origin))
         return np.concatenate(parts)
 
     jobs = sample_pairs(runs, args.per_pair, np.random.default_rng(args.seed))
