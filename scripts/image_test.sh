@@ -298,7 +298,7 @@ echo "health: $(pm inspect --format '{{.State.Health.Status}}' "$NAME") after $(
 # ---------------------------------------------------------------------------------------------
 step "7/8 POST /localize"
 python3 scripts/image_check.py --url "http://127.0.0.1:$port" --root "$DATA/city" \
-    --dataset "$dataset" --held "$held" --token "$token" || { pm logs "$NAME" | tail -20 >&2; fail "the HTTP checks"; }
+    --dataset "$dataset" --held "$held" --token="$token" || { pm logs "$NAME" | tail -20 >&2; fail "the HTTP checks"; }
 
 # ---------------------------------------------------------------------------------------------
 step "8/8 SIGTERM"
