@@ -370,6 +370,15 @@ class Encoder:
         k, d = self.cfg.cluster_size, self.cfg.feature_dim
         l2 = self.cfg.point_l2_norm
         relu = self.cfg.last_relu
+        if not relu and not l2:
+            # The port's configuration: x = h W + b is affine in h, so the [n, D] features are
+            # never formed: logits h (W Wc) + (b Wc + c), sums (a^T h) W + (sum_n a) b.
+            w, wc = layer.w.float(), cl.w.float()
+            hf = h.float()
+            a = torch.softmax(torch.addmm(layer.b @ wc + cl.b, hf, w @ wc), dim=-1)
+            a_sum = a.sum(dim=0)
+            vlad = torch.addmm(a_sum.unsqueeze(1) * layer.b, a.t() @ hf, w)
+            return torch.cat([vlad.reshape(-1), a_sum])
         vlad = torch.zeros((k, d), dtype=torch.float32, device=h.device)
         a_sum = torch.zeros(k, dtype=torch.float32, device=h.device)
         bias = layer.b.to(mm)

@@ -17,6 +17,9 @@ What it does differently from the layer-by-layer reference:
   weights (``logits = (h Wc) / |h|``, ``v = (a / |h|)^T h``), so the normalised [B*N, D]
   features never exist; the residual sums are one batched product with the centre term as its
   added input (``baddbmm``), never a [B, N, K, D] tensor.
+- **An affine last layer** (the port's configuration: no ReLU after it, no per-point
+  normalisation) never forms its [B*N, D] output: NetVLAD's logits and residual sums are taken
+  from its C-wide input (``_affine_netvlad``); the encoder does the same (``inference.py``).
 - **ReLU in place** where autograd allows it (after batch norm and after a product).
 - **Transforms folded**: ``(x T) W`` as ``x (T W)`` per cloud for the layer after each
   transform (one [C, C] product instead of a pass over every point).
@@ -186,6 +189,33 @@ def _netvlad(pool: NetVLAD, h: torch.Tensor, inv: torch.Tensor | None, b: int, n
     return pool.gating(y) if pool.gating is not None else y
 
 
+def _affine_netvlad(
+    pool: NetVLAD, lin: nn.Linear, bn: nn.Module, x: torch.Tensor, b: int, n: int
+) -> torch.Tensor:
+    """NetVLAD of ``h = bn(lin(x))`` for x [B*N, C] when nothing non-linear comes between the
+    last trunk layer and the pooling (no ReLU after it, no per-point normalisation: the port's
+    configuration) -> [B, out] (reference ``NetVLAD.forward`` of those features).
+
+    Then h is affine in x, ``h = x W' + t`` (batch statistics from x's covariance, as
+    :func:`folded_linear_bn`), so the [B*N, D] features are never formed: the logits are
+    ``x (W' Wc) + t Wc`` and the residual sums ``(a^T x) W' + (sum_n a) (t - c)``, products of
+    width C and K instead of D (for the port's 128 -> 1024 layer, about a tenth of the work).
+    """
+    d, k, c = pool.dim, pool.clusters, x.shape[1]
+    w, t = folded_linear_bn(lin, bn, x)  # [C, D], [D]
+    wc = pool.cluster_weights
+    logits = torch.addmm(t @ wc, x, w @ wc)  # [M, K]
+    logits = pool.cluster_bn(logits) if pool.bn else logits + pool.cluster_biases
+    a = torch.softmax(logits, dim=-1).reshape(b, n, k)
+    ax = torch.bmm(a.transpose(1, 2), x.reshape(b, n, c))  # [B, K, C]
+    shift = a.sum(1).unsqueeze(2) * (t.unsqueeze(1) - pool.centers).t()  # [B, K, D]
+    vlad = torch.baddbmm(shift, ax, w.expand(b, c, d))
+    vlad = F.normalize(vlad, dim=2)  # intra-normalisation (over d, each cluster)
+    vlad = F.normalize(vlad.transpose(1, 2).reshape(b, d * k), dim=1)  # flattened d-major
+    y = pool.fc_bn(pool.fc(vlad))
+    return pool.gating(y) if pool.gating is not None else y
+
+
 def fast_forward(model: PointNetVLAD, points: torch.Tensor) -> torch.Tensor:
     """``model(points)`` computed the fast way: points [B, N, 3] -> [B, out], unit rows."""
     from pnvlad_service.models.pointnetvlad import NetVLAD
@@ -209,6 +239,11 @@ def fast_forward(model: PointNetVLAD, points: torch.Tensor) -> torch.Tensor:
             if pending is not None:  # no stem layer took the input transform
                 h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
             pending = _tnet(model.feature_tnet, h.reshape(b, n, -1))
+        if i == len(layers) - 1 and vlad and not relu and not cfg.point_l2_norm:
+            if pending is not None:
+                h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
+            assert isinstance(model.pool, NetVLAD)
+            return F.normalize(_affine_netvlad(model.pool, lin, bn, h, b, n), dim=1)
         if i == len(layers) - 1 and not vlad:
             src = h if pending is None else torch.bmm(h.reshape(b, n, -1), pending)
             g = linear_bn_max(lin, bn, src.reshape(b, n, -1), relu)

@@ -50,6 +50,19 @@ CONFIGS = {
     "port-narrow": ModelConfig.port(
         num_points=SMALL, stem_widths=(16, 16), trunk_widths=(16, 32, 64), cluster_size=8
     ),
+    # The port's affine last layer (no ReLU, no per-point norm) into NetVLAD without its
+    # batch norms, and as the only trunk layer right after the feature transform.
+    "port-affine-no-bn": ModelConfig.port(
+        num_points=SMALL,
+        trunk_widths=(16, 32),
+        stem_widths=(8, 8),
+        cluster_size=4,
+        trunk_batch_norm=False,
+        vlad_batch_norm=False,
+    ),
+    "port-affine-one-layer": ModelConfig.port(
+        num_points=SMALL, trunk_widths=(24,), stem_widths=(8, 8), cluster_size=4
+    ),
     "max": ModelConfig.compact(arch="pointnet-max", feature_transform=True),
     "max-no-bn": ModelConfig.compact(
         arch="pointnet-max", vlad_batch_norm=False, trunk_batch_norm=False, gating=False
