@@ -8,6 +8,8 @@ one query, 2 positives, 8 negatives and an other negative, lazy quadruplet loss)
   (``PointNetVLAD.reference_forward``, the implementation before the fast path);
 - ``paper`` / ``compact`` / ``port-cfg``: ``PointNetVLAD.forward``, the fast path
   (``models/training_path.py``);
+- the products' work of each step (GFLOP, forward and backward, ``FlopCounterMode``) and the
+  rate each contender reaches: a fast path does less work, or does its work faster;
 - with ``--bf16 on`` (default ``auto``: only where the CPU has native bfloat16) each of ours
   again under ``torch.autocast("cpu", torch.bfloat16)``; with ``--compile`` each of ours again
   after ``torch.compile``.
@@ -117,6 +119,18 @@ def main() -> None:
     )
     for fn in steps.values():  # warm-up (and compilation)
         fn()
+    # The matrix-product work of one step (forward and backward: mm, bmm, addmm, convolutions),
+    # as torch's FlopCounterMode counts it; element-wise work is not counted.
+    from torch.utils.flop_counter import FlopCounterMode
+
+    flops: dict[str, float] = {}
+    for k, fn in steps.items():
+        if k.endswith("-compiled"):
+            continue
+        counter = FlopCounterMode(display=False)
+        with counter:
+            fn()
+        flops[k] = counter.get_total_flops()
     times: dict[str, list[float]] = {k: [] for k in steps}
     for r in range(args.rounds):
         for k, fn in steps.items():
@@ -124,11 +138,17 @@ def main() -> None:
             fn()
             times[k].append(time.perf_counter() - t)
         print(f"  round {r + 1}: " + " ".join(f"{k} {v[-1]:.2f}s" for k, v in times.items()))
-    print(f"\n{'contender':18s} {'s/step':>7s} {'clouds/s':>9s} {'vs port':>8s}")
+    print(
+        f"\n{'contender':18s} {'s/step':>7s} {'clouds/s':>9s} {'vs port':>8s}"
+        f" {'GFLOP/step':>11s} {'GFLOP/s':>8s}"
+    )
     for k, v in times.items():
         med = statistics.median(v)
         ratio = statistics.median(p / t for p, t in zip(times["port"], v, strict=True))
-        print(f"{k:18s} {med:7.2f} {args.batch / med:9.2f} {ratio:7.2f}x")
+        gf = flops.get(k, float("nan")) / 1e9
+        print(
+            f"{k:18s} {med:7.2f} {args.batch / med:9.2f} {ratio:7.2f}x {gf:11.1f} {gf / med:8.1f}"
+        )
     for name in CONFIGS:
         if f"{name}-before" in times and name in times:
             gain = statistics.median(

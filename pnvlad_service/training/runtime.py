@@ -74,6 +74,9 @@ def setup_runtime(t: TrainSection) -> Runtime:
             amp_dtype = torch.bfloat16
         else:
             log.warning("train.amp bf16: this CPU has no native bfloat16; training in float32")
+    where = f"{device} ({torch.get_num_threads()} threads)" if device.type == "cpu" else str(device)
+    precision = f"{amp_dtype} autocast".replace("torch.", "") if amp_dtype else "float32"
+    log.info("training on %s in %s (train.amp %s)", where, precision, t.amp)
     return Runtime(d, device, amp_dtype)
 
 
