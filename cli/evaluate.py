@@ -185,7 +185,7 @@ def evaluate(
         )
         if rerank is not None:
             from pnvlad_service.data.dataset import load_splits_any
-            from pnvlad_service.localization import rerank_eval
+            from pnvlad_service.localization import rerank_eval, rerank_report
 
             rep["rerank"] = rerank_eval.evaluate_rerank(
                 enc.embed,
@@ -214,10 +214,10 @@ def evaluate(
         for line in ev.summary_lines(enc.label, rep):
             typer.echo(line)
         if rerank is not None:
-            for line in rerank_eval.summary_lines(rep["rerank"]):
+            for line in rerank_report.summary_lines(rep["rerank"]):
                 typer.echo(line)
         if figures is not None:
             ev.write_figures(enc.label, rep, figures, others)
             if rerank is not None:
-                rerank_eval.write_figures(rep["rerank"], figures)
+                rerank_report.write_figures(rep["rerank"], figures)
             typer.echo(f"figures in {figures}")
