@@ -35,7 +35,20 @@ from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.localization import registration as reg
 from pnvlad_service.localization.rerank_eval import _Store, pose_error
 
-VARIANTS = {"default": {}, "hyp2": {"hypotheses": 2}, "local": {}}
+VARIANTS = {
+    "default": {},
+    "hyp2": {"hypotheses": 2},
+    "local": {},
+    "wide": {"bev_cells": 96, "search_radius_m": 48.0},
+    "wide-hyp2": {"bev_cells": 96, "search_radius_m": 48.0, "hypotheses": 2},
+    "peaks3-hyp3": {"yaw_peaks": 3, "hypotheses": 3},
+    "white1": {"whitening": 1.0},
+    "wide128": {"bev_cells": 128, "search_radius_m": 64.0},
+    "wide160": {"bev_cells": 160, "search_radius_m": 80.0},
+    "cell2": {"bev_cells": 64, "bev_cell_m": 2.0, "search_radius_m": 64.0},
+    "cell1.5": {"bev_cells": 96, "bev_cell_m": 1.5, "search_radius_m": 72.0},
+    "wide128-hyp2": {"bev_cells": 128, "search_radius_m": 64.0, "hypotheses": 2},
+}
 LOCAL_M = 20.0
 BINS = [(0, 5), (5, 10), (10, 15), (15, 20), (20, 25), (25, 40)]
 
