@@ -170,6 +170,16 @@ def _tnet(net: TransformNet, x: torch.Tensor) -> torch.Tensor:
     return (net.out(g) + net.identity).reshape(b, net.k, net.k)
 
 
+def _vlad_head(pool: NetVLAD, vlad: torch.Tensor) -> torch.Tensor:
+    """Residual sums [B, K, D] -> [B, out]: intra-normalisation (over d, each cluster), L2 of the
+    d-major flattening, ``fc``, its batch norm and the gating (reference ``NetVLAD.forward``)."""
+    b, k, d = vlad.shape
+    vlad = F.normalize(vlad, dim=2)
+    vlad = F.normalize(vlad.transpose(1, 2).reshape(b, d * k), dim=1)
+    y = pool.fc_bn(pool.fc(vlad))
+    return pool.gating(y) if pool.gating is not None else y
+
+
 def _netvlad(pool: NetVLAD, h: torch.Tensor, inv: torch.Tensor | None, b: int, n: int):
     """NetVLAD of features h [B*N, D], each row to be scaled by ``inv`` [B*N, 1] (the per-point
     L2 normalisation, folded) or not (None) -> [B, out] (reference ``NetVLAD.forward``)."""
@@ -183,10 +193,7 @@ def _netvlad(pool: NetVLAD, h: torch.Tensor, inv: torch.Tensor | None, b: int, n
     centre = a.reshape(b, n, k).sum(1).unsqueeze(2) * pool.centers.t()  # [B, K, D]
     # v[k, d] = sum_n aw[n, k] h[n, d] - (sum_n a[n, k]) c[d, k]: one batched product.
     vlad = torch.baddbmm(centre, aw.reshape(b, n, k).transpose(1, 2), h.reshape(b, n, d), beta=-1)
-    vlad = F.normalize(vlad, dim=2)  # intra-normalisation (over d, each cluster)
-    vlad = F.normalize(vlad.transpose(1, 2).reshape(b, d * k), dim=1)  # flattened d-major
-    y = pool.fc_bn(pool.fc(vlad))
-    return pool.gating(y) if pool.gating is not None else y
+    return _vlad_head(pool, vlad)
 
 
 def _affine_netvlad(
@@ -210,10 +217,7 @@ def _affine_netvlad(
     ax = torch.bmm(a.transpose(1, 2), x.reshape(b, n, c))  # [B, K, C]
     shift = a.sum(1).unsqueeze(2) * (t.unsqueeze(1) - pool.centers).t()  # [B, K, D]
     vlad = torch.baddbmm(shift, ax, w.expand(b, c, d))
-    vlad = F.normalize(vlad, dim=2)  # intra-normalisation (over d, each cluster)
-    vlad = F.normalize(vlad.transpose(1, 2).reshape(b, d * k), dim=1)  # flattened d-major
-    y = pool.fc_bn(pool.fc(vlad))
-    return pool.gating(y) if pool.gating is not None else y
+    return _vlad_head(pool, vlad)
 
 
 def fast_forward(model: PointNetVLAD, points: torch.Tensor) -> torch.Tensor:
