@@ -37,6 +37,8 @@ from pnvlad_service.localization.rerank_eval import _Store, pose_error
 
 VARIANTS = {
     "default": {},
+    # the default until session 12: 64 cells of 1 m, so the search saw only +-32 m
+    "narrow64": {"bev_cells": 64, "search_radius_m": 40.0},
     "hyp2": {"hypotheses": 2},
     "local": {},
     "wide": {"bev_cells": 96, "search_radius_m": 48.0},

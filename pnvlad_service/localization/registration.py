@@ -62,11 +62,14 @@ class RegistrationConfig:
     # 1.5x on 2 idle cores).
     threads: int = 2
     bev_cell_m: float = 1.0  # bird's-eye image cell (the yaw and shift search)
-    bev_cells: int = 64  # image side; covers +-bev_cells * bev_cell_m / 2 about the origin
+    # Image side; covers +-bev_cells * bev_cell_m / 2 about the origin. 128 cells of 1 m see
+    # the whole of a submap (they reach about 80 m): with 64 the search saw +-32 m and failed
+    # a quarter of true pairs 15-25 m apart (benchmarks/registration_by_distance.py, VERIFY.md).
+    bev_cells: int = 128
     polar_angles: int = 90  # angular bins over 180 degrees in the spectrum's polar grid
     yaw_peaks: int = 2  # yaw-correlation peaks kept (each also tried turned by 180 degrees)
     whitening: float = 0.5  # phase correlation: cross spectrum divided by its magnitude**this
-    search_radius_m: float = 40.0  # the yaw and shift search looks at points within this
+    search_radius_m: float = 64.0  # the yaw and shift search looks at points within this
     hypotheses: int = 1  # best-scoring (yaw, shift) hypotheses given to the coarse GICP
     min_points: int = 20  # fewer points is degenerate
     min_spread_m: float = 0.05  # a cloud thinner than this across some axis is degenerate
