@@ -111,6 +111,12 @@ def evaluate(
     calibration_queries: int | None = _CAL_QUERIES,
     save_threshold: bool = _SAVE_THRESHOLD,
     device: str = typer.Option(None, "--device", help="cpu | cuda (default: cpu)."),
+    dtype: str = typer.Option(
+        "float32",
+        "--dtype",
+        help="Precision of the encoder's products: float32, or bfloat16 on a CPU that has it "
+        "natively (AVX512-BF16 or AMX; refused elsewhere): the recall it would serve at.",
+    ),
     workers: int = typer.Option(4, "--workers", help="Threads reading submaps."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
@@ -168,7 +174,11 @@ def evaluate(
                 "needs --model and --rerank K, and a threshold chosen here (no --verify-threshold)",
                 "--save-threshold",
             )
-        enc = ev.baseline_encoder() if baseline else ev.model_encoder(model, device)
+        if dtype not in ("float32", "bfloat16"):
+            raise InputError(f"must be float32 or bfloat16, got {dtype!r}", "--dtype")
+        if baseline and dtype != "float32":
+            raise InputError("the baseline has no encoder to run in bfloat16", "--dtype")
+        enc = ev.baseline_encoder() if baseline else ev.model_encoder(model, device, dtype)
         runs = load_eval_runs(root, splits, pickles, sets)
         points = enc.num_points if num_points is None else num_points
         if len(runs) < 2:

@@ -52,21 +52,25 @@ class EvalEncoder:
     label: str
 
 
-def model_encoder(model: str | Path, device: str | None = None) -> EvalEncoder:
+def model_encoder(
+    model: str | Path, device: str | None = None, dtype: str = "float32"
+) -> EvalEncoder:
     """A model directory or the training run that made it (``store.resolve_model_dir``),
-    through the batch-norm-folded ``models.inference.Encoder``; labelled with the model
-    directory and its architecture."""
+    through the batch-norm-folded ``models.inference.Encoder`` in ``dtype`` (float32, or
+    bfloat16 where the CPU has it natively); labelled with the model directory and its
+    architecture."""
     from pnvlad_service.models.inference import Encoder
     from pnvlad_service.models.store import resolve_model_dir
 
     directory = resolve_model_dir(model)
-    enc = Encoder.from_checkpoint(directory, device=device, batch_size=32)
+    enc = Encoder.from_checkpoint(directory, device=device, batch_size=32, dtype=dtype)
     info = {
         "kind": "checkpoint",
         "path": str(directory),
         "weights_sha256": enc.weights_sha256,
         "arch": enc.cfg.arch,
         "dim": enc.dim,
+        "dtype": enc.dtype,
     }
     return EvalEncoder(enc.embed, enc.cfg.num_points, info, f"{directory} ({enc.cfg.arch})")
 
