@@ -298,17 +298,28 @@ def place(
     the source onto the target, by phase correlation) and its score (the correlation peak's
     height over the mean). One inverse FFT for all of them."""
     spectra = np.stack([_turned_spectrum(source, y, config) for y in yaws])
-    cross = target.spectrum[None] * np.conj(spectra)
+    cross = np.conj(spectra, out=spectra)  # the stack is a copy: conjugate and scale in place
+    cross *= target.spectrum[None]
+    mag = np.abs(cross)
+    if config.whitening == 0.5:
+        np.sqrt(mag, out=mag)  # the default, about twice as fast as the power
+    else:
+        np.power(mag, config.whitening, out=mag)
+    mag += 1e-9
+    cross /= mag
     s = config.bev_cells
-    corr = np.fft.irfft2(cross / (np.abs(cross) ** config.whitening + 1e-9), s=(s, s))
+    corr = np.fft.irfft2(cross, s=(s, s)).reshape(len(yaws), -1)
+    peaks = corr.argmax(axis=1)
+    heights = corr[np.arange(len(yaws)), peaks]
+    means = np.abs(corr).mean(axis=1)
     out = []
-    for yaw, c in zip(yaws, corr, strict=True):
-        peak = np.unravel_index(int(np.argmax(c)), c.shape)
+    for yaw, flat, height, mean in zip(yaws, peaks, heights, means, strict=True):
+        peak = np.unravel_index(int(flat), (s, s))
         shift = [((p + s // 2) % s - s // 2) * config.bev_cell_m for p in peak]
         transform = np.eye(4)
         transform[:3, :3] = _rot_z(yaw)
         transform[:2, 3] = shift
-        out.append((transform, float(c[peak] / (np.abs(c).mean() + 1e-12))))
+        out.append((transform, float(height / (mean + 1e-12))))
     return out
 
 
