@@ -47,6 +47,39 @@ log = logging.getLogger(__name__)
 #: Share of self-check queries whose top-1 neighbour must agree for bfloat16 to be used.
 BF16_MIN_AGREEMENT = 0.99
 
+# The one thread of the process that runs torch on all of its intra-op threads.
+#
+# GNU OpenMP (torch's CPU runtime) gives every thread that opens a parallel region a team of
+# its own. Once the process holds more OpenMP threads than there are CPUs (two server lanes,
+# each with its team, on 2 cores; or the loading thread's team and a lane's), libgomp
+# throttles the spinning its threads do between regions to about 100 iterations, and each of
+# the ~100 parallel regions of a forward pass then waits for a futex wake-up instead: the
+# paper model's batch-1 embedding took 33-35 ms against 24-25 on the same 2 cores
+# (docs/SERVICE.md, "One OpenMP team"). So all of the Encoder's multi-threaded work - loading
+# and folding the weights, single clouds, the head - runs on this thread, whichever thread
+# calls; the cloud workers run on one intra-op thread each, which opens no team.
+_torch_thread: ThreadPoolExecutor | None = None
+_torch_thread_lock = threading.Lock()
+_on_torch_thread = threading.local()
+
+
+def on_torch_thread(fn: Any, *args: Any, **kwargs: Any) -> Any:
+    """``fn(*args, **kwargs)`` on the process's torch thread (started on first use), waited
+    for; called from that thread it runs at once."""
+    global _torch_thread
+    if getattr(_on_torch_thread, "yes", False):
+        return fn(*args, **kwargs)
+    with _torch_thread_lock:
+        if _torch_thread is None:
+
+            def mark() -> None:
+                _on_torch_thread.yes = True
+
+            _torch_thread = ThreadPoolExecutor(
+                1, thread_name_prefix="pnvlad-torch", initializer=mark
+            )
+    return _torch_thread.submit(fn, *args, **kwargs).result()
+
 
 def bf16_supported() -> bool:
     """True when this CPU has native bfloat16 matrix instructions (AVX512-BF16 or AMX) in oneDNN."""
@@ -146,9 +179,12 @@ class Encoder:
         ``ModelIdentity``), so that the 64 MB file of the paper model is not hashed twice."""
         from pnvlad_service.models import store
 
-        model, cfg = store.load_model(directory)
-        sha = weights_sha256 or store.weights_sha256(directory)
-        return cls(model, cfg, device=device, weights_sha256=sha, **kwargs)
+        def load() -> Encoder:
+            model, cfg = store.load_model(directory)
+            sha = weights_sha256 or store.weights_sha256(directory)
+            return cls(model, cfg, device=device, weights_sha256=sha, **kwargs)
+
+        return on_torch_thread(load)  # the weights' copies and folding are multi-threaded
 
     def _cast(self, dtype: str) -> dict[str, Any]:
         """The folded parameters on the device for ``dtype`` (made once, then reused)."""
@@ -171,13 +207,18 @@ class Encoder:
     # -- inference ----------------------------------------------------------------------------
 
     def embed(self, points: Any) -> np.ndarray:
-        """Descriptors float32 [B, dim] (unit rows) of points float [B, N, 3] or [N, 3]."""
+        """Descriptors float32 [B, dim] (unit rows) of points float [B, N, 3] or [N, 3].
+
+        On CPU every step that runs on all of torch's threads (a single cloud, the head) runs
+        on the process's torch thread (:func:`on_torch_thread`), and the calling thread opens
+        no OpenMP team of its own."""
         import torch
 
         x = self._as_tensor(points)
         out = torch.empty((x.shape[0], self.dim), dtype=torch.float32)
         with torch.inference_mode():
-            q = self._cast(self.dtype)
+            cpu = self.device.type == "cpu"  # the first cast copies every weight: torch thread
+            q = on_torch_thread(self._cast, self.dtype) if cpu else self._cast(self.dtype)
             for s in range(0, x.shape[0], self.batch_size):
                 chunk = x[s : s + self.batch_size].to(self.device, torch.float32)
                 out[s : s + chunk.shape[0]] = self._forward(chunk, q).cpu()
@@ -186,7 +227,19 @@ class Encoder:
     def _as_tensor(self, points: Any) -> torch.Tensor:
         import torch
 
-        x = points if isinstance(points, torch.Tensor) else torch.as_tensor(np.asarray(points))
+        if not isinstance(points, torch.Tensor):
+            # Checked and converted in numpy: torch would run these passes over a batch on
+            # all of its threads in the calling thread (see on_torch_thread).
+            a = np.asarray(points)
+            if a.ndim == 3 and a.shape[-1] == 3 and a.shape[1] >= 1:
+                if not (np.issubdtype(a.dtype, np.floating) or a.dtype in (np.int32, np.int64)):
+                    raise InputError(f"expected float coordinates, got {a.dtype}", "points")
+                a = np.ascontiguousarray(a, dtype=np.float32)
+                if not np.isfinite(a).all():
+                    raise InputError("points contain NaN or infinite coordinates", "points")
+                return torch.from_numpy(a)
+            points = torch.as_tensor(a)
+        x = points
         if x.dim() == 2:
             x = x.unsqueeze(0)
         if x.dim() != 3 or x.shape[-1] != 3 or x.shape[1] < 1:
@@ -239,10 +292,23 @@ class Encoder:
         clouds side by side on the worker threads (``_clouds``); the fully connected head runs
         on the whole batch as one product.
         """
+        parts = self._clouds(x, q)
+        if self.device.type == "cpu":
+            return on_torch_thread(self._head, parts, q)
+        return self._head(parts, q)
+
+    def _head(self, parts: list[torch.Tensor], q: dict[str, Any]) -> torch.Tensor:
+        """Descriptors float32 [b, out] of the clouds' pooled features: NetVLAD's
+        normalisations (PN_VLAD), the fully connected layer and the gating."""
+        import torch
+
+        with torch.inference_mode():  # thread-local: entered again on the torch thread
+            return self._head_products(torch.stack(parts), q)
+
+    def _head_products(self, pooled: torch.Tensor, q: dict[str, Any]) -> torch.Tensor:
         import torch
         import torch.nn.functional as F
 
-        pooled = torch.stack(self._clouds(x, q))
         if self.cfg.arch == "pointnetvlad":
             k, d = self.cfg.cluster_size, self.cfg.feature_dim
             v = pooled[:, : k * d].reshape(-1, k, d)
@@ -280,7 +346,7 @@ class Encoder:
                 self._worker_pool() if self.device.type == "cpu" and (b > 1 or not alone) else None
             )
             if pool is None:
-                return [self._cloud(x[i], q) for i in range(b)]
+                return self._here(x, q, range(b))
             workers = self._workers
             rest = b % workers
             side_by_side = b if (rest > workers / 2 or not alone) else b - rest
@@ -292,10 +358,23 @@ class Encoder:
                     return self._cloud(x[i], q)
 
             out = list(pool.map(one, range(side_by_side)))
-            return out + [self._cloud(x[i], q) for i in range(side_by_side, b)]
+            return out + self._here(x, q, range(side_by_side, b))
         finally:
             with self._pool_lock:
                 self._embedding -= 1
+
+    def _here(self, x: torch.Tensor, q: dict[str, Any], rows: range) -> list[torch.Tensor]:
+        """``_cloud`` of ``x[rows]`` one after the other on all of torch's threads: on the
+        torch thread on CPU."""
+        import torch
+
+        def run() -> list[torch.Tensor]:
+            with torch.inference_mode():
+                return [self._cloud(x[i], q) for i in rows]
+
+        if not rows:
+            return []
+        return on_torch_thread(run) if self.device.type == "cpu" else run()
 
     def _worker_pool(self) -> ThreadPoolExecutor | None:
         """The cloud worker threads (made on first use), or None for a single worker."""

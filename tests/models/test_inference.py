@@ -174,3 +174,39 @@ def test_real_scan_descriptor_is_order_independent(real_scans: Path) -> None:
     e_perm = enc.embed(sub[rng.permutation(4096)])
     assert np.abs(e - e_perm).max() < 1e-5
     assert abs(float(np.linalg.norm(e)) - 1.0) < 1e-6
+
+
+def test_all_thread_work_runs_on_the_one_torch_thread() -> None:
+    """Single clouds and the head (the steps on all of torch's threads) run on the process's
+    torch thread whichever thread calls embed, so that only one OpenMP team exists (two made
+    libgomp throttle its spinning: 1.4x slower embedding); batches still go to the cloud
+    workers, and the descriptors are the same from every calling thread."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    seen: dict[str, set[str]] = {"cloud": set(), "head": set()}
+
+    class Recording(Encoder):
+        def _cloud(self, x, q):  # type: ignore[no-untyped-def]
+            seen["cloud"].add(threading.current_thread().name)
+            return super()._cloud(x, q)
+
+        def _head_products(self, pooled, q):  # type: ignore[no-untyped-def]
+            seen["head"].add(threading.current_thread().name)
+            return super()._head_products(pooled, q)
+
+    cfg = ModelConfig.compact(num_points=256)
+    torch.manual_seed(0)
+    enc = Recording(build_model(cfg), cfg, cloud_workers=2)
+    x = clouds(3, 256, seed=1)
+    here = enc.embed(x[:1])
+    with ThreadPoolExecutor(1, thread_name_prefix="caller") as pool:
+        there = pool.submit(enc.embed, x[:1]).result()
+    assert seen["cloud"] == {n for n in seen["cloud"] if n.startswith("pnvlad-torch")} != set()
+    assert all(n.startswith("pnvlad-torch") for n in seen["head"])
+    np.testing.assert_array_equal(here, there)
+    seen["cloud"].clear()
+    both = enc.embed(x[:2])  # two clouds side by side on the two cloud workers
+    assert seen["cloud"] and all(n.startswith("pnvlad-encoder") for n in seen["cloud"])
+    np.testing.assert_allclose(both[:1], here, atol=1e-5)
+    enc.close()
