@@ -12,7 +12,9 @@ errors, ``verified`` precision by place and pose with its coverage, candidates r
 query and the seconds it took, overall and per area.
 
 Policies: ``shipped`` (VerifyConfig's defaults), ``all`` (every candidate registered: no early
-stop), ``stopX`` (stop score X), ``minN`` (at least N registered), ``kN`` (N candidates).
+stop), ``stopX`` (stop score X), ``minN`` (at least N registered), ``kN`` (N candidates),
+``radiusX`` (a candidate that places the query farther than X m from its origin ranks after
+the rest; 25 shipped).
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ def policy(name: str, threshold: float) -> VerifyConfig:
         return replace(base, stop_score=None)
     if name.startswith("stop"):
         return replace(base, stop_score=float(name[4:]))
+    if name.startswith("radius"):
+        return replace(base, place_radius_m=float(name[6:]))
     if name.startswith("min"):
         return replace(base, min_registered=int(name[3:]))
     if name.startswith("k"):
