@@ -82,9 +82,13 @@ def serve(
     # spin about 0.2 ms between the ~100 parallel regions of a forward pass instead of 300,000
     # iterations. The single cloud of an idle server keeps its speed, and under load the
     # spinning threads give the cores back to the cloud workers and the registration sooner
-    # (docs/SERVICE.md, "One OpenMP team"). The verification child inherits it. A value
-    # the user set is kept.
-    os.environ.setdefault("GOMP_SPINCOUNT", "20000")
+    # (docs/SERVICE.md, "One OpenMP team"). A value the user set is kept. The verification
+    # child drops the one set here (the marker says so) and lets its threads sleep instead.
+    from pnvlad_service.localization.verify_process import SPINCOUNT_MARK  # no torch
+
+    if "GOMP_SPINCOUNT" not in os.environ:
+        os.environ["GOMP_SPINCOUNT"] = "20000"
+        os.environ[SPINCOUNT_MARK] = "1"
     options: dict[str, Any] = {
         "INDEX": index,
         "CHECKPOINT": model,

@@ -42,6 +42,9 @@ from pnvlad_service.localization.verify import (
 
 log = logging.getLogger(__name__)
 
+#: Set by `pnvlad serve` beside the GOMP_SPINCOUNT it chose for the server's process.
+SPINCOUNT_MARK = "PNVLAD_SERVE_SET_GOMP_SPINCOUNT"
+
 # The child's state, set by _start (one bundle per child).
 _GEOMETRY: Any = None
 _CACHE: PreparedCache | None = None
@@ -60,6 +63,10 @@ def _start(bundle_dir: str, cache_entries: int) -> None:
     # loads small_gicp (and its libgomp) only after this line (the tests check, through
     # _runtime, that no libgomp at all was mapped here before). A value the user set is kept.
     _GOMP_BEFORE = _gomp_loaded()
+    # `pnvlad serve` sets GOMP_SPINCOUNT for the server's encoder; an explicit spin count
+    # would override PASSIVE here, so the child drops the one serve set (not a user's).
+    if os.environ.pop(SPINCOUNT_MARK, None):
+        os.environ.pop("GOMP_SPINCOUNT", None)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     # Ctrl-C reaches the whole process group: the parent stops the child (close), so the
     # child does not die mid-call with a traceback of its own.
@@ -88,7 +95,11 @@ def _runtime() -> dict[str, Any]:
     faiss and small_gicp share) was mapped before it was set: a main script that imports
     torch or faiss at its top loads one in the child too (spawn imports it again); only the
     small_gicp one matters here."""
-    return {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"), "gomp_before": _GOMP_BEFORE}
+    return {
+        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
+        "GOMP_SPINCOUNT": os.environ.get("GOMP_SPINCOUNT"),
+        "gomp_before": _GOMP_BEFORE,
+    }
 
 
 def _ready() -> int:

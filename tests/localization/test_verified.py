@@ -138,7 +138,9 @@ def test_candidates_are_read_only_when_registered_and_not_cached(city: dict) -> 
             assert [c.score for c in got.checks] == pytest.approx([c.score for c in plain.checks])
 
 
-def test_the_child_process_verifies_as_the_server_process_does(city: dict) -> None:
+def test_the_child_process_verifies_as_the_server_process_does(
+    city: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """``verify_process``: the same checks (order, scores, transforms) and poses as in the
     caller's process; when the child is killed, the query that finds it dead is still
     answered (in the caller's process) and the next one starts a new child."""
@@ -149,6 +151,11 @@ def test_the_child_process_verifies_as_the_server_process_does(city: dict) -> No
     queries = _queries(city)[:4]
     with Localizer.load(city["bundle"], verify_config=config) as here:
         expected = [here.localize(c, top_n=3, scale=qf.scale) for c, _, qf in queries]
+    from pnvlad_service.localization.verify_process import SPINCOUNT_MARK
+
+    # As `pnvlad serve` leaves the environment: its spin count, which the child drops.
+    monkeypatch.setenv("GOMP_SPINCOUNT", "20000")
+    monkeypatch.setenv(SPINCOUNT_MARK, "1")
     with Localizer.load(city["bundle"], verify_config=config, verify_process=True) as loc:
         child = loc._verify_process
         assert child is not None
@@ -168,7 +175,11 @@ def test_the_child_process_verifies_as_the_server_process_does(city: dict) -> No
 
         runtime = child._started().submit(_runtime).result()
         policy = os.environ.get("OMP_WAIT_POLICY", "PASSIVE")  # a value set outside is kept
-        assert runtime == {"OMP_WAIT_POLICY": policy, "gomp_before": False}
+        assert runtime == {
+            "OMP_WAIT_POLICY": policy,
+            "GOMP_SPINCOUNT": None,
+            "gomp_before": False,
+        }
         (pid,) = [p.pid for p in child._pool._processes.values()]
         os.kill(pid, signal.SIGKILL)
         cloud, _, qf = queries[0]
