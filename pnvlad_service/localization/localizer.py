@@ -249,16 +249,34 @@ def checked_model(index: str | Path, model: str | Path | None = None) -> ModelId
 # --------------------------------------------------------------------------------------------
 
 
+# FAISS's OpenMP thread count is per thread in libgomp: set in the main thread at start-up,
+# it left the server's lanes, which search, on every core (measured: 1 in the main thread, 2
+# in a new one). set_threads records it; each searching thread applies it once.
+_faiss_threads: int | None = None
+_faiss_applied = threading.local()
+
+
 def set_threads(torch_threads: int | None = None, faiss_threads: int | None = None) -> None:
-    """Process-wide thread counts of torch (intra-op) and FAISS (OpenMP); ``None``: as is."""
+    """Process-wide thread counts of torch (intra-op) and FAISS (OpenMP); ``None``: as is.
+    FAISS's count also reaches the threads that search later (:func:`faiss_threads_here`)."""
+    global _faiss_threads
     if torch_threads:
         import torch
 
         torch.set_num_threads(torch_threads)
     if faiss_threads:
-        import faiss
+        _faiss_threads = faiss_threads
+        faiss_threads_here()
 
-        faiss.omp_set_num_threads(faiss_threads)
+
+def faiss_threads_here() -> None:
+    """Give the calling thread the FAISS thread count of :func:`set_threads` (once a thread)."""
+    if _faiss_threads is None or getattr(_faiss_applied, "n", None) == _faiss_threads:
+        return
+    import faiss
+
+    faiss.omp_set_num_threads(_faiss_threads)
+    _faiss_applied.n = _faiss_threads
 
 
 class Localizer:
@@ -564,5 +582,6 @@ class Localizer:
         t0 = time.perf_counter()
         desc = np.asarray(self.encoder.embed(clouds), dtype=np.float32)
         t1 = time.perf_counter()
+        faiss_threads_here()
         distances, ids = self.bundle.search(desc, k)
         return distances, ids, t1 - t0, time.perf_counter() - t1

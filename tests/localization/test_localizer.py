@@ -209,3 +209,30 @@ def test_the_library_imports_no_web_framework() -> None:
         "assert not bad, bad\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_the_faiss_thread_count_reaches_the_threads_that_search() -> None:
+    """libgomp keeps the count per thread: set in one thread, a new thread still had every
+    core. set_threads' count is applied in each searching thread (as the lanes search)."""
+    faiss = pytest.importorskip("faiss")
+    from pnvlad_service.localization import localizer as loc
+
+    before = loc._faiss_threads
+    try:
+        loc.set_threads(faiss_threads=1)
+        seen: list[int] = []
+
+        def search_like_a_lane() -> None:
+            fresh = faiss.omp_get_max_threads()  # what the thread starts with
+            loc.faiss_threads_here()
+            seen.extend([fresh, faiss.omp_get_max_threads()])
+
+        t = threading.Thread(target=search_like_a_lane)
+        t.start()
+        t.join()
+        default = seen[0]
+        assert seen[1] == 1
+        if default == 1:
+            pytest.skip("one CPU: a new thread has one FAISS thread anyway")
+    finally:
+        loc._faiss_threads = before
