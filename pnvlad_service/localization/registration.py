@@ -301,10 +301,7 @@ def place(
     cross = np.conj(spectra, out=spectra)  # the stack is a copy: conjugate and scale in place
     cross *= target.spectrum[None]
     mag = np.abs(cross)
-    if config.whitening == 0.5:
-        np.sqrt(mag, out=mag)  # the default, about twice as fast as the power
-    else:
-        np.power(mag, config.whitening, out=mag)
+    mag **= config.whitening  # in place; numpy takes a square root for the default 0.5
     mag += 1e-9
     cross /= mag
     s = config.bev_cells
