@@ -54,7 +54,7 @@ BF16_MIN_AGREEMENT = 0.99
 # each with its team, on 2 cores; or the loading thread's team and a lane's), libgomp
 # throttles the spinning its threads do between regions to about 100 iterations, and each of
 # the ~100 parallel regions of a forward pass then waits for a futex wake-up instead: the
-# paper model's batch-1 embedding took 33-35 ms against 24-25 on the same 2 cores
+# paper model's batch-1 embedding took 33-38 ms against 24-25 on the same 2 cores
 # (docs/SERVICE.md, "One OpenMP team"). So all of the Encoder's multi-threaded work - loading
 # and folding the weights, single clouds, the head - runs on this thread, whichever thread
 # calls; the cloud workers run on one intra-op thread each, which opens no team.
@@ -217,8 +217,7 @@ class Encoder:
         x = self._as_tensor(points)
         out = torch.empty((x.shape[0], self.dim), dtype=torch.float32)
         with torch.inference_mode():
-            cpu = self.device.type == "cpu"  # the first cast copies every weight: torch thread
-            q = on_torch_thread(self._cast, self.dtype) if cpu else self._cast(self.dtype)
+            q = self._all_threads(self._cast, self.dtype)  # the first cast copies every weight
             for s in range(0, x.shape[0], self.batch_size):
                 chunk = x[s : s + self.batch_size].to(self.device, torch.float32)
                 out[s : s + chunk.shape[0]] = self._forward(chunk, q).cpu()
@@ -227,31 +226,32 @@ class Encoder:
     def _as_tensor(self, points: Any) -> torch.Tensor:
         import torch
 
-        if not isinstance(points, torch.Tensor):
-            # Checked and converted in numpy: torch would run these passes over a batch on
-            # all of its threads in the calling thread (see on_torch_thread).
-            a = np.asarray(points)
-            if a.ndim == 3 and a.shape[-1] == 3 and a.shape[1] >= 1:
-                if not (np.issubdtype(a.dtype, np.floating) or a.dtype in (np.int32, np.int64)):
-                    raise InputError(f"expected float coordinates, got {a.dtype}", "points")
-                a = np.ascontiguousarray(a, dtype=np.float32)
-                if not np.isfinite(a).all():
-                    raise InputError("points contain NaN or infinite coordinates", "points")
-                return torch.from_numpy(a)
-            points = torch.as_tensor(a)
-        x = points
-        if x.dim() == 2:
-            x = x.unsqueeze(0)
-        if x.dim() != 3 or x.shape[-1] != 3 or x.shape[1] < 1:
+        if isinstance(points, torch.Tensor):
+            x: Any = points.detach()
+            numeric = x.is_floating_point() or x.dtype in (torch.int32, torch.int64)
+        else:
+            # Arrays are checked and converted in numpy: torch would run these passes over a
+            # batch on all of its threads in the calling thread (see on_torch_thread).
+            x = np.asarray(points)
+            numeric = np.issubdtype(x.dtype, np.floating) or x.dtype in (np.int32, np.int64)
+        if x.ndim == 2:
+            x = x[None]
+        if x.ndim != 3 or x.shape[-1] != 3 or x.shape[1] < 1:
             raise InputError(
                 f"expected points of shape [B, N, 3] or [N, 3], got {list(x.shape)}", "points"
             )
-        if not (x.is_floating_point() or x.dtype in (torch.int32, torch.int64)):
+        if not numeric:
             raise InputError(f"expected float coordinates, got {x.dtype}", "points")
-        x = x.detach().to(torch.float32)
-        if not bool(torch.isfinite(x).all()):
+        if isinstance(x, np.ndarray):
+            x = np.ascontiguousarray(x, dtype=np.float32)
+            finite = bool(np.isfinite(x).all())
+            x = torch.from_numpy(x)
+        else:
+            x = x.to(torch.float32).contiguous()
+            finite = bool(torch.isfinite(x).all())
+        if not finite:
             raise InputError("points contain NaN or infinite coordinates", "points")
-        return x.contiguous()
+        return x
 
     def _tiles(self, n: int) -> range:
         return range(0, n, self.point_tile)
@@ -292,10 +292,12 @@ class Encoder:
         clouds side by side on the worker threads (``_clouds``); the fully connected head runs
         on the whole batch as one product.
         """
-        parts = self._clouds(x, q)
-        if self.device.type == "cpu":
-            return on_torch_thread(self._head, parts, q)
-        return self._head(parts, q)
+        return self._all_threads(self._head, self._clouds(x, q), q)
+
+    def _all_threads(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)``, work on all of torch's threads: on the process's torch thread on CPU
+        (:func:`on_torch_thread`), in the calling thread on a GPU."""
+        return on_torch_thread(fn, *args) if self.device.type == "cpu" else fn(*args)
 
     def _head(self, parts: list[torch.Tensor], q: dict[str, Any]) -> torch.Tensor:
         """Descriptors float32 [b, out] of the clouds' pooled features: NetVLAD's
@@ -372,9 +374,7 @@ class Encoder:
             with torch.inference_mode():
                 return [self._cloud(x[i], q) for i in rows]
 
-        if not rows:
-            return []
-        return on_torch_thread(run) if self.device.type == "cpu" else run()
+        return self._all_threads(run) if rows else []
 
     def _worker_pool(self) -> ThreadPoolExecutor | None:
         """The cloud worker threads (made on first use), or None for a single worker."""
