@@ -14,7 +14,8 @@ query and the seconds it took, overall and per area.
 Policies: ``shipped`` (VerifyConfig's defaults), ``all`` (every candidate registered: no early
 stop), ``stopX`` (stop score X), ``minN`` (at least N registered), ``kN`` (N candidates),
 ``radiusX`` (a candidate that places the query farther than X m from its origin ranks after
-the rest; 25 shipped).
+the rest; 25 shipped), ``aloneX`` (a first candidate that scores X and pins the translation
+ends the cascade alone; 0.35 shipped, ``alone1`` never).
 """
 
 from __future__ import annotations
@@ -41,13 +42,16 @@ def policy(name: str, threshold: float) -> VerifyConfig:
         return replace(base, stop_score=None)
     if name.startswith("stop"):
         return replace(base, stop_score=float(name[4:]))
+    if name.startswith("alone"):
+        x = float(name[5:])
+        return replace(base, alone_score=x if x < 1.0 else None)
     if name.startswith("radius"):
         return replace(base, place_radius_m=float(name[6:]))
     if name.startswith("min"):
         return replace(base, min_registered=int(name[3:]))
     if name.startswith("k"):
         return replace(base, candidates=int(name[1:]))
-    raise SystemExit(f"unknown policy {name!r} (shipped, all, stopX, minN, kN)")
+    raise SystemExit(f"unknown policy {name!r} (shipped, all, stopX, minN, kN, radiusX, aloneX)")
 
 
 def line(label: str, r: dict) -> str:

@@ -96,6 +96,14 @@ class ServerSettings(BaseSettings):
         description="Candidates are registered in retrieval order, one at a time; the rest are "
         "skipped once one scores this within the place radius (1: register all).",
     )
+    verify_alone_score: float = Field(
+        VerifyConfig.alone_score if VerifyConfig.alone_score is not None else 1.0,
+        ge=0.0,
+        le=1.0,
+        description="The cascade always registers a second candidate (the rival the "
+        "confidence weighs), unless the first scores this within the place radius and pins "
+        "the translation (1: always a second).",
+    )
     verify_cache: int = Field(
         VerifyConfig.cache_entries,
         ge=0,
@@ -122,6 +130,7 @@ class ServerSettings(BaseSettings):
         return VerifyConfig(
             candidates=self.rerank,
             stop_score=self.verify_stop_score,
+            alone_score=self.verify_alone_score if self.verify_alone_score < 1.0 else None,
             cache_entries=self.verify_cache,
             crowded_threads=self.verify_crowded_threads or None,
         )

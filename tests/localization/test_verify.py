@@ -4,6 +4,8 @@ test_registration; what a test expects is known from how the scene was built."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -80,14 +82,33 @@ def test_the_cascade_stops_after_the_wave_that_holds_a_sure_match(scene: dict) -
 
 def test_one_at_a_time_the_cascade_still_registers_a_second_candidate(scene: dict) -> None:
     """The second registered candidate is the rival the confidence is measured against, so
-    by default the cascade stops after two even when the first is sure; asked to, after one."""
+    the cascade stops after two even when the first is sure, unless the first stands alone:
+    it scores ``alone_score`` and pins the translation; asked to, it stops after one."""
     cands = _cands([scene["true"], *scene["others"]])
-    v = verify(scene["query"], cands, VerifyConfig(candidates=5, workers=1, stop_score=0.5))
+    base = VerifyConfig(candidates=5, workers=1, stop_score=0.5, alone_score=None)
+    v = verify(scene["query"], cands, base)
     assert v.registered == 2 and v.checks[0].rank == 1 and v.verified
-    single = VerifyConfig(candidates=5, workers=1, stop_score=0.5, min_registered=1)
+    first = v.checks[0]
+    assert first.score > 0.5 and first.constraint > 0.0  # the scene's fit: sure and pinned
+    # Alone: the first's score and constraint both reach the bars, so nothing else is needed.
+    alone = replace(base, alone_score=first.score - 0.01, constraint_ref=first.constraint / 2)
+    lone = verify(scene["query"], cands, alone)
+    assert lone.registered == 1 and lone.verified and lone.checks[0].rank == 1
+    assert lone.confidence == pytest.approx(first.score, abs=2e-3)  # no rival, fully pinned
+    # With no early stop (stop_score None) every candidate is registered, alone or not.
+    assert verify(scene["query"], cands, replace(alone, stop_score=None)).registered == 5
+    # Either bar unmet: the second is registered as before.
+    for unmet in (
+        replace(alone, alone_score=first.score + 0.01),
+        replace(alone, constraint_ref=first.constraint * 2),
+    ):
+        assert verify(scene["query"], cands, unmet).registered == 2
+    single = replace(base, min_registered=1)
     assert verify(scene["query"], cands, single).registered == 1
     with pytest.raises(ValueError, match="min_registered"):
         VerifyConfig(min_registered=0)
+    with pytest.raises(ValueError, match="alone_score"):
+        VerifyConfig(alone_score=1.5)
 
 
 def test_the_cascade_goes_on_while_nothing_is_sure(scene: dict) -> None:

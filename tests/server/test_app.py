@@ -612,3 +612,18 @@ def test_settings_come_from_the_environment(monkeypatch, world) -> None:
     monkeypatch.setenv("PNVLAD_MAX_TOP_N", "7")
     s = ServerSettings()
     assert s.index == world["bundle"] and s.max_top_n == 7 and s.host == "127.0.0.1"
+
+
+def test_the_verification_settings_reach_the_cascade(monkeypatch) -> None:
+    """PNVLAD_VERIFY_* become the VerifyConfig the localizer registers with; an alone score of
+    1 means the cascade always registers a second candidate."""
+    from pnvlad_service.localization.verify import VerifyConfig
+    from pnvlad_service.server.settings import ServerSettings
+
+    assert ServerSettings().verify_config().alone_score == VerifyConfig().alone_score
+    monkeypatch.setenv("PNVLAD_VERIFY_STOP_SCORE", "0.4")
+    monkeypatch.setenv("PNVLAD_VERIFY_ALONE_SCORE", "0.5")
+    cfg = ServerSettings().verify_config()
+    assert (cfg.stop_score, cfg.alone_score) == (0.4, 0.5)
+    monkeypatch.setenv("PNVLAD_VERIFY_ALONE_SCORE", "1")
+    assert ServerSettings().verify_config().alone_score is None
