@@ -446,26 +446,19 @@ def confidence(
 
 
 def _done(ordered: Sequence[Check], config: VerifyConfig) -> bool:
-    """Whether the cascade stops with the checks ``ordered`` so far (re-ranked): a sure best
-    once ``min_registered`` are in, or a first one that stands alone (``alone_score``);
-    never with ``stop_score`` None (every candidate is registered)."""
-    if len(ordered) >= config.min_registered:
-        return _sure(ordered[0], config)
-    alone = config.alone_score
+    """Whether the cascade stops with the checks ``ordered`` so far (re-ranked): the best
+    places the query within the radius and, once ``min_registered`` are in, scores
+    ``stop_score``, or, as the only one in, stands alone (``alone_score``, and the
+    translation pinned); never with ``stop_score`` None (every candidate is registered)."""
     best = ordered[0]
+    if config.stop_score is None or not _near(best, config.place_radius_m):
+        return False
+    if len(ordered) >= config.min_registered:
+        return best.score >= config.stop_score
+    alone = config.alone_score
     return (
         len(ordered) == 1
         and alone is not None
-        and config.stop_score is not None
-        and _near(best, config.place_radius_m)
         and best.score >= alone
         and best.constraint >= config.constraint_ref
     )
-
-
-def _sure(best: Check, config: VerifyConfig) -> bool:
-    """Whether ``best`` ends the cascade: within the place radius, score >= ``stop_score``
-    (never with ``stop_score`` None)."""
-    if config.stop_score is None:
-        return False
-    return _near(best, config.place_radius_m) and best.score >= config.stop_score
