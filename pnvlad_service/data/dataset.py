@@ -132,14 +132,20 @@ def fit_points(points: np.ndarray, num_points: int, seed: int = 0) -> np.ndarray
     """float32 [num_points, 3]: a fixed random subset of the rows (or all of them, repeated
     when too few). The subset depends only on ``seed`` and the cloud size, so it is the same at
     training and evaluation."""
-    n = len(points)
-    if n == num_points:
+    if len(points) == num_points:
         return points
+    return points[fit_indices(len(points), num_points, seed)]
+
+
+def fit_indices(n: int, num_points: int, seed: int = 0) -> np.ndarray:
+    """The sorted int64 rows :func:`fit_points` keeps of a cloud of ``n`` points."""
     if n == 0:
         raise InputError("empty submap", "points")
+    if n == num_points:
+        return np.arange(n)
     rng = np.random.default_rng(seed)
     idx = rng.permutation(n)[:num_points] if n > num_points else rng.choice(n, num_points)
-    return points[np.sort(idx)]
+    return np.sort(idx)
 
 
 def load_clouds(
@@ -149,12 +155,25 @@ def load_clouds(
     workers: int = 4,
     progress: bool = False,
     desc: str = "loading submaps",
+    shape_k: int = 0,
 ) -> np.ndarray:
-    """Read submaps into float32 [N, num_points, 3] (about 48 KiB a 4096-point submap)."""
-    out = np.empty((len(paths), num_points, 3), dtype=np.float32)
+    """Read submaps into float32 [N, num_points, 3] (about 48 KiB a 4096-point submap).
+
+    ``shape_k`` > 0: [N, num_points, 10], each point with the local shape features of its
+    ``shape_k`` nearest neighbours in the whole submap (``models/local_shape.py``), taken
+    before the submap is cut to ``num_points``, so that a model trained on a subset sees the
+    neighbourhoods it meets on whole submaps."""
+    from pnvlad_service.models.local_shape import NUM_FEATURES, shape_features
+
+    width = 3 + NUM_FEATURES if shape_k else 3
+    out = np.empty((len(paths), num_points, width), dtype=np.float32)
 
     def one(i: int) -> None:
-        out[i] = fit_points(read_submap(paths[i]), num_points)
+        points = read_submap(paths[i])
+        rows = fit_indices(len(points), num_points)
+        out[i, :, :3] = points[rows]
+        if shape_k:
+            out[i, :, 3:] = shape_features(points, shape_k)[rows]
 
     _run_parallel(one, len(paths), workers, progress, desc)
     return out

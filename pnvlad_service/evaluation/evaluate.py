@@ -91,14 +91,16 @@ def embed_paths(
     chunk: int = 256,
     workers: int = 4,
     progress: bool = False,
+    shape_k: int = 0,
 ) -> np.ndarray:
     """float32 [len(paths), D] descriptors, reading ``chunk`` submaps at a time (memory holds
-    one chunk of clouds and the descriptors, never all the clouds)."""
+    one chunk of clouds and the descriptors, never all the clouds). ``shape_k``: the clouds
+    carry their local shape features, taken on the whole submaps (``load_clouds``)."""
     if not paths:
         raise InputError("nothing to embed", source="evaluation set")
 
     def load(start: int, stop: int) -> np.ndarray:
-        return load_clouds(paths[start:stop], num_points, workers=workers)
+        return load_clouds(paths[start:stop], num_points, workers=workers, shape_k=shape_k)
 
     return embed_in_chunks(embed, len(paths), load, chunk=chunk, progress=progress)
 
@@ -218,6 +220,7 @@ def evaluate_runs(
     workers: int = 4,
     progress: bool = True,
     encoder_info: dict[str, Any] | None = None,
+    shape_k: int = 0,
 ) -> dict[str, Any]:
     """Evaluate an embedder on evaluation runs; returns the JSON-ready report.
 
@@ -229,7 +232,7 @@ def evaluate_runs(
     if len(runs) < 2:
         raise InputError(f"need at least 2 runs to evaluate, got {len(runs)}", "evaluation set")
     t0 = time.monotonic()
-    n_unique, db_desc, q_desc = embed_runs(embed, runs, num_points, workers, progress)
+    n_unique, db_desc, q_desc = embed_runs(embed, runs, num_points, workers, progress, shape_k)
     return evaluate_embedded(
         runs,
         db_desc,
@@ -300,7 +303,12 @@ def evaluate_embedded(
 
 
 def embed_runs(
-    embed: EmbedFn, runs: list[EvalRun], num_points: int, workers: int, progress: bool
+    embed: EmbedFn,
+    runs: list[EvalRun],
+    num_points: int,
+    workers: int,
+    progress: bool,
+    shape_k: int = 0,
 ) -> tuple[int, list[np.ndarray], list[np.ndarray]]:
     """Embed every unique submap of the runs once (a query is also in its run's database):
     (unique submaps, each run's database descriptors, each run's query descriptors)."""
@@ -310,7 +318,9 @@ def embed_runs(
             unique.setdefault(str(p), len(unique))
     paths = list(unique)
     log.info("embedding %d unique submaps of %d runs", len(paths), len(runs))
-    desc = embed_paths(embed, paths, num_points, workers=workers, progress=progress)
+    desc = embed_paths(
+        embed, paths, num_points, workers=workers, progress=progress, shape_k=shape_k
+    )
     db_desc = [desc[[unique[str(p)] for p in r.db_paths]] for r in runs]
     q_desc = [desc[[unique[str(p)] for p in r.query_paths]] for r in runs]
     return len(paths), db_desc, q_desc

@@ -30,7 +30,8 @@ Arch = Literal["pointnetvlad", "pointnet-max"]
 class ModelConfig(BaseModel):
     """Sizes and switches of an encoder; ``build_model(cfg)`` turns it into a ``torch.nn.Module``.
 
-    Input: float32 points [B, N, 3] (a submap scaled into [-1, 1]); output float32
+    Input: float32 points [B, N, 3] (a submap scaled into [-1, 1]; with ``local_k`` they may
+    carry their shape features, [B, N, 10]); output float32
     [B, output_dim], every row of unit L2 norm.
     """
 
@@ -38,6 +39,13 @@ class ModelConfig(BaseModel):
 
     arch: Arch = Field("pointnetvlad", description="'pointnetvlad' (PN_VLAD) or 'pointnet-max'.")
     num_points: int = Field(4096, ge=1, description="Points per cloud the model is trained on.")
+
+    local_k: int = Field(
+        0,
+        ge=0,
+        description="Append local shape features of each point's k nearest neighbours to its "
+        "coordinates (models/local_shape.py, after LPD-Net); 0: coordinates only, as the paper.",
+    )
 
     # Per-point trunk: shared layers (1x1 convolutions, i.e. matrix products over points).
     stem_widths: tuple[int, ...] = Field(
@@ -98,7 +106,19 @@ class ModelConfig(BaseModel):
             raise ValueError("feature_transform needs at least one stem layer to transform")
         if (self.input_transform or self.feature_transform) and not self.tnet_point_widths:
             raise ValueError("transform nets need at least one per-point layer")
+        if 0 < self.local_k < 3:
+            raise ValueError(f"local_k must be 0 or at least 3 (a covariance), got {self.local_k}")
         return self
+
+    @property
+    def input_dim(self) -> int:
+        """Channels a point enters the per-point layers with: x, y, z and, with ``local_k``,
+        its local shape features."""
+        if not self.local_k:
+            return 3
+        from pnvlad_service.models.local_shape import NUM_FEATURES
+
+        return 3 + NUM_FEATURES
 
     @property
     def feature_dim(self) -> int:
@@ -161,7 +181,7 @@ class ModelConfig(BaseModel):
 
         if self.input_transform:
             flops += tnet(3, 3) + 2 * n * 3 * 3
-        c = 3
+        c = self.input_dim
         for w in self.stem_widths:
             flops += 2 * n * c * w
             c = w
@@ -184,6 +204,11 @@ class ModelConfig(BaseModel):
 
 
 def config_sha256(cfg: ModelConfig) -> str:
-    """SHA-256 (hex) of the configuration's canonical JSON (sorted keys, no spaces)."""
-    text = json.dumps(cfg.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    """SHA-256 (hex) of the configuration's canonical JSON (sorted keys, no spaces). Fields
+    added since the first release are left out at their neutral value (``local_k`` 0), so a
+    model's hash does not change with the release that reads it."""
+    doc = cfg.model_dump(mode="json")
+    if not doc["local_k"]:
+        del doc["local_k"]
+    text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()

@@ -38,6 +38,7 @@ import numpy as np
 from pnvlad_service.errors import InputError
 from pnvlad_service.models.config import ModelConfig
 from pnvlad_service.models.folding import Dense, cast_folded, fold_model
+from pnvlad_service.models.local_shape import split_inputs
 
 if TYPE_CHECKING:
     import torch
@@ -236,10 +237,12 @@ class Encoder:
             numeric = np.issubdtype(x.dtype, np.floating) or x.dtype in (np.int32, np.int64)
         if x.ndim == 2:
             x = x[None]
-        if x.ndim != 3 or x.shape[-1] != 3 or x.shape[1] < 1:
-            raise InputError(
-                f"expected points of shape [B, N, 3] or [N, 3], got {list(x.shape)}", "points"
-            )
+        channels = (3, self.cfg.input_dim)
+        if x.ndim != 3 or x.shape[-1] not in channels or x.shape[1] < 1:
+            want = "[B, N, 3] or [N, 3]"
+            if self.cfg.local_k:
+                want += f" (or with their {self.cfg.input_dim - 3} shape features appended)"
+            raise InputError(f"expected points of shape {want}, got {list(x.shape)}", "points")
         if not numeric:
             raise InputError(f"expected float coordinates, got {x.dtype}", "points")
         if isinstance(x, np.ndarray):
@@ -405,14 +408,19 @@ class Encoder:
                 self._pool = None
 
     def _cloud(self, x: torch.Tensor, q: dict[str, Any]) -> torch.Tensor:
-        """One cloud x float32 [n, 3] -> pooled float32: PN_VLAD the un-normalised residual sums
-        [K*D] (cluster-major) followed by the soft-assignment totals [K]; PN_MAX the max [D]."""
+        """One cloud x float32 [n, 3] (or [n, 10] with its shape features) -> pooled float32:
+        PN_VLAD the un-normalised residual sums [K*D] (cluster-major) followed by the
+        soft-assignment totals [K]; PN_MAX the max [D]."""
         import torch
 
         cfg = self.cfg
         mm = q["mm"]
+        xyz, shape = split_inputs(x.unsqueeze(0), cfg.local_k)  # features computed here
+        x = xyz[0]
         if q["input_tnet"] is not None:
             x = x @ self._tnet(x, q["input_tnet"], mm)
+        if shape is not None:
+            x = torch.cat([x, shape[0]], dim=1)
         h = x.to(mm)
         for layer in q["stem"]:
             h = torch.addmm(layer.b.to(mm), h, layer.w).relu_()

@@ -26,8 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pnvlad_service.errors import InputError
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.local_shape import split_inputs
 
 
 class TransformNet(nn.Module):
@@ -150,7 +150,8 @@ class PointNetVLAD(nn.Module):
     """The encoder: a PointNet trunk and a NetVLAD (``pointnetvlad``) or max (``pointnet-max``)
     pooling head, then L2 normalisation.
 
-    ``forward(points float32 [B, N, 3]) -> float32 [B, output_dim]``, each row of unit L2 norm.
+    ``forward(points float32 [B, N, 3]) -> float32 [B, output_dim]``, each row of unit L2 norm
+    (with ``cfg.local_k``, points [B, N, 10] that carry their shape features are taken too).
     N may differ from ``cfg.num_points``; the descriptor does not depend on the points' order.
     """
 
@@ -164,8 +165,8 @@ class PointNetVLAD(nn.Module):
             if cfg.input_transform
             else None
         )
-        self.stem, self.stem_bn = self._layers(3, cfg.stem_widths)
-        c = cfg.stem_widths[-1] if cfg.stem_widths else 3
+        self.stem, self.stem_bn = self._layers(cfg.input_dim, cfg.stem_widths)
+        c = cfg.stem_widths[-1] if cfg.stem_widths else cfg.input_dim
         self.feature_tnet = (
             TransformNet(c, c, cfg.tnet_point_widths, cfg.tnet_fc_widths, cfg.tnet_batch_norm)
             if cfg.feature_transform
@@ -191,16 +192,16 @@ class PointNetVLAD(nn.Module):
 
     def point_features(self, points: torch.Tensor) -> torch.Tensor:
         """Per-point features float32 [B, N, D] of points float32 [B, N, 3] (before pooling,
-        after the per-point L2 normalisation when ``cfg.point_l2_norm`` and the head is NetVLAD)."""
-        if points.dim() != 3 or points.shape[-1] != 3:
-            raise InputError(
-                f"expected points of shape [B, N, 3], got {list(points.shape)}", "points"
-            )
-        b, n, _ = points.shape
-        x = points
+        after the per-point L2 normalisation when ``cfg.point_l2_norm`` and the head is NetVLAD).
+        With ``cfg.local_k`` the points may carry their shape features already ([B, N, 10],
+        ``local_shape.split_inputs``)."""
+        x, shape = split_inputs(points, self.cfg.local_k)
+        b, n, _ = x.shape
         if self.input_tnet is not None:
             x = x @ self.input_tnet(x)
-        h = x.reshape(b * n, 3)
+        if shape is not None:
+            x = torch.cat([x, shape], dim=2)
+        h = x.reshape(b * n, -1)
         for lin, bn in zip(self.stem, self.stem_bn, strict=True):
             h = F.relu(bn(lin(h)))
         if self.feature_tnet is not None:
@@ -218,10 +219,6 @@ class PointNetVLAD(nn.Module):
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         if not self.fast_path:
             return self.reference_forward(points)
-        if points.dim() != 3 or points.shape[-1] != 3:
-            raise InputError(
-                f"expected points of shape [B, N, 3], got {list(points.shape)}", "points"
-            )
         from pnvlad_service.models.training_path import fast_forward
 
         return fast_forward(self, points)

@@ -222,14 +222,20 @@ def _affine_netvlad(
 
 def fast_forward(model: PointNetVLAD, points: torch.Tensor) -> torch.Tensor:
     """``model(points)`` computed the fast way: points [B, N, 3] -> [B, out], unit rows."""
+    from pnvlad_service.models.local_shape import split_inputs
     from pnvlad_service.models.pointnetvlad import NetVLAD
 
     cfg = model.cfg
-    b, n, _ = points.shape
-    h = points.reshape(b * n, 3)
+    xyz, shape = split_inputs(points, cfg.local_k)
+    b, n, _ = xyz.shape
+    h = xyz.reshape(b * n, 3)
     pending: torch.Tensor | None = None  # a transform to fold into the next per-point layer
     if model.input_tnet is not None:
-        pending = _tnet(model.input_tnet, points)
+        pending = _tnet(model.input_tnet, xyz)
+    if shape is not None:  # the transform turns x, y, z only: apply it, then append the rest
+        x = xyz if pending is None else torch.bmm(xyz, pending)
+        h = torch.cat([x, shape], dim=2).reshape(b * n, -1)
+        pending = None
     layers = [(lin, bn, True) for lin, bn in zip(model.stem, model.stem_bn, strict=True)]
     feat_at = len(layers)
     last = len(model.trunk) - 1

@@ -53,7 +53,7 @@ class AugmentSection(BaseModel):
 
 
 def _refill(x: torch.Tensor, keep: torch.Tensor, g: torch.Generator) -> torch.Tensor:
-    """``x`` [B, P, 3] with each point where ``keep`` [B, P] is False replaced by a random
+    """``x`` [B, P, C] with each point where ``keep`` [B, P] is False replaced by a random
     kept point of its cloud (a cloud with nothing kept is left as it was)."""
     import torch
 
@@ -64,11 +64,14 @@ def _refill(x: torch.Tensor, keep: torch.Tensor, g: torch.Generator) -> torch.Te
     u = torch.rand((b, p), generator=g, device=x.device)
     pick = order.gather(1, (u * n_keep).long().clamp_max(p - 1))
     src = torch.where(keep, torch.arange(p, device=x.device).expand(b, p), pick)
-    return x.gather(1, src.unsqueeze(-1).expand(b, p, 3))
+    return x.gather(1, src.unsqueeze(-1).expand(b, p, x.shape[2]))
 
 
 def augment(x: torch.Tensor, cfg: AugmentSection, seed: int) -> torch.Tensor:
     """A perturbed copy of ``x`` float [B, P, 3] (normalised clouds), drawn from ``seed``.
+    Channels after the third (a point's shape features, ``models/local_shape.py``) travel
+    with their point: a refilled point brings its own, and the turn, scaling, shift and
+    jitter, which leave them unchanged, touch x, y and z only.
 
     In order: point dropout, block erasing, turn about z, scaling, shift, jitter. ``x`` is
     returned itself when ``cfg`` does nothing."""
@@ -100,11 +103,12 @@ def augment(x: torch.Tensor, cfg: AugmentSection, seed: int) -> torch.Tensor:
         xy = torch.stack([c * x[..., 0].T - s * x[..., 1].T, s * x[..., 0].T + c * x[..., 1].T])
         x = torch.cat([xy.permute(2, 1, 0), x[..., 2:]], dim=2)
     if cfg.scale > 0:
-        x = x * uniform(1.0 - cfg.scale, 1.0 + cfg.scale, b, 1, 1)
+        xyz = x[..., :3] * uniform(1.0 - cfg.scale, 1.0 + cfg.scale, b, 1, 1)
+        x = torch.cat([xyz, x[..., 3:]], dim=2)
     if cfg.shift > 0:
         d = uniform(-cfg.shift, cfg.shift, b, 1, 2)
         x = torch.cat([x[..., :2] + d, x[..., 2:]], dim=2)
     if cfg.jitter > 0:
-        noise = torch.randn(x.shape, generator=g, device=dev, dtype=dt) * cfg.jitter
-        x = x + noise.clamp(-3 * cfg.jitter, 3 * cfg.jitter)
+        noise = torch.randn((b, p, 3), generator=g, device=dev, dtype=dt) * cfg.jitter
+        x = torch.cat([x[..., :3] + noise.clamp(-3 * cfg.jitter, 3 * cfg.jitter), x[..., 3:]], 2)
     return x

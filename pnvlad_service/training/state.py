@@ -119,7 +119,11 @@ def prepare_data(
             len(training_set) - len(anchors),
         )
     clouds_np = load_clouds(
-        training_set.paths, cfg.model.num_points, workers=t.workers, progress=progress and d.main
+        training_set.paths,
+        cfg.model.num_points,
+        workers=t.workers,
+        progress=progress and d.main,
+        shape_k=cfg.model.local_k,
     )
     clouds = torch.from_numpy(clouds_np)
     if rt.device.type == "cuda":

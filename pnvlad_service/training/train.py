@@ -525,7 +525,13 @@ def _validate(
 
     runs = runs[: cfg.data.val_max_runs]
     tv = time.monotonic()
-    rep = evaluate_runs(module_embedder(model, device), runs, cfg.model.num_points, progress=False)
+    rep = evaluate_runs(
+        module_embedder(model, device),
+        runs,
+        cfg.model.num_points,
+        progress=False,
+        shape_k=cfg.model.local_k,
+    )
     rec = {
         "event": "val",
         "step": step,

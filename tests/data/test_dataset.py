@@ -47,6 +47,23 @@ def test_load_clouds_fits_every_submap_to_the_point_count(tmp_path: Path) -> Non
         assert all(tuple(r) in rows for r in clouds[k].tolist())
 
 
+def test_load_clouds_takes_shape_features_on_the_whole_submap(tmp_path: Path) -> None:
+    from pnvlad_service.models.local_shape import shape_features
+
+    pts = np.random.default_rng(1).normal(size=(300, 3))
+    path = tmp_path / "a.bin"
+    path.write_bytes(pts.astype("<f8").tobytes())
+    out = load_clouds([path], 64, shape_k=12)
+    assert out.shape == (1, 64, 10)
+    whole = read_submap(path)
+    rows = [int(np.flatnonzero((whole == r).all(axis=1))[0]) for r in out[0, :, :3]]
+    np.testing.assert_array_equal(out[0, :, :3], fit_points(whole, 64))
+    # the features of each kept point are those it has in the whole submap, not in the subset
+    np.testing.assert_allclose(out[0, :, 3:], shape_features(whole, 12)[rows], atol=1e-6)
+    subset_only = shape_features(out[0, :, :3], 12)
+    assert np.abs(subset_only - out[0, :, 3:]).max() > 0.1
+
+
 def test_training_sets_of_two_datasets_pool_with_offsets(tmp_path) -> None:
     from pnvlad_service.data.dataset import training_set_from_tuples
     from pnvlad_service.data.splits import TrainingTuples

@@ -83,6 +83,20 @@ def test_the_same_seed_repeats_and_another_differs() -> None:
     assert not torch.equal(augment(x, cfg, 9), augment(x, cfg, 10))
 
 
+def test_extra_channels_travel_with_their_point_and_are_not_moved() -> None:
+    x = _clouds(p=300)
+    tag = torch.rand((x.shape[0], x.shape[1], 7), generator=torch.Generator().manual_seed(2))
+    xt = torch.cat([x, tag], dim=2)
+    cfg = AugmentSection(dropout=0.4, erase_p=1.0, yaw_deg=20, scale=0.1, shift=0.1, jitter=0.01)
+    y = augment(xt, cfg, 11)
+    assert y.shape == xt.shape
+    # the same seed moves x, y and z as it moves a cloud without the extra channels
+    torch.testing.assert_close(y[..., :3], augment(x, cfg, 11))
+    for b in range(x.shape[0]):  # every output point carries the channels of one input point
+        rows = {tuple(r) for r in tag[b].tolist()}
+        assert all(tuple(r) in rows for r in y[b, :, 3:].tolist())
+
+
 def test_the_config_names_a_bad_augment_field() -> None:
     cfg = TrainConfig.from_mapping({"train": {"augment": {"yaw_deg": 5}}})
     assert cfg.train.augment.yaw_deg == 5 and cfg.train.augment.active
