@@ -85,6 +85,11 @@ class TrainSection(BaseModel):
     keep_checkpoints: int = Field(2, ge=1, description="Step checkpoints kept on disk.")
     val_every: int = Field(1000, ge=0, description="Steps between validation recalls (0: off).")
     log_every: int = Field(10, ge=1, description="Steps between metrics-log lines.")
+    resample_points: bool = Field(
+        False,
+        description="Hold each training submap whole and draw its model.num_points afresh each "
+        "time it is embedded (False: one fixed subset a submap, as the published code).",
+    )
     augment: AugmentSection = Field(
         default_factory=AugmentSection,
         description="Perturbations of each training cloud (training/augment.py); off by default.",

@@ -21,6 +21,7 @@ import numpy as np
 
 from pnvlad_service.data.dataset import EvalRun, TrainingSet, load_clouds
 from pnvlad_service.errors import InputError
+from pnvlad_service.io.submap import SUBMAP_POINTS
 from pnvlad_service.training import mining
 from pnvlad_service.training.checkpoint import (
     TrainingState,
@@ -118,9 +119,12 @@ def prepare_data(
             len(anchors),
             len(training_set) - len(anchors),
         )
+    # Resampling holds the submaps whole (at least num_points: fit_points repeats rows of a
+    # smaller one) and draws the subset in the step (train._embed).
+    held = max(SUBMAP_POINTS, cfg.model.num_points) if t.resample_points else cfg.model.num_points
     clouds_np = load_clouds(
         training_set.paths,
-        cfg.model.num_points,
+        held,
         workers=t.workers,
         progress=progress and d.main,
         shape_k=cfg.model.local_k,

@@ -179,12 +179,19 @@ def _embed(
     state: TrainState, clouds: torch.Tensor, idx: np.ndarray, rt: Runtime, cfg: TrainConfig
 ) -> torch.Tensor:
     """float32 [len(idx), D]: one forward pass (training mode, autocast) over ``clouds[idx]``,
-    each cloud augmented first when the config asks (the seed drawn from the tuple RNG, so a
-    resumed run repeats the augmentation)."""
+    each cloud cut to ``model.num_points`` when it is held whole (``train.resample_points``) and
+    augmented when the config asks (the seeds drawn from the tuple RNG, so a resumed run
+    repeats the subsets and the augmentation)."""
     import torch
 
     net = state.net
     x = clouds[torch.from_numpy(idx)].to(rt.device, non_blocking=True)
+    n = cfg.model.num_points
+    if x.shape[1] > n:  # train.resample_points: a fresh subset of each whole submap
+        g = torch.Generator(device=x.device)
+        g.manual_seed(int(state.tuple_rng.integers(0, 2**62)))
+        keep = torch.rand(x.shape[:2], generator=g, device=x.device).argsort(dim=1)[:, :n]
+        x = x.gather(1, keep.sort(dim=1).values.unsqueeze(-1).expand(-1, -1, x.shape[2]))
     if cfg.train.augment.active:
         seed = int(state.tuple_rng.integers(0, 2**62))
         x = augment(x, cfg.train.augment, seed)

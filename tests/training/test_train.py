@@ -125,6 +125,48 @@ def test_in_batch_mining_reuses_embeddings(tiny_tree: tuple[Path, Path], tmp_pat
     assert res.last_val is not None and 0 <= res.last_val["recall_at_1"] <= 100
 
 
+def test_resampling_draws_a_fresh_subset_of_the_whole_submap_each_step(
+    tiny_tree: tuple[Path, Path], tmp_path: Path
+) -> None:
+    torch = pytest.importorskip("torch")
+    from pnvlad_service.data.dataset import load_training_data, read_submap
+    from pnvlad_service.training.train import train
+
+    root, splits = tiny_tree
+    cfg = tiny_config(
+        root, splits, max_steps=4, mining="in_batch", batch_size=6, resample_points=True
+    )
+    seen: list[np.ndarray] = []
+    steps: list[dict] = []
+
+    def on_model(model: torch.nn.Module) -> None:
+        def keep(m: torch.nn.Module, inp: tuple) -> None:
+            if m.training:
+                seen.append(inp[0].detach().numpy().copy())
+
+        model.register_forward_pre_hook(keep)
+
+    threads = torch.get_num_threads()
+    try:
+        res = train(cfg, tmp_path / "run", progress=False, on_model=on_model, on_step=steps.append)
+    finally:
+        torch.set_num_threads(threads)
+    assert res.losses
+    paths = load_training_data(cfg.data)[0].paths
+    subsets: dict[int, list[frozenset]] = {}
+    for x, rec in zip(seen, steps, strict=True):
+        assert x.shape[1:] == (128, 3)
+        for cloud, i in zip(x, rec["indices"], strict=True):
+            whole = {tuple(r) for r in read_submap(paths[i]).tolist()}
+            rows = [tuple(r) for r in cloud.tolist()]
+            assert all(r in whole for r in rows)  # points of the whole submap...
+            assert len(set(rows)) == 128  # ...drawn without repeats
+            subsets.setdefault(int(i), []).append(frozenset(rows))
+    again = [v for v in subsets.values() if len(v) > 1]
+    assert again, "no cloud was embedded twice in four steps"
+    assert all(len(set(v)) == len(v) for v in again)  # a fresh subset every time
+
+
 def test_refuses_to_overwrite_a_run(tiny_tree: tuple[Path, Path], tmp_path: Path) -> None:
     pytest.importorskip("torch")
     from pnvlad_service.training.train import train
@@ -169,7 +211,9 @@ def test_resume_after_sigkill_continues_exactly(
     cfg_path = tmp_path / "tiny.yaml"
     # With augmentation and the cosine schedule: both must repeat after a resume.
     aug = {"yaw_deg": 10.0, "jitter": 0.01, "dropout": 0.2, "erase_p": 0.5, "shift": 0.02}
-    cfg = tiny_config(root, splits, augment=aug, lr_schedule="cosine", warmup_steps=2)
+    cfg = tiny_config(
+        root, splits, augment=aug, lr_schedule="cosine", warmup_steps=2, resample_points=True
+    )  # the resampled subsets, too
     cfg_path.write_text(cfg.to_yaml())
     # reference: an uninterrupted run of 9 steps (in this process: one torch start-up less)
     import torch
