@@ -155,25 +155,26 @@ def load_clouds(
     workers: int = 4,
     progress: bool = False,
     desc: str = "loading submaps",
-    shape_k: int = 0,
+    point_features: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Read submaps into float32 [N, num_points, 3] (about 48 KiB a 4096-point submap).
 
-    ``shape_k`` > 0: [N, num_points, 10], each point with the local shape features of its
-    ``shape_k`` nearest neighbours in the whole submap (``models/local_shape.py``), taken
-    before the submap is cut to ``num_points``, so that a model trained on a subset sees the
-    neighbourhoods it meets on whole submaps."""
-    from pnvlad_service.models.local_shape import NUM_FEATURES, shape_features
-
-    width = 3 + NUM_FEATURES if shape_k else 3
+    ``point_features``: a function of a whole submap's points [n, 3] that gives each point F
+    features [n, F] (F is read off its answer for an empty cloud); the clouds are then
+    [N, num_points, 3 + F], the features taken before the submap is cut to ``num_points``, so
+    that a model trained on a subset sees the neighbourhoods it meets on whole submaps (the
+    local shape features of ``models/local_shape.py``, which the stages after this one pass)."""
+    width = 3
+    if point_features is not None:
+        width += int(point_features(np.zeros((0, 3), dtype=np.float32)).shape[1])
     out = np.empty((len(paths), num_points, width), dtype=np.float32)
 
     def one(i: int) -> None:
         points = read_submap(paths[i])
         rows = fit_indices(len(points), num_points)
         out[i, :, :3] = points[rows]
-        if shape_k:
-            out[i, :, 3:] = shape_features(points, shape_k)[rows]
+        if point_features is not None:
+            out[i, :, 3:] = point_features(points)[rows]
 
     _run_parallel(one, len(paths), workers, progress, desc)
     return out

@@ -33,6 +33,7 @@ from pnvlad_service.evaluation import metrics
 from pnvlad_service.fileio import atomic_open, atomic_write_text
 from pnvlad_service.io.submap import SUBMAP_POINTS
 from pnvlad_service.models.embedding import EmbedFn, embed_in_chunks
+from pnvlad_service.models.local_shape import shape_feature_fn
 
 log = logging.getLogger(__name__)
 
@@ -98,9 +99,10 @@ def embed_paths(
     carry their local shape features, taken on the whole submaps (``load_clouds``)."""
     if not paths:
         raise InputError("nothing to embed", source="evaluation set")
+    features = shape_feature_fn(shape_k)
 
     def load(start: int, stop: int) -> np.ndarray:
-        return load_clouds(paths[start:stop], num_points, workers=workers, shape_k=shape_k)
+        return load_clouds(paths[start:stop], num_points, workers=workers, point_features=features)
 
     return embed_in_chunks(embed, len(paths), load, chunk=chunk, progress=progress)
 

@@ -28,6 +28,8 @@ gets zeros.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -35,6 +37,12 @@ import numpy as np
 
 #: Features a point gets (the rows of the table above).
 NUM_FEATURES = 7
+
+
+def shape_feature_fn(k: int) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The per-cloud feature function ``data.dataset.load_clouds`` takes for a model with
+    ``local_k = k`` (None for k = 0: coordinates only)."""
+    return functools.partial(shape_features, k=k) if k > 0 else None
 
 
 def shape_features(points: np.ndarray, k: int) -> np.ndarray:

@@ -22,6 +22,7 @@ import numpy as np
 from pnvlad_service.data.dataset import EvalRun, TrainingSet, load_clouds
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_POINTS
+from pnvlad_service.models.local_shape import shape_feature_fn
 from pnvlad_service.training import mining
 from pnvlad_service.training.checkpoint import (
     TrainingState,
@@ -127,7 +128,7 @@ def prepare_data(
         held,
         workers=t.workers,
         progress=progress and d.main,
-        shape_k=cfg.model.local_k,
+        point_features=shape_feature_fn(cfg.model.local_k),
     )
     clouds = torch.from_numpy(clouds_np)
     if rt.device.type == "cuda":

@@ -48,12 +48,13 @@ def test_load_clouds_fits_every_submap_to_the_point_count(tmp_path: Path) -> Non
 
 
 def test_load_clouds_takes_shape_features_on_the_whole_submap(tmp_path: Path) -> None:
-    from pnvlad_service.models.local_shape import shape_features
+    from pnvlad_service.models.local_shape import shape_feature_fn, shape_features
 
     pts = np.random.default_rng(1).normal(size=(300, 3))
     path = tmp_path / "a.bin"
     path.write_bytes(pts.astype("<f8").tobytes())
-    out = load_clouds([path], 64, shape_k=12)
+    assert shape_feature_fn(0) is None  # a plain model: coordinates only
+    out = load_clouds([path], 64, point_features=shape_feature_fn(12))
     assert out.shape == (1, 64, 10)
     whole = read_submap(path)
     rows = [int(np.flatnonzero((whole == r).all(axis=1))[0]) for r in out[0, :, :3]]
