@@ -91,7 +91,10 @@ def write_learning_curves(curves: list[Curve], png: str | Path, title: str | Non
     b.set_ylabel("validation recall (%)")
     for ax in (a, b):
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[1]:
+            ax.legend(fontsize=7)
+    if not any(len(c.val_minutes) for c in curves):
+        b.text(0.5, 0.5, "no validation recorded", ha="center", va="center", transform=b.transAxes)
     if title:
         fig.suptitle(title)
     fig.tight_layout()

@@ -69,3 +69,20 @@ def test_the_figure_is_written(tmp_path: Path) -> None:
     png = write_learning_curves([read_curve(run)], tmp_path / "fig" / "c.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not list((tmp_path / "fig").glob("*.tmp*"))
+
+
+def test_a_run_without_validation_draws_no_empty_legend(tmp_path: Path) -> None:
+    """A log with steps and no validation leaves the recall axis without artists: asking it
+    for a legend made matplotlib warn "No artists with labels"; the figure says so instead."""
+    pytest.importorskip("matplotlib")
+    import warnings
+
+    run = _log(
+        tmp_path / "c",
+        [{"event": "start", "step": 0, "time": 0.0}]
+        + [{"event": "step", "step": k, "loss": 1.0 / k, "time": 6.0 * k} for k in range(1, 5)],
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        png = write_learning_curves([read_curve(run)], tmp_path / "c.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
