@@ -242,7 +242,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="fewer repetitions")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument(
-        "--configs", default="paper,compact", help="paper,compact (comma-separated) or none"
+        "--configs",
+        default="paper,compact",
+        help="paper,compact,bev (comma-separated, any of them) or none",
     )
     ap.add_argument("--no-bf16", action="store_true", help="skip the bfloat16 path")
     ap.add_argument("--bf16-checkpoint", type=Path, help="trained model for the bfloat16 check")
@@ -267,7 +269,11 @@ def main(argv: list[str] | None = None) -> int:
         "sgemm: 2048^3 float32 torch.mm; each figure is the fastest of several rounds that "
         "alternate the encoder and the sgemm (the share uses that same run's fastest sgemm)"
     )
-    configs = {"paper": ModelConfig.paper(), "compact": ModelConfig.compact()}
+    configs = {
+        "paper": ModelConfig.paper(),
+        "compact": ModelConfig.compact(),
+        "bev": ModelConfig.bev(),
+    }
     for name in args.configs.split(","):
         if name != "none":
             bench_config(name, configs[name], reps, dtypes)

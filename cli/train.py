@@ -17,8 +17,10 @@ _CONFIG = typer.Option(
     None,
     "--config",
     "-c",
-    help="YAML/TOML config file, or a shipped preset name: 'paper' (default), 'compact', or "
-    "'cpu' (the best CPU recipe: compact + in-batch mining, augmentation, cosine schedule).",
+    help="YAML/TOML config file, or a shipped preset name: 'paper' (default), 'compact', "
+    "'cpu' (compact PN_VLAD + in-batch mining, augmentation, cosine schedule), or 'bev' (the "
+    "best recall on a CPU budget: cpu's training of a bird's-eye-view CNN + NetVLAD, "
+    "bev-netvlad; not the paper's network).",
     rich_help_panel=_RUN,
 )
 _OUT = typer.Option(
@@ -47,7 +49,12 @@ _BATCH = typer.Option(
     None, "--batch-size", "-b", help="Tuples a step (paper: 2).", rich_help_panel=_MODEL
 )
 _LR = typer.Option(None, "--lr", help="Base learning rate (paper: 5e-5).", rich_help_panel=_MODEL)
-_ARCH = typer.Option(None, "--arch", help="pointnetvlad | pointnet-max.", rich_help_panel=_MODEL)
+_ARCH = typer.Option(
+    None,
+    "--arch",
+    help="pointnetvlad | pointnet-max | bev-netvlad (its sizes: -c bev, or --set model.bev_*).",
+    rich_help_panel=_MODEL,
+)
 _NUM_POINTS = typer.Option(
     None,
     "--num-points",

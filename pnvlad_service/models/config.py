@@ -1,12 +1,16 @@
-"""``ModelConfig``: every size and switch of the PointNetVLAD / PointNet-max encoders.
+"""``ModelConfig``: every size and switch of the encoders (PointNetVLAD, PointNet-max and the
+bird's-eye-view bev-netvlad).
 
-Two configurations ship:
+Three configurations ship:
 
 - :meth:`ModelConfig.paper` - the network of the paper, as the published TensorFlow code builds it
   (input transform 3x3, per-point layers 64, 64, feature transform 64x64, 64, 128, 1024; NetVLAD
   with K = 64 clusters; fully connected to 256; context gating; L2 normalisation).
 - :meth:`ModelConfig.compact` - the same design, narrower, without the feature transform and with
   K = 16: about 10x cheaper, so it trains on a CPU.
+- :meth:`ModelConfig.bev` - not the paper's network: the points counted into a bird's-eye image,
+  a small 2-D CNN and the same NetVLAD head (models/bev.py); the best retrieval measured on a CPU
+  budget (docs/TRAINING.md).
 
 :meth:`ModelConfig.port` is the variant that the popular PyTorch port
 (cattaneod/PointNetVlad-Pytorch)
@@ -24,7 +28,18 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-Arch = Literal["pointnetvlad", "pointnet-max"]
+Arch = Literal["pointnetvlad", "pointnet-max", "bev-netvlad"]
+
+#: The ``bev_*`` fields' defaults: left out of :func:`config_sha256` for the PointNet
+#: architectures, whose models existed before them.
+BEV_FIELDS = (
+    "bev_grid",
+    "bev_height_bins",
+    "bev_z_range",
+    "bev_widths",
+    "bev_strides",
+    "bev_feature_dim",
+)
 
 
 class ModelConfig(BaseModel):
@@ -37,7 +52,11 @@ class ModelConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    arch: Arch = Field("pointnetvlad", description="'pointnetvlad' (PN_VLAD) or 'pointnet-max'.")
+    arch: Arch = Field(
+        "pointnetvlad",
+        description="'pointnetvlad' (PN_VLAD), 'pointnet-max' (PN_MAX), or 'bev-netvlad' (a "
+        "bird's-eye-view image of the points, a 2-D CNN and the same NetVLAD head: models/bev.py).",
+    )
     num_points: int = Field(4096, ge=1, description="Points per cloud the model is trained on.")
 
     local_k: int = Field(
@@ -91,7 +110,31 @@ class ModelConfig(BaseModel):
         "PN_MAX ignores it.",
     )
 
-    @field_validator("stem_widths", "trunk_widths", "tnet_point_widths", "tnet_fc_widths")
+    # Bird's-eye view (arch 'bev-netvlad' only; models/bev.py).
+    bev_grid: int = Field(
+        64, ge=4, description="Cells a side of the bird's-eye image over x, y in [-1, 1]."
+    )
+    bev_height_bins: int = Field(
+        8, ge=1, description="Height slices: the image's channels (a count of points each)."
+    )
+    bev_z_range: tuple[float, float] = Field(
+        (-0.04, 0.05),
+        description="z (normalised units) the height slices span; points outside go to the "
+        "first or last slice. The benchmark's submaps: 70 m a unit, so about 6 m of height.",
+    )
+    bev_widths: tuple[int, ...] = Field(
+        (32, 64, 64, 128, 128), description="Channels of the 3x3 convolutions."
+    )
+    bev_strides: tuple[int, ...] = Field(
+        (1, 2, 1, 2, 1), description="Stride of each 3x3 convolution (1 or 2)."
+    )
+    bev_feature_dim: int = Field(
+        256, ge=1, description="D: channels of the 1x1 convolution whose cells NetVLAD pools."
+    )
+
+    @field_validator(
+        "stem_widths", "trunk_widths", "tnet_point_widths", "tnet_fc_widths", "bev_widths"
+    )
     @classmethod
     def _positive_widths(cls, v: tuple[int, ...]) -> tuple[int, ...]:
         if any(w < 1 for w in v):
@@ -108,7 +151,31 @@ class ModelConfig(BaseModel):
             raise ValueError("transform nets need at least one per-point layer")
         if 0 < self.local_k < 3:
             raise ValueError(f"local_k must be 0 or at least 3 (a covariance), got {self.local_k}")
+        if self.arch == "bev-netvlad":
+            self._check_bev()
         return self
+
+    def _check_bev(self) -> None:
+        if self.local_k:
+            raise ValueError("local_k applies to the PointNet architectures, not bev-netvlad")
+        if not self.bev_widths or len(self.bev_strides) != len(self.bev_widths):
+            raise ValueError(
+                "bev_strides must give one stride per bev_widths layer, got "
+                f"{len(self.bev_strides)} for {len(self.bev_widths)}"
+            )
+        if any(s not in (1, 2) for s in self.bev_strides):
+            raise ValueError(f"bev_strides must be 1 or 2, got {self.bev_strides}")
+        lo, hi = self.bev_z_range
+        if not lo < hi:
+            raise ValueError(f"bev_z_range must be (low, high) with low < high, got {lo}, {hi}")
+
+    @property
+    def bev_cells(self) -> int:
+        """Cells a side of the feature map NetVLAD pools (``bev_grid`` after the strides)."""
+        cells = self.bev_grid
+        for s in self.bev_strides:
+            cells = (cells - 1) // s + 1
+        return cells
 
     @property
     def input_dim(self) -> int:
@@ -122,8 +189,9 @@ class ModelConfig(BaseModel):
 
     @property
     def feature_dim(self) -> int:
-        """D: the per-point feature size the pooling sees (the last trunk width)."""
-        return self.trunk_widths[-1]
+        """D: the per-point (bev-netvlad: per-cell) feature size the pooling sees (the last
+        trunk width, or ``bev_feature_dim``)."""
+        return self.bev_feature_dim if self.arch == "bev-netvlad" else self.trunk_widths[-1]
 
     @classmethod
     def paper(cls, **overrides: object) -> ModelConfig:
@@ -160,6 +228,16 @@ class ModelConfig(BaseModel):
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]
 
+    @classmethod
+    def bev(cls, **overrides: object) -> ModelConfig:
+        """bev-netvlad (models/bev.py): the points counted into a 64 x 64 x 8 bird's-eye image,
+        five 3x3 convolutions (32, 64, 64, 128, 128 channels, two of stride 2), a 1x1 to 256,
+        NetVLAD with K = 16 over the 16 x 16 cells, output 256. About 0.3 GFLOP a cloud, for
+        any number of points."""
+        base: dict[str, object] = {"arch": "bev-netvlad", "cluster_size": 16}
+        base.update(overrides)
+        return cls(**base)  # type: ignore[arg-type]
+
     def flops_per_cloud(self, num_points: int | None = None) -> int:
         """Multiply-adds x 2 of one forward pass on one cloud of ``num_points`` points.
 
@@ -167,6 +245,8 @@ class ModelConfig(BaseModel):
         the fully connected layer and the gating); element-wise work is ignored.
         """
         n = self.num_points if num_points is None else num_points
+        if self.arch == "bev-netvlad":
+            return self._bev_flops()
         flops = 0
 
         def tnet(c_in: int, k: int) -> int:
@@ -202,13 +282,33 @@ class ModelConfig(BaseModel):
             flops += 2 * self.output_dim * self.output_dim
         return flops
 
+    def _bev_flops(self) -> int:
+        """The convolutions, the 1x1 convolution and the head of bev-netvlad (the image does
+        not depend on the number of points; rasterising them is not counted)."""
+        flops, c, cells = 0, self.bev_height_bins, self.bev_grid
+        for w, s in zip(self.bev_widths, self.bev_strides, strict=True):
+            cells = (cells - 1) // s + 1
+            flops += 2 * cells * cells * c * w * 9
+            c = w
+        m, d, k = cells * cells, self.bev_feature_dim, self.cluster_size
+        flops += 2 * m * c * d  # the 1x1 convolution
+        flops += 2 * 2 * m * d * k  # NetVLAD's soft-assignment logits and weighted sums
+        flops += 2 * k * d * self.output_dim
+        if self.gating:
+            flops += 2 * self.output_dim * self.output_dim
+        return flops
+
 
 def config_sha256(cfg: ModelConfig) -> str:
     """SHA-256 (hex) of the configuration's canonical JSON (sorted keys, no spaces). Fields
-    added since the first release are left out at their neutral value (``local_k`` 0), so a
-    model's hash does not change with the release that reads it."""
+    added since the first release are left out at their neutral value (``local_k`` 0, the
+    ``bev_*`` fields of a PointNet model), so a model's hash does not change with the release
+    that reads it."""
     doc = cfg.model_dump(mode="json")
     if not doc["local_k"]:
         del doc["local_k"]
+    if cfg.arch != "bev-netvlad":
+        for name in BEV_FIELDS:
+            del doc[name]
     text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()

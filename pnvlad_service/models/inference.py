@@ -1,4 +1,4 @@
-"""``Encoder``: fast CPU inference of a trained PN_VLAD / PN_MAX model.
+"""``Encoder``: fast CPU inference of a trained PN_VLAD / PN_MAX model (and bev-netvlad's).
 
 The encoder runs the network as the matrix products it is, on plain tensors:
 
@@ -19,6 +19,10 @@ The encoder runs the network as the matrix products it is, on plain tensors:
   other at each of the ~100 operations of a cloud (measured on 2 cores: ~20 % more clouds/s at
   batch 32). A single cloud still uses all of torch's threads.
 
+bev-netvlad (``models/bev.py``) is a CNN, not per-point products: the encoder runs its module in
+eval mode on the whole batch (all of torch's threads), under bfloat16 autocast for
+``dtype="bfloat16"``.
+
 ``dtype="bfloat16"`` runs the matrix products in bfloat16 (fast on CPUs with AMX / AVX512-BF16);
 ``dtype="auto"`` uses bfloat16 only when the CPU supports it *and* a self-check on given clouds
 shows top-1 retrieval agreeing with float32 on at least 99 % of the queries.
@@ -26,6 +30,7 @@ shows top-1 retrieval agreeing with float32 on at least 99 % of the queries.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import logging
 import threading
@@ -153,10 +158,17 @@ class Encoder:
         self.point_tile = point_tile
         self._sha = weights_sha256 or _state_sha256(model)
         self.agreement: float | None = None
-        was_training = model.training
-        model.eval()
-        self._p = fold_model(model)
-        model.train(was_training)
+        #: bev-netvlad runs as its module (a copy in eval mode: convolutions are already one
+        #: product each, and there is no batch norm left to fold that would save a pass).
+        self._module: torch.nn.Module | None = None
+        self._p: dict[str, Any] = {}
+        if cfg.arch == "bev-netvlad":
+            self._module = copy.deepcopy(model).eval().to(self.device, torch.float32)
+        else:
+            was_training = model.training
+            model.eval()
+            self._p = fold_model(model)
+            model.train(was_training)
         self._params: dict[str, dict[str, Any]] = {}
         if dtype == "auto":
             dtype = self._choose_dtype(check_points)
@@ -188,7 +200,10 @@ class Encoder:
         return on_torch_thread(load)  # the weights' copies and folding are multi-threaded
 
     def _cast(self, dtype: str) -> dict[str, Any]:
-        """The folded parameters on the device for ``dtype`` (made once, then reused)."""
+        """The folded parameters on the device for ``dtype`` (made once, then reused); for
+        bev-netvlad, its module (bfloat16 runs it under autocast)."""
+        if self._module is not None:
+            return {"module": self._module, "dtype": dtype}
         if dtype not in self._params:
             self._params[dtype] = cast_folded(self._p, dtype, self.device)
         return self._params[dtype]
@@ -293,9 +308,21 @@ class Encoder:
 
         The per-point network runs cloud by cloud (its activations stay in cache), several
         clouds side by side on the worker threads (``_clouds``); the fully connected head runs
-        on the whole batch as one product.
+        on the whole batch as one product. bev-netvlad: its module on the whole batch.
         """
+        if self._module is not None:
+            return self._all_threads(self._module_forward, x, q)
         return self._all_threads(self._head, self._clouds(x, q), q)
+
+    def _module_forward(self, x: torch.Tensor, q: dict[str, Any]) -> torch.Tensor:
+        import torch
+
+        low = q["dtype"] == "bfloat16"
+        with (
+            torch.inference_mode(),  # thread-local: entered again on the torch thread
+            torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=low),
+        ):
+            return q["module"](x).float()
 
     def _all_threads(self, fn: Any, *args: Any) -> Any:
         """``fn(*args)``, work on all of torch's threads: on the process's torch thread on CPU

@@ -229,6 +229,11 @@ class PointNetVLAD(nn.Module):
         return F.normalize(self.pool(self.point_features(points)), dim=1)
 
 
-def build_model(cfg: ModelConfig) -> PointNetVLAD:
-    """A freshly initialised encoder for ``cfg`` (in training mode, float32, on the CPU)."""
+def build_model(cfg: ModelConfig) -> nn.Module:
+    """A freshly initialised encoder for ``cfg`` (in training mode, float32, on the CPU): a
+    :class:`PointNetVLAD`, or for ``arch`` 'bev-netvlad' a :class:`.bev.BEVNetVLAD`."""
+    if cfg.arch == "bev-netvlad":
+        from pnvlad_service.models.bev import BEVNetVLAD
+
+        return BEVNetVLAD(cfg)
     return PointNetVLAD(cfg)

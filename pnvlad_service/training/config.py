@@ -124,7 +124,8 @@ class TrainConfig(BaseModel):
 
     @classmethod
     def preset(cls, name: str) -> TrainConfig:
-        """A shipped config: ``paper``, ``compact`` or ``cpu`` (pnvlad_service/configs/)."""
+        """A shipped config: ``paper``, ``compact``, ``cpu`` or ``bev``
+        (pnvlad_service/configs/)."""
         folder = resources.files("pnvlad_service") / "configs"
         ref = folder / f"{name}.yaml"
         if not ref.is_file():
@@ -153,11 +154,24 @@ class TrainConfig(BaseModel):
         if not isinstance(data, dict):
             raise InputError("a config is a mapping with model/train/data sections", source)
         data = dict(data)
+        if "base" in data:
+            # ``base: cpu`` starts from a shipped config; the sections given here override
+            # its fields one by one (a model preset given here replaces its model).
+            parent = cls.preset(str(data.pop("base"))).model_dump()
+            model = data.get("model")
+            if isinstance(model, dict) and "preset" in model:
+                parent.pop("model")
+            data = _merged(parent, data)
         model = data.get("model")
         if isinstance(model, dict) and "preset" in model:
             # ``model: {preset: compact, num_points: 1024}`` starts from a shipped model config.
             model = dict(model)
-            base = getattr(ModelConfig, str(model.pop("preset")))()
+            name = str(model.pop("preset"))
+            if name not in _MODEL_PRESETS:
+                raise InputError(
+                    f"model.preset: no model preset {name!r} ({', '.join(_MODEL_PRESETS)})", source
+                )
+            base = getattr(ModelConfig, name)()
             data["model"] = {**base.model_dump(), **model}
         try:
             return cls.model_validate(data)
@@ -187,6 +201,20 @@ class TrainConfig(BaseModel):
         import yaml
 
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+#: Model presets a config's ``model: {preset: NAME}`` may start from (``ModelConfig.NAME()``).
+_MODEL_PRESETS = ("paper", "port", "compact", "bev")
+
+
+def _merged(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over``'s fields, mappings merged field by field."""
+    out = dict(base)
+    for key, value in over.items():
+        old = out.get(key)
+        both = isinstance(old, dict) and isinstance(value, dict)
+        out[key] = _merged(old, value) if both else value
+    return out
 
 
 def run_config(config: str | Path | None, resumed_run: Path | None = None) -> TrainConfig:

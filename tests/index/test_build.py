@@ -262,3 +262,28 @@ def test_load_encoder_takes_the_known_weights_hash_or_hashes_itself(world) -> No
     want = weights_sha256(world["ckpt"])
     assert ib.load_encoder(world["ckpt"]).weights_sha256 == want
     assert ib.load_encoder(world["ckpt"], identity=ident).weights_sha256 == want
+
+
+def test_a_bev_netvlad_model_builds_a_bundle_that_finds_each_submap(
+    world: dict[str, Path], tmp_path: Path
+) -> None:
+    """The bird's-eye model goes the PointNet models' way: checkpoint, encoder, bundle; each
+    database submap, embedded again, is its own nearest neighbour at distance 0."""
+    import torch
+
+    from pnvlad_service.models.config import ModelConfig
+    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.store import save_model
+
+    torch.manual_seed(0)
+    cfg = ModelConfig.bev(bev_widths=(8, 16), bev_strides=(2, 2), cluster_size=4, output_dim=16)
+    ckpt = save_model(tmp_path / "bev", build_model(cfg).eval(), cfg)
+    bundle = tmp_path / "bev.index"
+    ib.build_bundle(bundle, ckpt, world["tree"], progress=False)
+    b = IndexBundle.load(bundle)
+    records = ib.list_database_submaps(world["tree"])
+    desc = ib.embed_submaps(ib.load_encoder(ckpt), world["tree"], records, progress=False)
+    dist, ids = b.search(desc, 1)
+    assert b.dim == 16 and b.count == len(records)
+    assert ids[:, 0].tolist() == list(range(len(records)))
+    np.testing.assert_allclose(dist[:, 0], 0, atol=1e-5)

@@ -84,8 +84,35 @@ def test_shipped_configs_load() -> None:
     assert cpu.model == run16.model
     assert cpu.train.model_copy(update={"threads": 1}) == run16.train
     assert cpu.train.augment.active and cpu.train.lr_schedule == "cosine"
-    with pytest.raises(InputError, match="compact, cpu, paper"):
+    # bev: the cpu recipe's training (base: cpu) of ModelConfig.bev().
+    from pnvlad_service.models.config import ModelConfig
+
+    bev = TrainConfig.preset("bev")
+    assert bev.model == ModelConfig.bev() and bev.train == cpu.train and bev.data == cpu.data
+    with pytest.raises(InputError, match="bev, compact, cpu, paper"):
         TrainConfig.preset("gpu")
+
+
+def test_a_config_built_on_a_shipped_one(tmp_path: Path) -> None:
+    """``base: cpu`` takes the cpu recipe; the fields given override one by one (the other
+    fields of a section stay the base's); a model preset replaces the base's model whole."""
+    p = tmp_path / "c.yaml"
+    p.write_text(
+        "base: cpu\ntrain: {epochs: 3, augment: {yaw_deg: 15}}\nmodel: {output_dim: 128}\n"
+    )
+    cfg, cpu = TrainConfig.from_file(p), TrainConfig.preset("cpu")
+    assert cfg.train.epochs == 3 and cfg.train.augment.yaw_deg == 15
+    assert cfg.train.augment.dropout == cpu.train.augment.dropout and cfg.train.lr == cpu.train.lr
+    assert cfg.model == cpu.model.model_copy(update={"output_dim": 128})  # K = 32 kept
+    p.write_text("base: cpu\nmodel: {preset: paper}\n")
+    assert TrainConfig.from_file(p).model.cluster_size == 64
+    p.write_text("base: nope\n")
+    with pytest.raises(InputError, match="no shipped config named 'nope'"):
+        TrainConfig.from_file(p)
+    p.write_text("model: {preset: tiny}\n")
+    with pytest.raises(InputError, match=r"model\.preset: no model preset 'tiny'") as e:
+        TrainConfig.from_file(p)
+    assert e.value.source == str(p)
 
 
 def test_run_config_file_then_the_resumed_runs_then_the_paper(tmp_path: Path) -> None:
