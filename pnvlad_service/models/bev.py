@@ -77,8 +77,13 @@ class BEVNetVLAD(nn.Module):
         each L2-normalised when ``cfg.point_l2_norm`` (as the paper normalises point features)."""
         if points.ndim != 3 or points.shape[-1] != 3:
             raise ValueError(f"expected points [B, N, 3], got {list(points.shape)}")
-        f = self.cnn(bev_image(points, self.cfg)).flatten(2).transpose(1, 2)
+        f = self.cnn(bev_image(points, self.cfg)).float().flatten(2).transpose(1, 2)
         return F.normalize(f, dim=2) if self.cfg.point_l2_norm else f
 
+    def head(self, cells: torch.Tensor) -> torch.Tensor:
+        """Descriptors [B, output_dim] (unit rows) of :meth:`cell_features` [B, M, D]: NetVLAD,
+        the fully connected layer, gating, L2."""
+        return F.normalize(self.pool(cells), dim=1)
+
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return F.normalize(self.pool(self.cell_features(points)), dim=1)
+        return self.head(self.cell_features(points))

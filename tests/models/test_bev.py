@@ -148,6 +148,13 @@ def test_encoder_store_and_bfloat16(tmp_path: Path) -> None:
         low = Encoder(model, SMALL, dtype="bfloat16").embed(x.numpy())
         cos = (low * ref).sum(1)
         assert cos.min() > 0.99 and np.abs(low - ref).max() > 0  # close, yet really bfloat16
+        # The convolutions in bfloat16, the NetVLAD head in float32 (more top-1s kept).
+        with torch.no_grad():
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                cells = model.cell_features(x)
+            assert cells.dtype == torch.float32
+            want = model.head(cells).numpy()
+        np.testing.assert_allclose(low, want, rtol=0, atol=1e-6)
 
 
 def test_config_validation_flops_and_hash() -> None:
