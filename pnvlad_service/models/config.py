@@ -112,7 +112,7 @@ class ModelConfig(BaseModel):
 
     # Bird's-eye view (arch 'bev-netvlad' only; models/bev.py).
     bev_grid: int = Field(
-        64, ge=4, description="Cells a side of the bird's-eye image over x, y in [-1, 1]."
+        128, ge=4, description="Cells a side of the bird's-eye image over x, y in [-1, 1]."
     )
     bev_height_bins: int = Field(
         8, ge=1, description="Height slices: the image's channels (a count of points each)."
@@ -123,10 +123,10 @@ class ModelConfig(BaseModel):
         "first or last slice. The benchmark's submaps: 70 m a unit, so about 6 m of height.",
     )
     bev_widths: tuple[int, ...] = Field(
-        (32, 64, 64, 128, 128), description="Channels of the 3x3 convolutions."
+        (32, 32, 64, 64, 128, 128), description="Channels of the 3x3 convolutions."
     )
     bev_strides: tuple[int, ...] = Field(
-        (1, 2, 1, 2, 1), description="Stride of each 3x3 convolution (1 or 2)."
+        (2, 1, 2, 1, 2, 1), description="Stride of each 3x3 convolution (1 or 2)."
     )
     bev_feature_dim: int = Field(
         256, ge=1, description="D: channels of the 1x1 convolution whose cells NetVLAD pools."
@@ -230,10 +230,10 @@ class ModelConfig(BaseModel):
 
     @classmethod
     def bev(cls, **overrides: object) -> ModelConfig:
-        """bev-netvlad (models/bev.py): the points counted into a 64 x 64 x 8 bird's-eye image,
-        five 3x3 convolutions (32, 64, 64, 128, 128 channels, two of stride 2), a 1x1 to 256,
-        NetVLAD with K = 16 over the 16 x 16 cells, output 256. About 0.3 GFLOP a cloud, for
-        any number of points."""
+        """bev-netvlad (models/bev.py): the points counted into a 128 x 128 x 8 bird's-eye image,
+        six 3x3 convolutions (32, 32, 64, 64, 128, 128 channels, the first, third and fifth of
+        stride 2), a 1x1 to 256, NetVLAD with K = 16 over the 16 x 16 cells, output 256. About
+        0.34 GFLOP a cloud, for any number of points (docs/TRAINING.md, run 29)."""
         base: dict[str, object] = {"arch": "bev-netvlad", "cluster_size": 16}
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]
