@@ -30,17 +30,6 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 Arch = Literal["pointnetvlad", "pointnet-max", "bev-netvlad"]
 
-#: The ``bev_*`` fields' defaults: left out of :func:`config_sha256` for the PointNet
-#: architectures, whose models existed before them.
-BEV_FIELDS = (
-    "bev_grid",
-    "bev_height_bins",
-    "bev_z_range",
-    "bev_widths",
-    "bev_strides",
-    "bev_feature_dim",
-)
-
 
 class ModelConfig(BaseModel):
     """Sizes and switches of an encoder; ``build_model(cfg)`` turns it into a ``torch.nn.Module``.
@@ -244,9 +233,9 @@ class ModelConfig(BaseModel):
         Counts the matrix products only (per-point layers, transform nets, NetVLAD's two products,
         the fully connected layer and the gating); element-wise work is ignored.
         """
-        n = self.num_points if num_points is None else num_points
         if self.arch == "bev-netvlad":
             return self._bev_flops()
+        n = self.num_points if num_points is None else num_points
         flops = 0
 
         def tnet(c_in: int, k: int) -> int:
@@ -297,6 +286,11 @@ class ModelConfig(BaseModel):
         if self.gating:
             flops += 2 * self.output_dim * self.output_dim
         return flops
+
+
+#: The ``bev_*`` fields: left out of :func:`config_sha256` for the PointNet architectures, whose
+#: models existed before them.
+BEV_FIELDS = tuple(name for name in ModelConfig.model_fields if name.startswith("bev_"))
 
 
 def config_sha256(cfg: ModelConfig) -> str:

@@ -20,8 +20,9 @@ The encoder runs the network as the matrix products it is, on plain tensors:
   batch 32). A single cloud still uses all of torch's threads.
 
 bev-netvlad (``models/bev.py``) is a CNN, not per-point products: the encoder runs its module in
-eval mode on the whole batch (all of torch's threads), under bfloat16 autocast for
-``dtype="bfloat16"``.
+eval mode on the whole batch (all of torch's threads; ``cloud_workers`` and ``point_tile`` do not
+apply); ``dtype="bfloat16"`` runs its convolutions under bfloat16 autocast and its NetVLAD head
+in float32.
 
 ``dtype="bfloat16"`` runs the matrix products in bfloat16 (fast on CPUs with AMX / AVX512-BF16);
 ``dtype="auto"`` uses bfloat16 only when the CPU supports it *and* a self-check on given clouds
