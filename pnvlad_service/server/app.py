@@ -68,6 +68,9 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
             load_localizer, state.settings, state.metrics.batch_size.observe
         )
     loc: Localizer = state.localizer
+    if owned:
+        largest = min(state.settings.warm_up, state.settings.batch_max_size)
+        await run_in_threadpool(loc.warm_up, largest)
     state.metrics.index_vectors.set(loc.info.index.count)
     try:
         yield

@@ -64,6 +64,13 @@ class ServerSettings(BaseSettings):
         description="Batches in flight at once: with 2 the next batch is embedded while the "
         "previous one finishes its head, search and answers.",
     )
+    warm_up: int = Field(
+        8,
+        ge=0,
+        le=256,
+        description="Batch sizes 1..this embedded once at start-up, so that no request pays "
+        "for the first forward pass of its batch size (0: none).",
+    )
     torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
     faiss_threads: int | None = Field(
         1,

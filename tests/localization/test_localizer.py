@@ -236,3 +236,33 @@ def test_the_faiss_thread_count_reaches_the_threads_that_search() -> None:
             pytest.skip("one CPU: a new thread has one FAISS thread anyway")
     finally:
         loc._faiss_threads = before
+
+
+def test_warm_up_embeds_each_batch_size_once_and_changes_no_answer(world, loc, plain) -> None:
+    """warm_up(n) runs the encoder once at each batch size 1..n on whole submaps (the shapes
+    the server embeds), and answers after it are those of a plain search."""
+    seen: list[tuple[int, ...]] = []
+    real = loc.encoder
+
+    class Recording:
+        """The real encoder, its input shapes written down."""
+
+        def __getattr__(self, name: str):
+            return getattr(real, name)
+
+        def embed(self, points):
+            seen.append(np.shape(points))
+            return real.embed(points)
+
+    loc.encoder = Recording()
+    try:
+        assert loc.warm_up(0) >= 0.0 and seen == []
+        loc.warm_up(3)
+        assert seen == [(1, 4096, 3), (2, 4096, 3), (3, 4096, 3)]
+    finally:
+        loc.encoder = real
+    pts = cloud(world, 3)
+    ids, d = plain_search(plain, pts, 5)
+    answer = loc.localize(pts, top_n=5)
+    assert [m.id for m in answer.matches] == ids
+    assert [m.distance for m in answer.matches] == pytest.approx(d.tolist(), abs=1e-5)
