@@ -57,6 +57,14 @@ _CAL_QUERIES = typer.Option(
     "keeps the 99.5 % precision rule steady; see docs/VERIFY.md).",
     rich_help_panel=_VERIFY,
 )
+_OFF_MAP = typer.Option(
+    None,
+    "--off-map-share",
+    help="Share of queries (0-1) the threshold plans for whose place is not among their "
+    "candidates; training-layout queries verified against submaps over 50 m away stand in "
+    "for them (default: 0.05; 0: none; docs/VERIFY.md).",
+    rich_help_panel=_VERIFY,
+)
 _SAVE_THRESHOLD = typer.Option(
     False,
     "--save-threshold",
@@ -109,6 +117,7 @@ def evaluate(
     rerank: int = _RERANK,
     verify_threshold: float = _THRESHOLD,
     calibration_queries: int | None = _CAL_QUERIES,
+    off_map_share: float | None = _OFF_MAP,
     save_threshold: bool = _SAVE_THRESHOLD,
     device: str = typer.Option(None, "--device", help="cpu | cuda (default: cpu)."),
     dtype: str = typer.Option(
@@ -167,6 +176,8 @@ def evaluate(
             raise InputError(f"must be 1..100, got {rerank}", "--rerank")
         if rerank is not None and root is None:
             raise InputError("re-ranking reads the tree's frame sidecars: give --root", "--root")
+        if off_map_share is not None and not 0.0 <= off_map_share < 1.0:
+            raise InputError(f"must be in [0, 1), got {off_map_share}", "--off-map-share")
         if rerank is None and verify_threshold is not None:
             raise InputError("applies with --rerank only", "--verify-threshold")
         if save_threshold and (rerank is None or model is None or verify_threshold is not None):
@@ -207,6 +218,7 @@ def evaluate(
                 candidates=rerank,
                 threshold=verify_threshold,
                 calibration_queries=calibration_queries,
+                off_map_share=rerank_eval.OFF_MAP_SHARE if off_map_share is None else off_map_share,
                 workers=workers,
                 progress=progress,
             )

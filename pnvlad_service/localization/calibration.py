@@ -50,7 +50,14 @@ class Calibration:
     ) -> Calibration:
         """The record of a ``rerank`` report's ``calibration`` section."""
         at = calibration["at_threshold"]
-        keep = ("precision", "pose_precision", "coverage", "n_verified")
+        keep = (
+            "precision",
+            "pose_precision",
+            "coverage",
+            "n_verified",
+            "off_map_accept",
+            "expected_precision",
+        )
         return cls(
             threshold=float(calibration["threshold"]),
             weights_sha256=weights_sha256,

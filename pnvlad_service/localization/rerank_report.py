@@ -40,6 +40,21 @@ def summary_lines(rep: dict[str, Any]) -> list[str]:
         f"{v['pose_precision']:.1f} % (pose < 2 m, 5 deg), coverage {v['coverage']:.1f} % of "
         f"queries, recall {v['recall']:.1f} % of true top-1"
     )
+    cal = rep.get("calibration")
+    if cal:
+        line = (
+            f"  threshold chosen on {cal['n_queries']} training-layout queries "
+            f"(target {cal['target_precision']:.1f} %)"
+        )
+        off = cal.get("off_map")
+        if off:
+            at = cal["at_threshold"]
+            line += (
+                f" with {off['n_queries']} off the map planned as {100 * off['share']:g} % of "
+                f"queries: {at['off_map_accept']:.1f} % of those verified, expected precision "
+                f"{at['expected_precision']:.1f} %"
+            )
+        lines.append(line)
     for area, a in rep.get("per_area", {}).items():
         lines.append(
             f"  {area}: recall@1 {a['recall_at_1_before']:.1f} -> {a['recall_at_1_after']:.1f} %, "

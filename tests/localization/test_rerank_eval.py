@@ -12,7 +12,9 @@ from pnvlad_service.localization.rerank_eval import (
     QueryOutcome,
     _outcome,
     choose_threshold,
+    off_map_curve,
     pose_error,
+    pr_curve,
     summarise,
     verified_figures,
     wrap_deg,
@@ -105,6 +107,56 @@ def test_choose_threshold_takes_the_lowest_that_stays_precise() -> None:
     assert choose_threshold([_o(0, False, False, 0.99)], target=0.995) == 1.0
 
 
+def test_off_map_queries_weigh_in_as_their_planned_share() -> None:
+    # On the map: 1,000 right answers from 0.3 up, none wrong: alone they choose 0.0.
+    on = [_o(0, True, True, s, pose_ok=True) for s in np.linspace(0.3, 1.0, 1000)]
+    assert choose_threshold(on, target=0.995) == 0.0
+    # Off the map: 90 queries at 0.02 and one each at 0.10, 0.11, ... 0.19.
+    off = [_o(0, False, False, 0.02, pose_ok=False) for _ in range(90)]
+    off += [_o(0, False, False, 0.1 + k / 100, pose_ok=False) for k in range(10)]
+    curve = {c["threshold"]: c for c in off_map_curve(pr_curve(on), off, 0.05)}
+    # By hand at 0.11: every on-map query verified, 9 % of the off-map ones, so with 5 %
+    # of queries off the map precision is 0.95 / (0.95 + 0.05 * 0.09).
+    assert curve[0.11]["off_map_accept"] == pytest.approx(9.0)
+    assert curve[0.11]["pose_precision"] == pytest.approx(100 * 0.95 / (0.95 + 0.05 * 0.09))
+    assert curve[0.11]["coverage"] == 100.0  # the on-map figure
+    assert curve[0.10]["pose_precision"] == pytest.approx(100 * 0.95 / (0.95 + 0.05 * 0.10))
+    # 0.10 lets 10 % through (99.48 % < 99.5), 0.11 9 % (99.53 %): the lowest precise one.
+    assert choose_threshold(on, target=0.995, off_map=off, off_map_share=0.05) == 0.11
+    # Planned as 1 % of queries, 10 % of them verified is 0.99 / (0.99 + 0.001) = 99.9 %: 0.03
+    # (0.02 and below verify every off-map query, 99.0 %).
+    assert choose_threshold(on, target=0.995, off_map=off, off_map_share=0.01) == 0.03
+    # No off-map queries, or a share of 0: the on-map rule.
+    assert choose_threshold(on, target=0.995, off_map=[], off_map_share=0.05) == 0.0
+    assert choose_threshold(on, target=0.995, off_map=off, off_map_share=0.0) == 0.0
+
+
+def test_off_map_verification_offers_only_far_candidates(tiny, tmp_path) -> None:
+    """rerank_pairs(off_map_m): every candidate of every query is farther than off_map_m from
+    it, so no re-ranked answer is right; an off_map_m beyond the city leaves no query."""
+    from pnvlad_service.data.dataset import load_eval_runs
+    from pnvlad_service.data.tree import BenchmarkTree
+    from pnvlad_service.evaluation.evaluate import embed_runs
+    from pnvlad_service.localization.rerank_eval import rerank_pairs
+    from pnvlad_service.localization.verify import VerifyConfig
+    from pnvlad_service.models.inference import Encoder
+    from tests.index.helpers import make_checkpoint
+
+    enc = Encoder.from_checkpoint(make_checkpoint(tmp_path / "ckpt"), device="cpu")
+    runs = load_eval_runs(tiny)[:2]
+    _, db, q = embed_runs(enc.embed, runs, enc.cfg.num_points, 1, False)
+    frames = BenchmarkTree(tiny).frames_by_path()
+    config = VerifyConfig(candidates=3, stop_score=None)
+    on, _ = rerank_pairs(runs, db, q, frames, config)
+    assert any(o.r1_after for o in on)  # on the map, some are right
+    off, _ = rerank_pairs(runs, db, q, frames, config, off_map_m=50.0)
+    assert off and len(off) <= len(on)
+    assert not any(o.r1_after or o.r1p_after or o.rk_before for o in off)
+    assert all(o.registered == 3 for o in off)  # stop_score None: all three registered
+    far, _ = rerank_pairs(runs, db, q, frames, config, off_map_m=1e9)
+    assert far == []
+
+
 def test_outcome_uses_the_reranked_top1_and_the_true_relative_pose() -> None:
     from pnvlad_service.data.frames import SubmapFrame
 
@@ -161,6 +213,16 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
     cal = rep["calibration"]
     assert cal["n_queries"] > 0 and 0.0 <= cal["threshold"] <= 1.0
     assert rep["verified"]["threshold"] == cal["threshold"]
+    # Off-map queries weighed in: their share, count and acceptance at the chosen threshold,
+    # which a curve row of their own repeats.
+    from pnvlad_service.localization.rerank_eval import OFF_MAP_SHARE
+
+    off = cal["off_map"]
+    assert off["share"] == OFF_MAP_SHARE and off["n_queries"] > 0 and len(off["curve"]) == 101
+    row = dict((round(t, 2), a) for t, a in off["curve"])[round(cal["threshold"], 2)]
+    assert cal["at_threshold"]["off_map_accept"] == pytest.approx(row)
+    assert f"planned as {100 * OFF_MAP_SHARE:g} % of queries" in res.output
+    assert saved.at_threshold["off_map_accept"] == pytest.approx(row)
     # The ceiling: re-ranking the top 5 cannot beat recall@5 before it.
     assert rep["recall_at_1_after"] <= rep["recall_at_k_before"] + 1e-9
     assert rep["recall_at_1_before"] <= rep["recall_at_k_before"] + 1e-9
@@ -173,6 +235,13 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
 
     helped = CliRunner().invoke(app, ["eval", "--help"], env={"COLUMNS": "200"})
     assert f"(default: {CALIBRATION_QUERIES}," in helped.output
+    assert f"(default: {OFF_MAP_SHARE};" in " ".join(helped.output.split())
+    # A share outside [0, 1) is refused naming the flag; 0 leaves the off-map queries out.
+    res = CliRunner().invoke(app, [*args, "--off-map-share", "1.5"])
+    assert res.exit_code == 2 and "--off-map-share" in res.output
+    res = CliRunner().invoke(app, [*args, "--off-map-share", "0"])
+    assert res.exit_code == 0, res.output
+    assert "off_map" not in json.loads(out.read_text())["rerank"]["calibration"]
     # ... and serve's help the library's fallback threshold.
     from pnvlad_service.localization.verify import VerifyConfig
 
