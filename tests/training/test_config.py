@@ -84,11 +84,12 @@ def test_shipped_configs_load() -> None:
     assert cpu.model == run16.model
     assert cpu.train.model_copy(update={"threads": 1}) == run16.train
     assert cpu.train.augment.active and cpu.train.lr_schedule == "cosine"
-    # bev: the cpu recipe's training (base: cpu) of ModelConfig.bev().
+    # bev: the cpu recipe's training (base: cpu) of ModelConfig.bev(), with wider margins.
     from pnvlad_service.models.config import ModelConfig
 
     bev = TrainConfig.preset("bev")
-    assert bev.model == ModelConfig.bev() and bev.train == cpu.train and bev.data == cpu.data
+    assert bev.model == ModelConfig.bev() and bev.data == cpu.data
+    assert bev.train == cpu.train.model_copy(update={"margin1": 1.0, "margin2": 0.5})
     with pytest.raises(InputError, match="bev, compact, cpu, paper"):
         TrainConfig.preset("gpu")
 
