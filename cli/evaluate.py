@@ -218,7 +218,7 @@ def evaluate(
                 candidates=rerank,
                 threshold=verify_threshold,
                 calibration_queries=calibration_queries,
-                off_map_share=rerank_eval.OFF_MAP_SHARE if off_map_share is None else off_map_share,
+                off_map_share=off_map_share,
                 workers=workers,
                 progress=progress,
             )

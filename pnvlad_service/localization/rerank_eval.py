@@ -347,11 +347,24 @@ def choose_threshold(
     curve = pr_curve(outcomes)
     if off_map:
         curve = off_map_curve(curve, off_map, off_map_share)
+    return threshold_on_curve(curve, target, key)
+
+
+def _curve_value(c: dict[str, Any], key: str) -> float:
+    """A curve row's ``key`` precision, its place precision where that is NaN (no true poses)."""
+    v = c[key]
+    return c["precision"] if math.isnan(v) else v
+
+
+def threshold_on_curve(
+    curve: list[dict[str, Any]], target: float = TARGET_PRECISION, key: str = "pose_precision"
+) -> float:
+    """:func:`choose_threshold`'s rule on a curve already made (:func:`pr_curve`, or
+    :func:`off_map_curve` of one)."""
     enough = math.ceil(1.0 / (1.0 - target)) if target < 1.0 else 1
 
     def value(c: dict[str, Any]) -> float:
-        v = c[key]
-        return c["precision"] if math.isnan(v) else v
+        return _curve_value(c, key)
 
     def precise(c: dict[str, Any]) -> bool:
         return c["n_verified"] > 0 and value(c) >= target * 100.0
@@ -517,13 +530,14 @@ def calibrate(
     outcomes, _ = rerank_pairs(runs, db_desc, q_desc, frames, config, progress=progress)
     off: list[QueryOutcome] = []
     if off_map_runs and off_map_share > 0.0:
-        off_db, off_q = embed_runs(off_map_runs)
+        off_db, off_q = _descriptors_of(off_map_runs, runs, db_desc, embed_runs)
         off, _ = rerank_pairs(
             off_map_runs, off_db, off_q, frames, config, progress=progress, off_map_m=OFF_MAP_M
         )
-    # Pose precision when every frame has a true pose, else place precision.
-    threshold = choose_threshold(outcomes, target, off_map=off, off_map_share=off_map_share)
     curve = pr_curve(outcomes)
+    mixed = off_map_curve(curve, off, off_map_share) if off else curve
+    # Pose precision when every frame has a true pose, else place precision.
+    threshold = threshold_on_curve(mixed, target)
     at = verified_figures(outcomes, threshold)
     report: dict[str, Any] = {
         "threshold": threshold,
@@ -533,10 +547,9 @@ def calibrate(
         "pr_curve": curve,
     }
     if off:
-        mixed = off_map_curve(curve, off, off_map_share)
         row = next(c for c in mixed if c["threshold"] == threshold)  # a grid threshold
         at["off_map_accept"] = row["off_map_accept"]
-        at["expected_precision"] = row["pose_precision"]
+        at["expected_precision"] = _curve_value(row, "pose_precision")
         report["off_map"] = {
             "share": off_map_share,
             "distance_m": OFF_MAP_M,
@@ -544,6 +557,28 @@ def calibrate(
             "curve": [[c["threshold"], c["off_map_accept"]] for c in mixed],
         }
     return report
+
+
+def _descriptors_of(
+    wanted: list[EvalRun],
+    runs: list[EvalRun],
+    db_desc: list[np.ndarray],
+    embed_runs: Callable[[list[EvalRun]], tuple[list[np.ndarray], list[np.ndarray]]],
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The database and query descriptors of ``wanted``, taken from ``runs``' database
+    descriptors where every submap of ``wanted`` is among them (the off-map queries are the
+    calibration's own training layout), else embedded."""
+    rows = {
+        str(p): d[k] for r, d in zip(runs, db_desc, strict=True) for k, p in enumerate(r.db_paths)
+    }
+    if not all(str(p) in rows for r in wanted for p in (*r.db_paths, *r.query_paths)):
+        return embed_runs(wanted)
+    empty = np.zeros((0, db_desc[0].shape[1]), np.float32)
+
+    def stack(ps: list[Path]) -> np.ndarray:
+        return np.stack([rows[str(p)] for p in ps]) if ps else empty
+
+    return [stack(r.db_paths) for r in wanted], [stack(r.query_paths) for r in wanted]
 
 
 def evaluate_rerank(
@@ -557,14 +592,15 @@ def evaluate_rerank(
     candidates: int,
     threshold: float | None = None,
     calibration_queries: int | None = None,
-    off_map_share: float = OFF_MAP_SHARE,
+    off_map_share: float | None = None,
     workers: int = 4,
     progress: bool = False,
 ) -> dict[str, Any]:
     """The ``rerank`` section of ``pnvlad eval --rerank K``: the threshold (``threshold``, or
     chosen on ``calibration_queries`` (None: :data:`CALIBRATION_QUERIES`) training-layout
     queries a run of each dataset of ``training``, with :data:`OFF_MAP_QUERIES` a run
-    verified as if off the map weighing in as ``off_map_share`` of the queries; 0: none),
+    verified as if off the map weighing in as ``off_map_share`` of the queries (None:
+    :data:`OFF_MAP_SHARE`; 0: none)),
     then :func:`rerank_report` on the evaluation runs."""
     from pnvlad_service.data.tree import BenchmarkTree
 
@@ -596,7 +632,7 @@ def evaluate_rerank(
             VerifyConfig(candidates=candidates),
             progress=progress,
             off_map_runs=off_runs,
-            off_map_share=off_map_share,
+            off_map_share=OFF_MAP_SHARE if off_map_share is None else off_map_share,
         )
         threshold = calibration["threshold"]
         log.info("verification threshold %.2f, chosen on the training layout", threshold)

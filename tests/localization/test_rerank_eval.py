@@ -253,3 +253,33 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
     # Asked of a tree without sidecars, or without --root: exit 2 naming the flag.
     res = CliRunner().invoke(app, ["eval", "-m", str(ckpt), "--rerank", "0", "-r", str(tiny)])
     assert res.exit_code == 2 and "--rerank" in res.output
+
+
+def test_off_map_descriptors_come_from_the_calibrations_own(tiny, tmp_path) -> None:
+    """The off-map queries' descriptors are the calibration runs' rows, equal to embedding
+    them afresh; runs with a submap the calibration never embedded are embedded."""
+    from pnvlad_service.data.dataset import load_eval_runs
+    from pnvlad_service.evaluation.evaluate import embed_runs
+    from pnvlad_service.localization.rerank_eval import _descriptors_of, subsample_queries
+    from pnvlad_service.models.inference import Encoder
+    from tests.index.helpers import make_checkpoint
+
+    enc = Encoder.from_checkpoint(make_checkpoint(tmp_path / "ckpt"), device="cpu")
+    embedded: list[int] = []
+
+    def embed(rs):
+        embedded.append(len(rs))
+        _, db, q = embed_runs(enc.embed, rs, enc.cfg.num_points, 1, False)
+        return db, q
+
+    runs = load_eval_runs(tiny)[:2]
+    db, _ = embed(runs)
+    few = subsample_queries(runs, 3, seed=1)
+    got_db, got_q = _descriptors_of(few, runs, db, embed)
+    assert embedded == [2]  # nothing embedded again
+    want_db, want_q = embed(few)
+    for a, b in zip([*got_db, *got_q], [*want_db, *want_q], strict=True):
+        assert a.shape == b.shape and np.allclose(a, b, atol=1e-5)
+    others = load_eval_runs(tiny)[2:3]
+    _descriptors_of(others, runs, db, embed)
+    assert embedded == [2, 2, 1]
