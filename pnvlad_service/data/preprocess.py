@@ -5,8 +5,9 @@ docs/PREPROCESS.md for figures on real scans):
 
 1. :func:`crop_mask` / :func:`crop`: optional range (3-D distance from the origin, i.e. the
    sensor) and axis-aligned box.
-2. :func:`ground_mask` / :func:`remove_ground`: a RANSAC plane (:func:`fit_ground_plane`,
-   normal within ``max_ground_tilt_deg`` of the z axis) gives the up side and a frame; in
+2. :func:`ground_mask` / :func:`remove_ground`: a RANSAC plane through the lowest point of
+   each column (:func:`fit_ground_plane`, :func:`lowest_per_cell`; normal within
+   ``max_ground_tilt_deg`` of the z axis) gives the up side and a frame; in
    ``"local"`` mode a height map (:func:`ground_surface`: a low percentile per ``ground_cell``
    cell, the cells joined smoothly to the plane, then a grey-scale closing and opening over
    ``ground_window`` metres) follows slopes and kerbs, and every point less than
@@ -94,8 +95,8 @@ class GConfig(BaseModel):
     )
     up: Literal["auto", "z", "-z"] = Field(
         "auto",
-        description="Which side of the ground is up: 'auto' (the side most off-plane points are "
-        "on; handles z-down frames such as NCLT's), 'z' or '-z'.",
+        description="Which side of the ground is up: 'auto' (the side under which the columns' "
+        "lowest points lie on one plane best; handles z-down frames such as NCLT's), 'z' or '-z'.",
     )
     ransac_iterations: int = Field(200, ge=1, description="RANSAC plane hypotheses.")
     voxel_iterations: int = Field(30, ge=1, description="Most leaf sizes tried.")
@@ -249,6 +250,66 @@ def _fit_plane(
     return mean, normal
 
 
+def lowest_per_cell(points: np.ndarray, cell: float, sign: float = 1.0) -> np.ndarray:
+    """Indices of the lowest point along ``sign`` * z in each ``cell`` x ``cell`` column of x, y
+    (``points`` float64 [N, 3]): the candidates for ground, since every wall, pole and car
+    stands on it and only its foot is lowest in its column."""
+    lo = column_min(points[:, :2])
+    ij = np.floor((points[:, :2] - lo) / cell).astype(np.int64)
+    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.lexsort((sign * points[:, 2], key))
+    keys = key[order]
+    return order[np.r_[True, keys[1:] != keys[:-1]]]
+
+
+def _ransac_plane(
+    cand: np.ndarray,
+    sign: float,
+    *,
+    threshold: float,
+    max_tilt_deg: float,
+    iterations: int,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The plane (centroid, unit normal with ``sign`` * z > 0) of most inliers among ``cand``
+    (float64 [M, 3], centred) whose normal is within ``max_tilt_deg`` of z, refined by least
+    squares, and the share of ``cand`` within ``threshold`` of it."""
+    m = cand.shape[0]
+    idx = rng.integers(0, m, size=(iterations, 3))
+    a, b, c = cand[idx[:, 0]], cand[idx[:, 1]], cand[idx[:, 2]]
+    normals = np.cross(b - a, c - a)
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-9
+    normals[ok] /= norms[ok, None]
+    ok &= np.abs(normals[:, 2]) >= math.cos(math.radians(max_tilt_deg))
+    fallback = np.array([0.0, 0.0, 1.0])
+    if ok.any():
+        normals = normals[ok]
+        offsets = -np.einsum("ij,ij->i", normals, a[ok])
+        # [m, K] distances to each hypothesis; float32 is plenty to count inliers.
+        dist = np.abs(cand.astype(np.float32) @ normals.T.astype(np.float32) + offsets)
+        best = int(np.argmax(np.count_nonzero(dist < threshold, axis=0)))
+        inliers = cand[np.abs(cand @ normals[best] + offsets[best]) < threshold]
+        fallback = normals[best]
+    else:  # no tilted-enough hypothesis: the lowest tenth of the candidates
+        log.warning("no RANSAC ground plane within %.0f deg of z; using z", max_tilt_deg)
+        h = sign * cand[:, 2]
+        inliers = cand[h <= np.quantile(h, 0.1)]
+    if inliers.shape[0] >= 3:
+        # Least squares on the inliers, then again on those within half the threshold of that
+        # plane (less pull from the feet of walls and cars).
+        mean, normal = _fit_plane(inliers, fallback, max_tilt_deg)
+        close = inliers[np.abs((inliers - mean) @ normal) < threshold / 2]
+        if close.shape[0] >= 3:
+            mean, normal = _fit_plane(close, fallback, max_tilt_deg)
+    else:
+        mean, normal = cand[np.argmin(sign * cand[:, 2])], fallback
+    if sign * normal[2] < 0:
+        normal = -normal
+    share = float(np.mean(np.abs((cand - mean) @ normal) < threshold))
+    return mean, normal, share
+
+
 def fit_ground_plane(
     points: np.ndarray,
     *,
@@ -258,60 +319,67 @@ def fit_ground_plane(
     iterations: int = 200,
     rng: np.random.Generator | None = None,
     sample: int = 4000,
+    cell: float = 2.0,
 ) -> tuple[np.ndarray, float]:
-    """RANSAC plane with the most inliers (within ``threshold`` m) among planes whose normal is
-    within ``max_tilt_deg`` of the z axis, refined by least squares on its inliers.
+    """RANSAC plane through the lowest point of each ``cell`` m column (:func:`lowest_per_cell`),
+    with the most of them within ``threshold`` m among planes whose normal is within
+    ``max_tilt_deg`` of the z axis, refined by least squares on those.
+
+    Fitting the columns' lowest points rather than all points keeps the plane on the ground
+    where walls and their horizontal bands of returns at the sensor's height hold more points
+    than a rolling road does (an accumulated 20 m window: a plane at the sensor's height wins a
+    RANSAC over every point).
 
     Args:
         points: float64 [N, 3] metres.
-        up: which side is up: ``"auto"`` picks the side holding more of the points farther than
-            ``threshold`` from the plane (objects stand on the ground; few points lie below it).
-        rng: the random generator (hypotheses and the subsample of ``sample`` points).
+        up: which side is up: ``"auto"`` fits the lowest points along z and along -z and takes
+            the side whose plane holds the larger share of them (ground lies under everything;
+            the highest points of the columns are roofs, crowns and walls' tops); when the two
+            are level (an open, flat cloud) the side holding more of the points farther than
+            ``threshold`` from the plane.
+        rng: the random generator (hypotheses and the subsample of ``sample`` candidates).
+        cell: column size, metres; smaller for a cloud spanning less than 32 columns.
 
     Returns:
         ``(normal, offset)``: unit float64 [3] pointing up and a float such that
         ``points @ normal + offset`` is the signed height above the plane in metres.
     """
     rng = np.random.default_rng(0) if rng is None else rng
-    n = points.shape[0]
-    sub = points if n <= sample else points[np.sort(rng.choice(n, sample, replace=False))]
-    centre = _col_mean(sub)
-    sub = sub - centre
-    m = sub.shape[0]
-    idx = rng.integers(0, m, size=(iterations, 3))
-    a, b, c = sub[idx[:, 0]], sub[idx[:, 1]], sub[idx[:, 2]]
-    normals = np.cross(b - a, c - a)
-    norms = np.linalg.norm(normals, axis=1)
-    ok = norms > 1e-9
-    normals[ok] /= norms[ok, None]
-    ok &= np.abs(normals[:, 2]) >= math.cos(math.radians(max_tilt_deg))
-    if ok.any():
-        normals = normals[ok]
-        offsets = -np.einsum("ij,ij->i", normals, a[ok])
-        # [m, K] distances to each hypothesis; float32 is plenty to count inliers.
-        dist = np.abs(sub.astype(np.float32) @ normals.T.astype(np.float32) + offsets)
-        best = int(np.argmax(np.count_nonzero(dist < threshold, axis=0)))
-        inliers = sub[np.abs(sub @ normals[best] + offsets[best]) < threshold]
-    else:  # no tilted-enough hypothesis: the lowest tenth of the points along z
-        log.warning("no RANSAC ground plane within %.0f deg of z; using z", max_tilt_deg)
-        inliers = sub[sub[:, 2] <= np.quantile(sub[:, 2], 0.1)]
-    if inliers.shape[0] >= 3:
-        # Least squares on the inliers, then again on those within half the threshold of that
-        # plane (less pull from the feet of walls and cars).
-        fallback = normals[best] if ok.any() else np.array([0.0, 0.0, 1.0])
-        mean, normal = _fit_plane(inliers, fallback, max_tilt_deg)
-        close = inliers[np.abs((inliers - mean) @ normal) < threshold / 2]
-        if close.shape[0] >= 3:
-            mean, normal = _fit_plane(close, fallback, max_tilt_deg)
-    else:
-        normal, mean = np.array([0.0, 0.0, 1.0]), column_min(sub)
+    centre = _col_mean(points)
+    pts = points - centre
+    span = float(np.max(column_max(pts[:, :2]) - column_min(pts[:, :2])))
+    if span > 0:
+        cell = min(cell, span / 32)
+    signs = {"auto": (1.0, -1.0), "z": (1.0,), "-z": (-1.0,)}[up]
+    fits = []
+    for sign in signs:
+        cand = pts[lowest_per_cell(pts, cell, sign)] if span > 0 else pts
+        if cand.shape[0] > sample:
+            cand = cand[np.sort(rng.choice(cand.shape[0], sample, replace=False))]
+        fits.append(
+            _ransac_plane(
+                cand,
+                sign,
+                threshold=threshold,
+                max_tilt_deg=max_tilt_deg,
+                iterations=iterations,
+                rng=rng,
+            )
+        )
+    mean, normal, _ = max(fits, key=lambda f: f[2])
+    # The columns' lowest points sit a little under the ground's mean (each the lowest of its
+    # noise): refit on every point near the plane (a random subsample).
+    sub = pts if pts.shape[0] <= sample else pts[rng.choice(pts.shape[0], sample, replace=False)]
+    close = sub[np.abs((sub - mean) @ normal) < threshold / 2]
+    if close.shape[0] >= 3:
+        sign = 1.0 if normal[2] > 0 else -1.0
+        mean, normal = _fit_plane(close, normal, max_tilt_deg)
+        normal = normal if sign * normal[2] > 0 else -normal
     offset = -float(normal @ mean)
-    if up == "auto":
+    if up == "auto" and abs(fits[0][2] - fits[1][2]) < 0.05:
         height = sub @ normal + offset
         if np.count_nonzero(height < -threshold) > np.count_nonzero(height > threshold):
             normal, offset = -normal, -offset
-    elif (up == "z") != (normal[2] > 0):
-        normal, offset = -normal, -offset
     return normal, offset - float(normal @ centre)
 
 
