@@ -32,7 +32,9 @@ Loopback only; bounded in time and count.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import re
 import threading
 import time
@@ -57,6 +59,25 @@ def children(pid: int) -> list[int]:
     out: list[int] = []
     for task in Path(f"/proc/{pid}/task").iterdir():
         out += [int(k) for k in (task / "children").read_text().split()]
+    return out
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (all its threads; /proc/<pid>/stat)."""
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def process_cpu(pid: int | None) -> dict[str, float]:
+    """CPU seconds so far of the server (``pid``) and of its children together (the
+    verification process), {} without a pid."""
+    if not pid:
+        return {}
+    out = {"server": cpu_seconds(pid), "child": 0.0}
+    for k in children(pid):
+        with contextlib.suppress(OSError):  # a child that ended meanwhile
+            out["child"] += cpu_seconds(k)
     return out
 
 
@@ -228,6 +249,8 @@ def summarise(slices: list[dict]) -> dict:
     wall = sum(sl["wall"] for sl in slices)
     batches = sum(sl.get("batches", 0) for sl in slices)
     clouds = sum(sl.get("clouds", 0) for sl in slices)
+    cpu = {k: sum(sl.get("cpu", {}).get(k, 0.0) for sl in slices) for k in ("server", "child")}
+    measured = any(sl.get("cpu") for sl in slices)  # with the server's pid
     ms = np.array(lat) * 1000 if lat else np.array([np.nan])
     p50, p95, p99 = np.percentile(ms, [50, 95, 99])
     return {
@@ -243,6 +266,11 @@ def summarise(slices: list[dict]) -> dict:
         "registered_mean": float(np.mean(registered)) if registered else 0.0,
         "verified_share": float(np.mean(verified)) if verified else 0.0,
         "mean_batch": clouds / batches if batches else 0.0,  # clouds an encoder pass
+        # CPU time a request: the server's process and its verification child
+        **{
+            f"cpu_{k}_ms": 1000 * v / len(lat) if lat and measured else float("nan")
+            for k, v in cpu.items()
+        },
         **{f"{k}_p50_ms": float(np.nanmedian(v)) if v else float("nan") for k, v in stages.items()},
     }
 
@@ -382,7 +410,8 @@ def main() -> None:
         print(
             f"{'clients':>7} {'rerank':>6} {'round':>5} {'requests':>8} {'errors':>6} "
             f"{'req/s':>7} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'mean batch':>10} "
-            f"{'registered':>10} {'verified':>8} {'embed p50':>9} {'verify p50':>10}"
+            f"{'registered':>10} {'verified':>8} {'embed p50':>9} {'verify p50':>10} "
+            f"{'CPU ms/req':>10} {'of which child':>14}"
         )
 
         def row(ph: dict, label: str) -> None:
@@ -391,7 +420,8 @@ def main() -> None:
                 f"{ph['errors']:>6} {ph['throughput']:>7.2f} {ph['p50_ms']:>8.1f} "
                 f"{ph['p95_ms']:>8.1f} {ph['p99_ms']:>8.1f} {ph['mean_batch']:>10.2f} "
                 f"{ph['registered_mean']:>10.2f} {100 * ph['verified_share']:>7.0f}% "
-                f"{ph['embed_p50_ms']:>9.1f} {ph['verify_p50_ms']:>10.1f}",
+                f"{ph['embed_p50_ms']:>9.1f} {ph['verify_p50_ms']:>10.1f} "
+                f"{ph['cpu_server_ms'] + ph['cpu_child_ms']:>10.1f} {ph['cpu_child_ms']:>14.1f}",
                 flush=True,
             )
 
@@ -401,11 +431,12 @@ def main() -> None:
             slices: dict = {mode: [] for mode in modes}
             for r in range(rounds):
                 for mode in modes:
-                    b0 = batch_sizes(url)
+                    b0, c0 = batch_sizes(url), process_cpu(pid)
                     sl = run_phase(
                         url, n, args.seconds / rounds, args.max_requests // rounds, *request(mode)
                     )
-                    b1 = batch_sizes(url)
+                    b1, c1 = batch_sizes(url), process_cpu(pid)
+                    sl["cpu"] = {k: c1[k] - c0[k] for k in c1}
                     sl["batches"] = b1.get("batches", 0) - b0.get("batches", 0)
                     sl["clouds"] = b1.get("clouds", 0) - b0.get("clouds", 0)
                     slices[mode].append(sl)
