@@ -191,7 +191,7 @@ def prepare(
     if config.method == "VGICP" and role != "source":
         voxels = sg.GaussianVoxelMap(config.vgicp_leaf_m)
         voxels.insert(fine)
-    image = bev_image(pts, config)
+    spectrum = np.fft.rfft2(bev_image(pts, config))
     return Prepared(
         points=fine.points()[:, :3].copy(),
         reason=None,
@@ -199,8 +199,8 @@ def prepare(
         coarse=coarse,
         tree=tree if role != "source" else None,
         voxels=voxels,
-        spectrum=np.fft.rfft2(image) if role != "source" else None,
-        polar=polar_magnitude(image, config),
+        spectrum=spectrum if role != "source" else None,
+        polar=polar_magnitude(spectrum, config),
     )
 
 
@@ -220,17 +220,21 @@ def bev_image(points: np.ndarray, config: RegistrationConfig) -> np.ndarray:
     return np.sqrt(counts.reshape(s, s)).astype(np.float32)
 
 
-def polar_magnitude(image: np.ndarray, config: RegistrationConfig) -> np.ndarray:
-    """The log-magnitude of the image's 2-D spectrum on a polar grid, float [R, A]: radii from
-    a few cells (the lowest frequencies only say where the mass is) to the Nyquist band,
-    angles over [0, 180) degrees (the magnitude of a real image's spectrum is symmetric).
-    Shifting the cloud leaves it unchanged; turning the cloud by psi shifts it by psi."""
+def polar_magnitude(spectrum: np.ndarray, config: RegistrationConfig) -> np.ndarray:
+    """The log-magnitude of a bird's-eye image's 2-D spectrum on a polar grid, float [R, A]:
+    radii from a few cells (the lowest frequencies only say where the mass is) to the Nyquist
+    band, angles over [0, 180) degrees (the magnitude of a real image's spectrum is symmetric).
+    Shifting the cloud leaves it unchanged; turning the cloud by psi shifts it by psi.
+
+    ``spectrum`` is the image's ``rfft2`` [S, S // 2 + 1]: its columns are the frequencies
+    along y from 0 up, which is the half of the plane that angles in [0, 180) reach (y = r sin
+    theta >= 0), so the full transform is never needed."""
     s = config.bev_cells
-    mag = np.log1p(np.abs(np.fft.fftshift(np.fft.fft2(image))))
+    mag = np.log1p(np.abs(np.fft.fftshift(spectrum, axes=0)))  # row s // 2: zero along x
     radii = np.arange(4, s // 2 - 2, dtype=np.float64)
     theta = np.arange(config.polar_angles) * (np.pi / config.polar_angles)
     rows = s // 2 + radii[:, None] * np.cos(theta)[None, :]  # axis 0: frequency along x
-    cols = s // 2 + radii[:, None] * np.sin(theta)[None, :]
+    cols = radii[:, None] * np.sin(theta)[None, :]  # axis 1: frequency along y, >= 0
     polar = ndimage.map_coordinates(mag, [rows, cols], order=1)
     polar -= polar.mean(axis=1, keepdims=True)
     return polar

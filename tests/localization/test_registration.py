@@ -325,3 +325,33 @@ def test_the_half_turn_spectrum_is_the_turned_clouds_own() -> None:
     reg.place(fresh, tgt, [yaw], cfg)
     ((t_twin, s_twin),) = reg.place(fresh, tgt, [yaw + np.pi], cfg)
     assert np.allclose(t_twin, t_direct) and s_twin == pytest.approx(s_direct, rel=1e-4)
+
+
+def test_the_polar_spectrum_from_the_half_plane_is_the_full_planes() -> None:
+    """polar_magnitude reads the polar grid off the image's rfft2 (the half plane of
+    non-negative y frequencies): it must equal the grid read the long way, off the whole
+    centred fft2 with the y frequency at cell S // 2 + r sin(theta), and turning the cloud by
+    a grid step must shift it by one column."""
+    from scipy import ndimage
+
+    cfg = reg.DEFAULT
+    s = cfg.bev_cells
+    pts = moved(street(3), np.eye(4), np.random.default_rng(3))
+    image = reg.bev_image(pts, cfg)
+    full = np.log1p(np.abs(np.fft.fftshift(np.fft.fft2(image))))
+    r = np.arange(4, s // 2 - 2, dtype=np.float64)[:, None]
+    theta = (np.arange(cfg.polar_angles) * np.pi / cfg.polar_angles)[None, :]
+    want = ndimage.map_coordinates(
+        full, [s // 2 + r * np.cos(theta), s // 2 + r * np.sin(theta)], order=1
+    )
+    want -= want.mean(axis=1, keepdims=True)
+    got = reg.polar_magnitude(np.fft.rfft2(image), cfg)
+    assert got.shape == want.shape == (len(r), cfg.polar_angles)
+    assert np.allclose(got, want, atol=1e-5 * np.abs(want).max())
+    # Turned by 10 grid steps, the angular correlation peaks 10 bins over.
+    step = np.pi / cfg.polar_angles
+    turned = reg.polar_magnitude(
+        np.fft.rfft2(reg.bev_image(pts @ reg._rot_z(10 * step).T, cfg)), cfg
+    )
+    corr = [float((np.roll(got, k, axis=1) * turned).sum()) for k in range(cfg.polar_angles)]
+    assert int(np.argmax(corr)) == 10
