@@ -322,6 +322,10 @@ class Localizer:
             if verify_process and bundle.geometry is not None
             else None
         )
+        if bundle.geometry is not None and hasattr(encoder, "crowded_by"):
+            # A verification in flight holds a core (the child's, or this process's): a lone
+            # batch then runs its clouds one thread each, not one cloud on both cores.
+            encoder.crowded_by = self._verification_in_flight
         recorded = bundle.manifest.preprocess
         self._gconfig = GConfig.model_validate(dict(recorded)) if recorded else GConfig()
         self.info = LocalizerInfo(
@@ -416,6 +420,9 @@ class Localizer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def _verification_in_flight(self) -> bool:
+        return self._verifying > 0
 
     def warm_up(self, largest: int) -> float:
         """Embed throw-away clouds 1, 2, ... ``largest`` at a time, once each, so that no

@@ -35,6 +35,7 @@ import copy
 import hashlib
 import logging
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -149,9 +150,14 @@ class Encoder:
         if cloud_workers is not None and cloud_workers < 1:
             raise InputError(f"cloud_workers must be >= 1, got {cloud_workers}", "cloud_workers")
         self.cloud_workers = cloud_workers
+        #: Whether other work holds the cores right now (a server sets it to "a verification
+        #: is in flight"): while it says so, a lone batch's clouds go to the cloud workers, one
+        #: thread each, as when other batches are in flight, rather than a single cloud
+        #: running on all of torch's threads opposite a busy core (see ``_clouds``).
+        self.crowded_by: Callable[[], bool] | None = None
         self._pool: ThreadPoolExecutor | None = None
         self._workers = 1
-        self._embedding = 0  # calls of _clouds in progress, over all calling threads
+        self._embedding = 0  # forward passes in progress, over all calling threads
         self._pool_lock = threading.Lock()
         self.cfg = cfg
         self.device = torch.device(device or "cpu")
@@ -313,7 +319,24 @@ class Encoder:
         """
         if self._module is not None:
             return self._all_threads(self._module_forward, x, q)
-        return self._all_threads(self._head, self._clouds(x, q), q)
+        with self._pool_lock:
+            self._embedding += 1
+            alone = self._embedding == 1
+        try:
+            if alone and self.crowded_by is not None and self.crowded_by():
+                alone = False
+            parts = self._clouds(x, q, alone)
+            # Crowded, the head goes to a cloud worker too: on all threads, its many small
+            # parallel regions each wait at a barrier for the thread that has no core (a batch
+            # of 2 beside a busy core: 115-133 ms with the head there, 86 ms on a worker;
+            # docs/SERVICE.md, "A crowded encoder").
+            pool = None if alone or self.device.type != "cpu" else self._worker_pool()
+            if pool is None:
+                return self._all_threads(self._head, parts, q)
+            return pool.submit(self._head, parts, q).result()
+        finally:
+            with self._pool_lock:
+                self._embedding -= 1
 
     def _module_forward(self, x: torch.Tensor, q: dict[str, Any]) -> torch.Tensor:
         import torch
@@ -361,42 +384,35 @@ class Encoder:
             y = y * torch.sigmoid(torch.addmm(g.b, y, g.w))
         return F.normalize(y, dim=1)
 
-    def _clouds(self, x: torch.Tensor, q: dict[str, Any]) -> list[torch.Tensor]:
+    def _clouds(self, x: torch.Tensor, q: dict[str, Any], alone: bool) -> list[torch.Tensor]:
         """``_cloud`` of every cloud of x [b, n, 3], in order.
 
         On CPU with W > 1 workers, clouds go W at a time to the worker threads (one intra-op
         thread each). A last group of at most W/2 clouds, which would leave most workers idle,
         runs here one cloud at a time on all of torch's threads instead (on 2 cores: a batch of
         3 takes two single-threaded cloud times plus one two-threaded one, not three) - unless
-        other threads are embedding at the same time, when every cloud goes to the workers.
+        the batch is not ``alone`` (other threads are embedding at the same time, or
+        ``crowded_by`` says other work holds the cores), when every cloud goes to the workers:
+        a team of threads of which one waits for a busy core spends its time at the barriers
+        of the forward pass's ~100 parallel regions (one cloud beside a busy core: 181-205 ms
+        on all threads, 83 ms on a worker).
         """
         b = x.shape[0]
-        with self._pool_lock:
-            self._embedding += 1
-            alone = self._embedding == 1
-        try:
-            # With other batches in flight (several server lanes) every cloud goes to the
-            # workers: running one here on all threads would oversubscribe the cores.
-            pool = (
-                self._worker_pool() if self.device.type == "cpu" and (b > 1 or not alone) else None
-            )
-            if pool is None:
-                return self._here(x, q, range(b))
-            workers = self._workers
-            rest = b % workers
-            side_by_side = b if (rest > workers / 2 or not alone) else b - rest
+        pool = self._worker_pool() if self.device.type == "cpu" and (b > 1 or not alone) else None
+        if pool is None:
+            return self._here(x, q, range(b))
+        workers = self._workers
+        rest = b % workers
+        side_by_side = b if (rest > workers / 2 or not alone) else b - rest
 
-            def one(i: int) -> torch.Tensor:
-                import torch
+        def one(i: int) -> torch.Tensor:
+            import torch
 
-                with torch.inference_mode():  # thread-local: enter it in the worker too
-                    return self._cloud(x[i], q)
+            with torch.inference_mode():  # thread-local: enter it in the worker too
+                return self._cloud(x[i], q)
 
-            out = list(pool.map(one, range(side_by_side)))
-            return out + self._here(x, q, range(side_by_side, b))
-        finally:
-            with self._pool_lock:
-                self._embedding -= 1
+        out = list(pool.map(one, range(side_by_side)))
+        return out + self._here(x, q, range(side_by_side, b))
 
     def _here(self, x: torch.Tensor, q: dict[str, Any], rows: range) -> list[torch.Tensor]:
         """``_cloud`` of ``x[rows]`` one after the other on all of torch's threads: on the

@@ -138,6 +138,31 @@ def test_candidates_are_read_only_when_registered_and_not_cached(city: dict) -> 
             assert [c.score for c in got.checks] == pytest.approx([c.score for c in plain.checks])
 
 
+def test_the_encoder_is_crowded_while_a_verification_is_in_flight(city: dict) -> None:
+    """A Localizer with geometry tells its encoder that the cores are taken (``crowded_by``)
+    exactly while a verification runs: asked from inside one (as a candidate's points are
+    read), it says so; before and after, not."""
+    cloud, _, qf = _queries(city)[0]
+    with Localizer.load(city["bundle"]) as loc:
+        crowded = loc.encoder.crowded_by
+        assert crowded is not None and crowded() is False
+        geometry = loc.bundle.geometry
+        real = geometry.metres
+        seen: list[bool] = []
+
+        def metres(i: int) -> np.ndarray:
+            seen.append(crowded())
+            return real(i)
+
+        geometry.metres = metres
+        try:
+            answer = loc.localize(cloud, top_n=3, scale=qf.scale)
+        finally:
+            geometry.metres = real
+        assert answer.verification is not None and seen and all(seen)
+        assert crowded() is False
+
+
 def test_the_child_process_verifies_as_the_server_process_does(
     city: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -93,6 +93,52 @@ def test_encoder_embeds_from_several_threads_at_once() -> None:
     assert enc._embedding == 0
 
 
+def test_a_crowded_encoder_keeps_off_the_threads_that_share_cores() -> None:
+    """While ``crowded_by`` says other work holds the cores, a lone batch (one cloud too) runs
+    its clouds and its head on the single-threaded cloud workers, not on the torch thread's
+    team; alone, a single cloud and the head run on the torch thread. The descriptors are the
+    model's either way."""
+    import threading
+
+    cfg = CONFIGS["paper-narrow"]
+    model = trained_like(cfg)
+    x = clouds(3, seed=6)
+    with torch.no_grad():
+        want = model(x).numpy()
+    enc = Encoder(model, cfg, cloud_workers=2)
+    where: list[str] = []
+    head = enc._head_products
+    cloud = enc._cloud
+
+    def head_here(*args):  # records the thread each part runs on
+        where.append("head:" + threading.current_thread().name.split("_")[0])
+        return head(*args)
+
+    def cloud_here(*args):
+        where.append("cloud:" + threading.current_thread().name.split("_")[0])
+        return cloud(*args)
+
+    enc._head_products = head_here
+    enc._cloud = cloud_here
+    try:
+        for crowded, rows in ((False, [0]), (True, [0]), (True, [0, 1, 2]), (False, [0, 1, 2])):
+            enc.crowded_by = lambda crowded=crowded: crowded
+            where.clear()
+            got = enc.embed(x[rows])
+            assert np.abs(got - want[rows]).max() < 1e-5
+            if crowded:
+                assert all(w.endswith("pnvlad-encoder") for w in where), where
+            elif len(rows) == 1:
+                assert where == ["cloud:pnvlad-torch", "head:pnvlad-torch"], where
+            else:  # two clouds on the workers, the odd one and the head on the torch thread
+                assert sorted(where) == sorted(
+                    ["cloud:pnvlad-encoder"] * 2 + ["cloud:pnvlad-torch", "head:pnvlad-torch"]
+                ), where
+    finally:
+        enc.close()
+    assert enc._embedding == 0
+
+
 def test_encoder_accepts_single_cloud_float64_and_other_sizes() -> None:
     cfg = CONFIGS["compact"]
     model = trained_like(cfg)
