@@ -317,23 +317,23 @@ class Encoder:
         clouds side by side on the worker threads (``_clouds``); the fully connected head runs
         on the whole batch as one product. bev-netvlad: its module on the whole batch.
         """
-        if self._module is not None:
-            return self._all_threads(self._module_forward, x, q)
         with self._pool_lock:
             self._embedding += 1
             alone = self._embedding == 1
         try:
             if alone and self.crowded_by is not None and self.crowded_by():
                 alone = False
-            parts = self._clouds(x, q, alone)
-            # Crowded, the head goes to a cloud worker too: on all threads, its many small
-            # parallel regions each wait at a barrier for the thread that has no core (a batch
-            # of 2 beside a busy core: 115-133 ms with the head there, 86 ms on a worker;
-            # docs/SERVICE.md, "A crowded encoder").
+            # Crowded, the head (and bev-netvlad's whole module) goes to a cloud worker too: on
+            # all threads, its parallel regions each wait at a barrier for the thread that has
+            # no core (docs/SERVICE.md, "A crowded encoder").
             pool = None if alone or self.device.type != "cpu" else self._worker_pool()
+            if self._module is not None:
+                fn, args = self._module_forward, (x, q)
+            else:
+                fn, args = self._head, (self._clouds(x, q, alone), q)
             if pool is None:
-                return self._all_threads(self._head, parts, q)
-            return pool.submit(self._head, parts, q).result()
+                return self._all_threads(fn, *args)
+            return pool.submit(fn, *args).result()
         finally:
             with self._pool_lock:
                 self._embedding -= 1

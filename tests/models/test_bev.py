@@ -185,3 +185,32 @@ def test_config_validation_flops_and_hash() -> None:
     assert config_sha256(ModelConfig.compact()) == config_sha256(
         ModelConfig.compact(bev_grid=32)  # a PointNet model ignores them
     )
+
+
+def test_a_crowded_encoder_runs_the_module_on_a_cloud_worker() -> None:
+    """bev-netvlad runs as its module on the torch thread's team alone, and on a single-threaded
+    cloud worker while ``crowded_by`` says other work holds the cores (beside a busy core the
+    team waits at every barrier); the descriptors are the same."""
+    import threading
+
+    model = _trained_like()
+    x = torch.rand(3, SMALL.num_points, 3) * 2 - 1
+    enc = Encoder(model, SMALL, cloud_workers=2)
+    where: list[str] = []
+    forward = enc._module_forward
+
+    def recorded(*args):
+        where.append(threading.current_thread().name.split("_")[0])
+        return forward(*args)
+
+    enc._module_forward = recorded
+    try:
+        alone = enc.embed(x.numpy())
+        enc.crowded_by = lambda: True
+        crowded = enc.embed(x.numpy())
+    finally:
+        enc.close()
+    assert where == ["pnvlad-torch", "pnvlad-encoder"]
+    assert np.abs(alone - crowded).max() < 1e-5
+    with torch.no_grad():
+        assert np.abs(crowded - model(x).numpy()).max() < 1e-5
