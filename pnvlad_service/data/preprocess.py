@@ -250,6 +250,22 @@ def _fit_plane(
     return mean, normal
 
 
+def by_cell_then_height(cells: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points ordered by grid cell, then by height within a cell (``cells`` int [N] flat
+    cell numbers, ``height`` float [N]; ties keep their order), and where each cell's run
+    starts in that order: ``(order int64 [N], starts int64 [cells present])``. The one sort
+    behind the ground plane's candidates and the height map.
+
+    One stable argsort of ``cell * (height range + 1) + height above the lowest``: half the time
+    of ``np.lexsort`` on the two keys (11 against 21 ms for a 124,668-point KITTI scan), and the
+    same order while the key's rounding (about 3e-8 m at 4 million cells of a 50 m range) stays
+    under the smallest height difference within a cell."""
+    h0 = height - height.min()
+    order = np.argsort(cells * (float(h0.max()) + 1.0) + h0, kind="stable")
+    sorted_cells = cells[order]
+    return order, np.flatnonzero(np.r_[True, sorted_cells[1:] != sorted_cells[:-1]])
+
+
 def lowest_per_cell(points: np.ndarray, cell: float, sign: float = 1.0) -> np.ndarray:
     """Indices of the lowest point along ``sign`` * z in each ``cell`` x ``cell`` column of x, y
     (``points`` float64 [N, 3]): the candidates for ground, since every wall, pole and car
@@ -257,9 +273,8 @@ def lowest_per_cell(points: np.ndarray, cell: float, sign: float = 1.0) -> np.nd
     lo = column_min(points[:, :2])
     ij = np.floor((points[:, :2] - lo) / cell).astype(np.int64)
     key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
-    order = np.lexsort((sign * points[:, 2], key))
-    keys = key[order]
-    return order[np.r_[True, keys[1:] != keys[:-1]]]
+    order, starts = by_cell_then_height(key, sign * points[:, 2])
+    return order[starts]
 
 
 def _ransac_plane(
@@ -436,15 +451,11 @@ def ground_surface(
     ij = np.floor((xy - lo) / cell).astype(np.int64)
     shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
     flat = ij[:, 0] * shape[1] + ij[:, 1]
-    # One sort orders the points by cell, then by height within a cell.
-    h0 = height - height.min()
-    order = np.argsort(flat * (float(h0.max()) + 1.0) + h0, kind="stable")
-    sorted_cells = flat[order]
-    starts = np.flatnonzero(np.r_[True, sorted_cells[1:] != sorted_cells[:-1]])
+    order, starts = by_cell_then_height(flat, height)
     counts = np.diff(np.r_[starts, flat.shape[0]])
     pick = starts + np.floor((counts - 1) * (percentile / 100.0)).astype(np.int64)
     grid = np.full(shape, np.inf)
-    grid.flat[sorted_cells[starts]] = height[order[pick]]
+    grid.flat[flat[order[starts]]] = height[order[pick]]
     valid = np.isfinite(grid)
 
     lowest_near = ndimage.grey_erosion(grid, size=(3, 3), mode="constant", cval=np.inf)

@@ -14,6 +14,7 @@ from pydantic import ValidationError
 from pnvlad_service.data.preprocess import (
     GConfig,
     apply_g,
+    by_cell_then_height,
     crop_mask,
     filter_g,
     fit_ground_plane,
@@ -238,6 +239,24 @@ def test_lowest_per_cell_against_a_plain_loop() -> None:
             if key not in lowest or sign * z < sign * pts[lowest[key], 2]:
                 lowest[key] = i
         assert sorted(lowest_per_cell(pts, 2.5, sign).tolist()) == sorted(lowest.values())
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    cells=st.lists(st.integers(0, 6), min_size=1, max_size=60),
+    seed=st.integers(0, 2**16),
+)
+def test_by_cell_then_height_against_a_plain_sort(cells: list[int], seed: int) -> None:
+    """The order is Python's sort of (cell, height, index): by cell, then height, ties in
+    input order (heights drawn from a few values, so there are ties); the starts are the
+    first position of each cell present."""
+    rng = np.random.default_rng(seed)
+    height = rng.choice([-1.5, 0.0, 0.25, 3.0], size=len(cells)) * 7.3
+    order, starts = by_cell_then_height(np.array(cells, dtype=np.int64), height)
+    want = sorted(range(len(cells)), key=lambda i: (cells[i], height[i], i))
+    assert order.tolist() == want
+    firsts = [k for k, i in enumerate(want) if k == 0 or cells[want[k - 1]] != cells[i]]
+    assert starts.tolist() == firsts
 
 
 # --- the whole filter ------------------------------------------------------------------------
