@@ -58,7 +58,8 @@ def children(pid: int) -> list[int]:
     """The pids of ``pid``'s child processes (verification, multiprocessing's resource tracker)."""
     out: list[int] = []
     for task in Path(f"/proc/{pid}/task").iterdir():
-        out += [int(k) for k in (task / "children").read_text().split()]
+        with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            out += [int(k) for k in (task / "children").read_text().split()]
     return out
 
 

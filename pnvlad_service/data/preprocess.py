@@ -252,16 +252,21 @@ def _fit_plane(
 
 def by_cell_then_height(cells: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The points ordered by grid cell, then by height within a cell (``cells`` int [N] flat
-    cell numbers, ``height`` float [N]; ties keep their order), and where each cell's run
-    starts in that order: ``(order int64 [N], starts int64 [cells present])``. The one sort
-    behind the ground plane's candidates and the height map.
+    cell numbers >= 0, ``height`` finite float [N], N >= 1; ties keep their order), and where
+    each cell's run starts in that order: ``(order int64 [N], starts int64 [cells present])``.
+    The one sort behind the ground plane's candidates and the height map.
 
     One stable argsort of ``cell * (height range + 1) + height above the lowest``: half the time
     of ``np.lexsort`` on the two keys (11 against 21 ms for a 124,668-point KITTI scan), and the
     same order while the key's rounding (about 3e-8 m at 4 million cells of a 50 m range) stays
-    under the smallest height difference within a cell."""
+    under the smallest height difference within a cell. Past 2**40 for the largest key (a
+    rounding of about 2e-4 m) it sorts the two keys exactly with ``np.lexsort``."""
     h0 = height - height.min()
-    order = np.argsort(cells * (float(h0.max()) + 1.0) + h0, kind="stable")
+    scale = float(h0.max()) + 1.0
+    if float(cells.max()) * scale > 2.0**40:
+        order = np.lexsort((height, cells))
+    else:
+        order = np.argsort(cells * scale + h0, kind="stable")
     sorted_cells = cells[order]
     return order, np.flatnonzero(np.r_[True, sorted_cells[1:] != sorted_cells[:-1]])
 

@@ -411,6 +411,8 @@ class Localizer:
             self._batcher.close()
         if self._verify_process is not None:
             self._verify_process.close()
+        if getattr(self.encoder, "crowded_by", None) == self._verification_in_flight:
+            self.encoder.crowded_by = None  # a caller's encoder outlives this localizer
         close = getattr(self.encoder, "close", None)
         if close is not None:
             close()

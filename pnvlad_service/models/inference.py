@@ -17,12 +17,14 @@ The encoder runs the network as the matrix products it is, on plain tensors:
   thread count), each running whole clouds with one intra-op thread. Small products and the
   element-wise steps between them then keep every core busy instead of one core waiting for the
   other at each of the ~100 operations of a cloud (measured on 2 cores: ~20 % more clouds/s at
-  batch 32). A single cloud still uses all of torch's threads.
+  batch 32). A single cloud still uses all of torch's threads - unless other work holds the
+  cores (another batch in flight, or ``crowded_by``: a server's verification), when the clouds,
+  the head and bev-netvlad's module all run on the single-threaded workers (``_forward``).
 
 bev-netvlad (``models/bev.py``) is a CNN, not per-point products: the encoder runs its module in
-eval mode on the whole batch (all of torch's threads; ``cloud_workers`` and ``point_tile`` do not
-apply); ``dtype="bfloat16"`` runs its convolutions under bfloat16 autocast and its NetVLAD head
-in float32.
+eval mode on the whole batch (on all of torch's threads, or on one cloud worker when crowded;
+``point_tile`` does not apply); ``dtype="bfloat16"`` runs its convolutions under bfloat16
+autocast and its NetVLAD head in float32.
 
 ``dtype="bfloat16"`` runs the matrix products in bfloat16 (fast on CPUs with AMX / AVX512-BF16);
 ``dtype="auto"`` uses bfloat16 only when the CPU supports it *and* a self-check on given clouds
@@ -65,7 +67,8 @@ BF16_MIN_AGREEMENT = 0.99
 # paper model's batch-1 embedding took 33-38 ms against 24-25 on the same 2 cores
 # (docs/SERVICE.md, "One OpenMP team"). So all of the Encoder's multi-threaded work - loading
 # and folding the weights, single clouds, the head - runs on this thread, whichever thread
-# calls; the cloud workers run on one intra-op thread each, which opens no team.
+# calls; the cloud workers run on one intra-op thread each, which opens no team (and take the
+# head too while the encoder is crowded: Encoder._forward).
 _torch_thread: ThreadPoolExecutor | None = None
 _torch_thread_lock = threading.Lock()
 _on_torch_thread = threading.local()
@@ -232,8 +235,9 @@ class Encoder:
     def embed(self, points: Any) -> np.ndarray:
         """Descriptors float32 [B, dim] (unit rows) of points float [B, N, 3] or [N, 3].
 
-        On CPU every step that runs on all of torch's threads (a single cloud, the head) runs
-        on the process's torch thread (:func:`on_torch_thread`), and the calling thread opens
+        On CPU every step that runs on all of torch's threads (a single cloud, the head; on a
+        cloud worker instead while crowded, see ``_forward``) runs on the process's torch
+        thread (:func:`on_torch_thread`), and the calling thread opens
         no OpenMP team of its own."""
         import torch
 
@@ -326,11 +330,11 @@ class Encoder:
             # Crowded, the head (and bev-netvlad's whole module) goes to a cloud worker too: on
             # all threads, its parallel regions each wait at a barrier for the thread that has
             # no core (docs/SERVICE.md, "A crowded encoder").
-            pool = None if alone or self.device.type != "cpu" else self._worker_pool()
             if self._module is not None:
                 fn, args = self._module_forward, (x, q)
             else:
                 fn, args = self._head, (self._clouds(x, q, alone), q)
+            pool = None if alone or self.device.type != "cpu" else self._worker_pool()
             if pool is None:
                 return self._all_threads(fn, *args)
             return pool.submit(fn, *args).result()
@@ -345,7 +349,7 @@ class Encoder:
         # 3x as far (median 0.027 against 0.009 with it in float32) and kept 98.0 % of 1,000
         # benchmark submaps' top-1 against 99.4 % (docs/MODEL.md); it is a small part of the work.
         m, low = q["module"], q["dtype"] == "bfloat16"
-        with torch.inference_mode():  # thread-local: entered again on the torch thread
+        with torch.inference_mode():  # thread-local: entered again on the thread it runs on
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=low):
                 cells = m.cell_features(x)
             return m.head(cells.float()).float()
@@ -360,7 +364,7 @@ class Encoder:
         normalisations (PN_VLAD), the fully connected layer and the gating."""
         import torch
 
-        with torch.inference_mode():  # thread-local: entered again on the torch thread
+        with torch.inference_mode():  # thread-local: entered again on the thread it runs on
             return self._head_products(torch.stack(parts), q)
 
     def _head_products(self, pooled: torch.Tensor, q: dict[str, Any]) -> torch.Tensor:
@@ -437,7 +441,7 @@ class Encoder:
 
                 def single_threaded() -> None:
                     # OpenMP's thread count is per calling thread: this leaves the rest of the
-                    # process (and a batch of one cloud) on all of torch's threads.
+                    # process (and a lone batch of one cloud) on all of torch's threads.
                     torch.set_num_threads(1)
 
                 self._workers = workers

@@ -259,6 +259,16 @@ def test_by_cell_then_height_against_a_plain_sort(cells: list[int], seed: int) -
     assert starts.tolist() == firsts
 
 
+def test_by_cell_then_height_stays_exact_for_huge_cell_numbers() -> None:
+    """Cell numbers near 1e13 (a vast grid) with a 100 m height range: one float key would round
+    heights 2 mm apart together (and mix cells); the order is still exact."""
+    cells = np.array([10**13 + 1, 10**13, 10**13, 10**13 + 1, 10**13], dtype=np.int64)
+    height = np.array([0.002, 100.0, 0.002, 0.0, 0.0])
+    order, starts = by_cell_then_height(cells, height)
+    assert order.tolist() == [4, 2, 1, 3, 0]
+    assert starts.tolist() == [0, 3]
+
+
 # --- the whole filter ------------------------------------------------------------------------
 
 

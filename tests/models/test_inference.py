@@ -126,6 +126,7 @@ def test_a_crowded_encoder_keeps_off_the_threads_that_share_cores() -> None:
             where.clear()
             got = enc.embed(x[rows])
             assert np.abs(got - want[rows]).max() < 1e-5
+            assert len(where) == len(rows) + 1, where  # every cloud, then the head
             if crowded:
                 assert all(w.endswith("pnvlad-encoder") for w in where), where
             elif len(rows) == 1:
@@ -137,6 +138,39 @@ def test_a_crowded_encoder_keeps_off_the_threads_that_share_cores() -> None:
     finally:
         enc.close()
     assert enc._embedding == 0
+
+
+def test_a_failing_pass_leaves_the_encoder_as_it_was() -> None:
+    """A crowded_by that raises, or a head that raises on a worker, fails that call only: the
+    count of passes in flight is back to 0 and the next call embeds."""
+    cfg = CONFIGS["paper-narrow"]
+    model = trained_like(cfg)
+    x = clouds(2, seed=8)
+    with torch.no_grad():
+        want = model(x).numpy()
+    enc = Encoder(model, cfg, cloud_workers=2)
+    head = enc._head_products
+
+    def broken_head(*args):
+        raise RuntimeError("head")
+
+    def broken_crowded():
+        raise RuntimeError("crowded")
+
+    try:
+        enc.crowded_by = broken_crowded
+        with pytest.raises(RuntimeError, match="crowded"):
+            enc.embed(x)
+        assert enc._embedding == 0
+        enc.crowded_by = lambda: True
+        enc._head_products = broken_head
+        with pytest.raises(RuntimeError, match="head"):
+            enc.embed(x)
+        assert enc._embedding == 0
+        enc._head_products = head
+        assert np.abs(enc.embed(x) - want).max() < 1e-5
+    finally:
+        enc.close()
 
 
 def test_encoder_accepts_single_cloud_float64_and_other_sizes() -> None:
