@@ -323,8 +323,8 @@ class Localizer:
             else None
         )
         if bundle.geometry is not None and hasattr(encoder, "crowded_by"):
-            # A verification in flight holds a core (the child's, or this process's): a lone
-            # batch then runs its clouds one thread each, not one cloud on both cores.
+            # A verification in flight holds a core (the child's, or this process's): a batch
+            # then runs on the single-threaded cloud workers, not on both cores' team.
             encoder.crowded_by = self._verification_in_flight
         recorded = bundle.manifest.preprocess
         self._gconfig = GConfig.model_validate(dict(recorded)) if recorded else GConfig()

@@ -154,9 +154,9 @@ class Encoder:
             raise InputError(f"cloud_workers must be >= 1, got {cloud_workers}", "cloud_workers")
         self.cloud_workers = cloud_workers
         #: Whether other work holds the cores right now (a server sets it to "a verification
-        #: is in flight"): while it says so, a lone batch's clouds go to the cloud workers, one
-        #: thread each, as when other batches are in flight, rather than a single cloud
-        #: running on all of torch's threads opposite a busy core (see ``_clouds``).
+        #: is in flight"): while it says so, a lone batch's clouds, its head and bev-netvlad's
+        #: module go to the cloud workers, one thread each, as when other batches are in
+        #: flight, rather than to all of torch's threads opposite a busy core (``_forward``).
         self.crowded_by: Callable[[], bool] | None = None
         self._pool: ThreadPoolExecutor | None = None
         self._workers = 1
@@ -398,8 +398,8 @@ class Encoder:
         the batch is not ``alone`` (other threads are embedding at the same time, or
         ``crowded_by`` says other work holds the cores), when every cloud goes to the workers:
         a team of threads of which one waits for a busy core spends its time at the barriers
-        of the forward pass's ~100 parallel regions (one cloud beside a busy core: 181-205 ms
-        on all threads, 83 ms on a worker).
+        of the forward pass's ~100 parallel regions (one paper cloud beside a busy core: 93 ms
+        on all threads, 52 ms on a worker; docs/SERVICE.md, "A crowded encoder").
         """
         b = x.shape[0]
         pool = self._worker_pool() if self.device.type == "cpu" and (b > 1 or not alone) else None

@@ -34,14 +34,21 @@ def test_encoder_matches_model(name: str, tile: int) -> None:
     assert model.training is False  # the encoder leaves the model's mode as it was
 
 
+def _narrow_case(n: int, seed: int) -> tuple:
+    """The narrow paper config, a model with non-trivial batch norms, ``n`` clouds and the
+    model's own descriptors of them (what every encoder path must give)."""
+    cfg = CONFIGS["paper-narrow"]
+    model = trained_like(cfg)
+    x = clouds(n, seed=seed)
+    with torch.no_grad():
+        want = model(x).numpy()
+    return cfg, model, x, want
+
+
 def test_encoder_cloud_workers_agree_and_leave_thread_count() -> None:
     """Clouds run side by side on worker threads give the model's descriptors, in batch order,
     and the workers' single intra-op thread does not leak into the calling thread."""
-    cfg = CONFIGS["paper-narrow"]
-    model = trained_like(cfg)
-    x = clouds(7, seed=4)
-    with torch.no_grad():
-        want = model(x).numpy()
+    cfg, model, x, want = _narrow_case(7, seed=4)
     threads = torch.get_num_threads()
     serial = Encoder(model, cfg, cloud_workers=1)
     side_by_side = Encoder(model, cfg, cloud_workers=3, batch_size=4)
@@ -100,11 +107,7 @@ def test_a_crowded_encoder_keeps_off_the_threads_that_share_cores() -> None:
     model's either way."""
     import threading
 
-    cfg = CONFIGS["paper-narrow"]
-    model = trained_like(cfg)
-    x = clouds(3, seed=6)
-    with torch.no_grad():
-        want = model(x).numpy()
+    cfg, model, x, want = _narrow_case(3, seed=6)
     enc = Encoder(model, cfg, cloud_workers=2)
     where: list[str] = []
     head = enc._head_products
@@ -143,11 +146,7 @@ def test_a_crowded_encoder_keeps_off_the_threads_that_share_cores() -> None:
 def test_a_failing_pass_leaves_the_encoder_as_it_was() -> None:
     """A crowded_by that raises, or a head that raises on a worker, fails that call only: the
     count of passes in flight is back to 0 and the next call embeds."""
-    cfg = CONFIGS["paper-narrow"]
-    model = trained_like(cfg)
-    x = clouds(2, seed=8)
-    with torch.no_grad():
-        want = model(x).numpy()
+    cfg, model, x, want = _narrow_case(2, seed=8)
     enc = Encoder(model, cfg, cloud_workers=2)
     head = enc._head_products
 
