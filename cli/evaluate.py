@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import tempfile
 from pathlib import Path
 
 import typer
@@ -92,6 +94,15 @@ _PLOT = typer.Option(
     "--model/--baseline only plots them into --figures.",
     rich_help_panel=_OUT,
 )
+_QUERIES = typer.Option(
+    "submaps",
+    "--queries",
+    help="What the queries are: 'submaps' (the benchmark's, accumulated offline) or 'scans' "
+    "(the raw scan at each query submap's place, run through the map's filter G, in the "
+    "sensor's frame: what a robot sends; needs raw_scans/ in the runs). The map is the one "
+    "--splits describes: splits.json the 20 m submaps, splits_keyframes.json the keyframes.",
+    rich_help_panel=_DATA,
+)
 _NUM_POINTS = typer.Option(
     None,
     "--num-points",
@@ -109,6 +120,7 @@ def evaluate(
     splits: Path = splits_option(panel=_DATA),
     pickles: Path = _PICKLES,
     sets: list[str] = _SETS,
+    queries: str = _QUERIES,
     joint: bool = _JOINT,
     out: Path = _OUT_OPT,
     figures: Path = _FIGURES,
@@ -147,6 +159,8 @@ def evaluate(
       pnvlad eval -m runs/a --root city/ --splits city/splits.json --rerank 10 --figures f/
 
       pnvlad eval -m runs/a --root city/ --splits city/splits.json --rerank 10 --save-threshold
+
+      pnvlad eval -m runs/s --root city/ --splits city/splits_keyframes.json --queries scans
     """
     if rerank is not None:
         # Before torch, faiss and small_gicp load their OpenMP runtimes: registration's two
@@ -154,7 +168,7 @@ def evaluate(
         # another process holds a core (8+ min against 5 beside a training run); at batch 32
         # the embedding is as fast either way (docs/VERIFY.md). A value the user set is kept.
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    with user_errors():
+    with user_errors(), contextlib.ExitStack() as stack:
         from pnvlad_service.errors import InputError
         from pnvlad_service.evaluation import evaluate as ev
 
@@ -189,9 +203,23 @@ def evaluate(
             raise InputError(f"must be float32 or bfloat16, got {dtype!r}", "--dtype")
         if baseline and dtype != "float32":
             raise InputError("the baseline has no encoder to run in bfloat16", "--dtype")
+        if queries not in ("submaps", "scans"):
+            raise InputError(f"must be submaps or scans, got {queries!r}", "--queries")
+        if queries == "scans" and (root is None or pickles is not None):
+            raise InputError("scan queries are read from the tree: give --root", "--queries")
         enc = ev.baseline_encoder() if baseline else ev.model_encoder(model, device, dtype)
-        runs = load_eval_runs(root, splits, pickles, sets)
         points = enc.num_points if num_points is None else num_points
+        scan_set = None
+        if queries == "scans":
+            from pnvlad_service.data.dataset import load_splits_any
+            from pnvlad_service.evaluation import scan_queries
+
+            scan_set = scan_queries.scan_query_set(root, load_splits_any(root, splits), sets)
+            runs = scan_queries.preprocess_queries(
+                scan_set, stack.enter_context(tempfile.TemporaryDirectory()), progress=progress
+            )
+        else:
+            runs = load_eval_runs(root, splits, pickles, sets)
         if len(runs) < 2:
             raise InputError(f"need at least 2 runs to evaluate, got {len(runs)}", "evaluation set")
         n_unique, db_desc, q_desc = ev.embed_runs(enc.embed, runs, points, workers, progress)
@@ -204,6 +232,8 @@ def evaluate(
             num_points=points,
             n_unique=n_unique,
         )
+        if scan_set is not None:
+            rep.update(scan_queries.scan_report(scan_set, runs, db_desc, q_desc, points))
         if rerank is not None:
             from pnvlad_service.data.dataset import load_splits_any
             from pnvlad_service.localization import rerank_eval, rerank_report
@@ -221,6 +251,9 @@ def evaluate(
                 off_map_share=off_map_share,
                 workers=workers,
                 progress=progress,
+                query_frames=None
+                if scan_set is None
+                else scan_queries.query_frames(scan_set, runs),
             )
         if save_threshold:
             from pnvlad_service.localization import calibration as cal

@@ -50,8 +50,11 @@ _RUNS = typer.Option(None, "--run", help="Run folder to index (repeatable; defau
 _LAYOUT = typer.Option(
     "test",
     "--layout",
-    help="Which submaps: 'test' (pointcloud_20m, every 20 m: the evaluation database) or "
-    "'train' (pointcloud_20m_10overlap, every 10 m).",
+    help="Which map entries: 'test' (pointcloud_20m, 20 m submaps every 20 m: the evaluation "
+    "database), 'train' (pointcloud_20m_10overlap, every 10 m) or 'keyframe' "
+    "(pointcloud_keyframes: single scans every 5 m, the map for single-scan queries from a "
+    "spinning LiDAR). The bundle records which kind it holds and the filter G its entries "
+    "went through, which raw queries then go through too.",
 )
 _BATCH = typer.Option(32, "--batch-size", "-b", help="Clouds embedded per forward pass.")
 

@@ -11,6 +11,10 @@ the filter G (:mod:`pnvlad_service.data.preprocess`) on each and writes the benc
     <out_run_dir>/pointcloud_locations_20m_10overlap.csv
     <out_run_dir>/pointcloud_20m/<timestamp>.bin             test layout, every 20 m
     <out_run_dir>/pointcloud_locations_20m.csv
+    <out_run_dir>/pointcloud_keyframes/<timestamp>.bin       keyframes (kind "keyframe"): one
+    <out_run_dir>/pointcloud_locations_keyframes.csv         scan every 5 m, G with a range crop
+    <out_run_dir>/raw_scans/<timestamp>.bin, raw_scans.csv   with raw_scans=True: the raw scan
+                                                             at each test submap (data.scans)
 
 Conventions (docs/ARCHITECTURE.md): world frame x = easting, y = northing, z = up, UTM metres;
 timestamps are integer microseconds. Translations are snapped to a 2**-26 m (15 nm) grid
@@ -44,8 +48,9 @@ from pnvlad_service.data.frames import (
     read_journal,
     write_frames_csv,
 )
-from pnvlad_service.data.preprocess import GConfig, GResult, apply_g
+from pnvlad_service.data.preprocess import GConfig, GResult, apply_g, scan_config
 from pnvlad_service.data.run_folder import claim_folders
+from pnvlad_service.data.scans import RAW_CSV, RAW_FOLDER, write_raw_scans_csv, write_scan
 from pnvlad_service.data.tree import LAYOUTS, write_locations_csv
 from pnvlad_service.data.truth import drive_true_poses, true_columns
 from pnvlad_service.errors import InputError
@@ -54,7 +59,7 @@ from pnvlad_service.io.submap import write_submap
 log = logging.getLogger(__name__)
 
 Layout = Literal["oxford", "inhouse"]
-Kind = Literal["train", "test"]
+Kind = Literal["train", "test", "keyframe"]
 
 
 @dataclass(frozen=True)
@@ -62,7 +67,8 @@ class Geometry:
     """Default geometry of one benchmark layout for one kind of submap.
 
     ``stride_m``: distance travelled between submaps; ``window_m``: stretch of trajectory
-    accumulated; ``box_m``: side of the square crop around the submap (``None``: no crop).
+    accumulated (0: the centre scan alone, a keyframe); ``box_m``: side of the square crop
+    around the submap (``None``: no crop).
     Folder and CSV names come from :data:`pnvlad_service.data.tree.LAYOUTS`.
     """
 
@@ -71,12 +77,18 @@ class Geometry:
     box_m: float | None
 
 
-#: (layout, kind) -> default geometry, as BENCHMARK_FORMAT.md describes the two layouts.
+#: Metres driven between two keyframes of a keyframe map.
+KEYFRAME_STRIDE_M = 5.0
+
+#: (layout, kind) -> default geometry, as BENCHMARK_FORMAT.md describes the two layouts;
+#: keyframes (ours) are single scans, one every ``KEYFRAME_STRIDE_M``, in either layout.
 GEOMETRY: dict[tuple[str, str], Geometry] = {
     ("oxford", "train"): Geometry(stride_m=10.0, window_m=20.0, box_m=None),
     ("oxford", "test"): Geometry(stride_m=20.0, window_m=20.0, box_m=None),
     ("inhouse", "train"): Geometry(stride_m=10.0, window_m=25.0, box_m=25.0),
     ("inhouse", "test"): Geometry(stride_m=25.0, window_m=25.0, box_m=25.0),
+    ("oxford", "keyframe"): Geometry(stride_m=KEYFRAME_STRIDE_M, window_m=0.0, box_m=None),
+    ("inhouse", "keyframe"): Geometry(stride_m=KEYFRAME_STRIDE_M, window_m=0.0, box_m=None),
 }
 
 
@@ -131,10 +143,11 @@ def submap_cuts(travelled: np.ndarray, window_m: float, stride_m: float) -> list
     Window ``k`` is centred at distance ``window_m / 2 + k * stride_m`` and holds the scans whose
     travelled distance lies within ``window_m / 2`` of it (inclusive); only whole windows are cut
     (centre + window_m / 2 <= total distance). A cut whose centre scan is the same as the previous
-    cut's (a gap in the scans longer than the stride) is dropped.
+    cut's (a gap in the scans longer than the stride) is dropped. ``window_m`` 0 cuts keyframes:
+    the scan nearest each ``k * stride_m`` alone (``first`` = ``last`` = ``scan``).
     """
-    if not (window_m > 0 and stride_m > 0):
-        raise InputError("window and stride must be positive (metres)", "window_m/stride_m")
+    if not (window_m >= 0 and stride_m > 0):
+        raise InputError("window must be >= 0 and stride > 0 (metres)", "window_m/stride_m")
     d = np.asarray(travelled, dtype=np.float64)
     if d.ndim != 1 or len(d) == 0 or np.any(np.diff(d) < 0):
         raise InputError("travelled distances must be a non-decreasing [T] array", "travelled")
@@ -152,6 +165,8 @@ def submap_cuts(travelled: np.ndarray, window_m: float, stride_m: float) -> list
             j = int(np.searchsorted(d, d[j - 1], side="left"))  # nearer below: its first scan
         first = int(np.searchsorted(d, s - half, side="left"))
         last = int(np.searchsorted(d, s + half, side="right")) - 1
+        if window_m == 0:
+            first = last = j
         if cuts and cuts[-1].scan == j:
             log.warning("no scan near %.1f m of travel (gap in the drive); submap skipped", s)
             continue
@@ -194,8 +209,10 @@ class PrepareResult:
 class _ScanCache:
     """Scans of the sliding window, in the sensor frame, read once each.
 
-    Holds float64 [N, 3] arrays keyed by scan index; :meth:`evict_before` drops the scans that
-    the windows have passed, so memory is bounded by one window, not the drive.
+    Holds float64 [N, 3] arrays keyed by scan index, whole (keyframes and raw scans take them
+    so); :meth:`get` gives the seeded ``max_points_per_scan`` subset that windows accumulate.
+    :meth:`evict_before` drops the scans that the windows have passed, so memory is bounded by
+    one window, not the drive.
     """
 
     def __init__(
@@ -213,10 +230,20 @@ class _ScanCache:
         self.scans: dict[int, np.ndarray] = {}
         self.reads = 0
 
-    def get(self, i: int) -> np.ndarray:
+    def full(self, i: int) -> np.ndarray:
+        """Scan ``i`` whole (finite points within ``max_range_m``)."""
         if i not in self.scans:
             self.scans[i] = self._load(i)
         return self.scans[i]
+
+    def get(self, i: int) -> np.ndarray:
+        """Scan ``i`` as windows accumulate it: at most ``max_points_per_scan`` points, a
+        subset seeded by the scan index (the same whichever window asks)."""
+        pts = self.full(i)
+        if self.max_points is not None and len(pts) > self.max_points:
+            rng = np.random.default_rng([self.seed, i])
+            pts = pts[np.sort(rng.choice(len(pts), self.max_points, replace=False))]
+        return pts
 
     def _load(self, i: int) -> np.ndarray:
         name = getattr(self.drive, "name", "drive")
@@ -231,11 +258,7 @@ class _ScanCache:
         if self.max_range is not None:
             sq = np.einsum("ij,ij->i", pts, pts, dtype=np.float64)
             pts = pts[sq <= self.max_range**2]
-        if self.max_points is not None and len(pts) > self.max_points:
-            rng = np.random.default_rng([self.seed, i])
-            pts = pts[np.sort(rng.choice(len(pts), self.max_points, replace=False))]
-        pts = np.ascontiguousarray(pts, dtype=np.float64)
-        return pts
+        return np.ascontiguousarray(pts, dtype=np.float64)
 
     def evict_before(self, first: int) -> None:
         for i in [i for i in self.scans if i < first]:
@@ -283,31 +306,40 @@ class _Options:
     max_range_m: float | None
     scan_step: int
     min_scan_spacing_m: float
+    keyframe_config: GConfig
 
 
 @dataclass
 class _KindPlan:
-    """One kind of submap of a prepare call: its result record, geometry and cuts."""
+    """One kind of submap of a prepare call: its result record, geometry, G and cuts."""
 
     result: LayoutResult
     window_m: float
     box_m: float | None
     stride_m: float
     cuts: list[Cut]
+    config: GConfig
 
 
 @dataclass
 class _Window:
-    """One window to accumulate and filter, and the files (one per kind) it is written to."""
+    """One window to accumulate and filter, and the files (one per kind) it is written to.
+
+    ``single``: a keyframe, the centre scan alone and whole (no ``max_points_per_scan``
+    subset); ``raw``: the folder the raw scan at the centre is kept in (``raw_scans``)."""
 
     cut: Cut
     box_m: float | None
+    config: GConfig
+    single: bool = False
+    raw: Path | None = None
     targets: list[tuple[LayoutResult, Path]] = field(default_factory=list)
 
 
 def _check_options(
     kinds: Sequence[str],
     config: GConfig,
+    keyframe_config: GConfig,
     *,
     seed: int,
     max_points_per_scan: int | None,
@@ -324,7 +356,15 @@ def _check_options(
         raise InputError(f"must be >= 1, got {max_points_per_scan}", "max_points_per_scan")
     if not kinds:
         raise InputError("no kind of submap asked for", "kinds")
-    return _Options(config, seed, max_points_per_scan, max_range_m, scan_step, min_scan_spacing_m)
+    return _Options(
+        config,
+        seed,
+        max_points_per_scan,
+        max_range_m,
+        scan_step,
+        min_scan_spacing_m,
+        keyframe_config,
+    )
 
 
 def _resolve(
@@ -345,9 +385,10 @@ def _resolve(
     window = geo.window_m if window_m is None else float(window_m)
     box = geo.box_m if box_m is None else (None if box_m <= 0 else float(box_m))
     stride = geo.stride_m if stride_m is None else float(stride_m)
-    for value, what in ((window, "window_m"), (stride, "stride_m")):
-        if not (math.isfinite(value) and value > 0):
-            raise InputError(f"must be a positive number of metres, got {value}", what)
+    if not (math.isfinite(window) and (window > 0 or (kind == "keyframe" and window == 0))):
+        raise InputError(f"must be a positive number of metres, got {window}", "window_m")
+    if not (math.isfinite(stride) and stride > 0):
+        raise InputError(f"must be a positive number of metres, got {stride}", "stride_m")
     if box is not None and not math.isfinite(box):
         raise InputError(f"must be a finite number of metres, got {box}", "box_m")
     names = LAYOUTS[layout]
@@ -363,28 +404,39 @@ def _plan(
     strides_m: dict[str, float],
     travelled: np.ndarray,
     stamps: np.ndarray,
+    opts: _Options,
+    raw_scans: bool = False,
 ) -> tuple[list[_KindPlan], list[_Window]]:
     """Each kind's cuts, and the windows to make in drive order.
 
     Windows are keyed by their centre distance and length, so a window two kinds share (the
     test cuts are every other train cut with the default strides) is made once and written to
-    both folders.
+    both folders. Keyframes take the layout's keyframe geometry whatever ``window_m`` and
+    ``box_m`` say (those are the submaps'), and ``opts.keyframe_config``. With ``raw_scans``
+    the test cuts' windows keep their centre scan raw.
     """
-    resolved = [
-        (kind, *_resolve(layout, kind, window_m, box_m, strides_m.get(kind)))
-        for kind in dict.fromkeys(kinds)
-    ]
+    resolved = []
+    for kind in dict.fromkeys(kinds):
+        own = (None, None) if kind == "keyframe" else (window_m, box_m)
+        resolved.append((kind, *_resolve(layout, kind, *own, strides_m.get(kind))))
+    if raw_scans and "test" not in kinds:
+        raise InputError("raw scans are kept at the test submaps: ask for the test kind", "kinds")
     plans: list[_KindPlan] = []
     windows: dict[tuple[float, float], _Window] = {}
     for kind, folder, csv_name, window, box, stride in resolved:
+        config = opts.keyframe_config if kind == "keyframe" else opts.config
         res = LayoutResult(kind=kind, folder=out / folder, csv=out / csv_name)
         cuts = submap_cuts(travelled, window, stride)
         res.submaps = len(cuts)
-        plans.append(_KindPlan(res, window, box, stride, cuts))
+        plans.append(_KindPlan(res, window, box, stride, cuts, config))
         for cut in cuts:
-            w = windows.setdefault((round(cut.distance_m, 6), window), _Window(cut, box))
+            w = windows.setdefault(
+                (round(cut.distance_m, 6), window), _Window(cut, box, config, window == 0)
+            )
             if w.box_m != box:
                 raise InputError("kinds sharing a window must share the box", "box_m")
+            if raw_scans and kind == "test":
+                w.raw = out / RAW_FOLDER
             w.targets.append((res, res.folder / f"{stamps[cut.scan]}.bin"))
     order = sorted(windows.values(), key=lambda w: (w.cut.first, w.cut.distance_m))
     return plans, order
@@ -410,7 +462,7 @@ def _manifest(
         "max_range_m": opts.max_range_m,
         "scan_step": opts.scan_step,
         "min_scan_spacing_m": opts.min_scan_spacing_m,
-        "g_config": opts.config.model_dump(mode="json"),
+        "g_config": plan.config.model_dump(mode="json"),
     }
 
 
@@ -426,15 +478,19 @@ def _window_submap(
     (logged) when G cannot make a submap from its points."""
     cut = window.cut
     cache.evict_before(cut.first)
-    indices = [i for i in range(cut.first, cut.last + 1) if use[i]]
-    if cut.first <= cut.scan <= cut.last and cut.scan not in indices:
-        indices.append(cut.scan)
-    scans = {i: cache.get(i) for i in indices}
+    if window.single:
+        scans = {cut.scan: cache.full(cut.scan)}
+        indices = [cut.scan]
+    else:
+        indices = [i for i in range(cut.first, cut.last + 1) if use[i]]
+        if cut.first <= cut.scan <= cut.last and cut.scan not in indices:
+            indices.append(cut.scan)
+        scans = {i: cache.get(i) for i in indices}
     local = accumulate(poses, scans, indices, poses[cut.scan, :3, 3], window.box_m)
     try:
         if len(local) == 0:
             raise InputError("no points in the window", f"scan {cut.scan}")
-        return apply_g(local, opts.config, seed=opts.seed + cut.scan)
+        return apply_g(local, window.config, seed=opts.seed + cut.scan)
     except InputError as exc:
         log.warning(
             "submap at %.1f m (timestamp %d) skipped: %s", cut.distance_m, stamps[cut.scan], exc
@@ -482,7 +538,7 @@ def refresh_truth(
     use = spaced_scans(travelled, min_scan_spacing_m)
     use[np.arange(len(use)) % scan_step != 0] = False
     updates = []
-    for kind in ("train", "test"):
+    for kind in ("train", "test", "keyframe"):
         _, csv_name, window, _, stride = _resolve(layout, kind, None, None, None)
         sidecar = frames_path(run_dir / csv_name)
         if not sidecar.is_file():
@@ -533,11 +589,12 @@ def _known_frames(plans: list[_KindPlan]) -> dict[tuple[str, int], SubmapFrame]:
 
 @dataclass
 class _Made:
-    """What :func:`_make_submaps` made: the (kind, centre scan) that failed, and the frame
-    row of every submap that exists (kind, centre scan) -> row."""
+    """What :func:`_make_submaps` made: the (kind, centre scan) that failed, the frame
+    row of every submap that exists (kind, centre scan) -> row, and the centre scans kept raw."""
 
     failed: set[tuple[str, int]] = field(default_factory=set)
     frames: dict[tuple[str, int], SubmapFrame] = field(default_factory=dict)
+    raw: list[int] = field(default_factory=list)
 
 
 def _make_submaps(
@@ -590,8 +647,13 @@ def _make_window(
     """One window of :func:`_make_submaps`: its submap written to each target folder that
     lacks it, each frame row recorded in ``made`` and in the kind's journal."""
     poses, stamps, true = drive
-    whole = opts.config.target_points * 3 * 8  # bytes of a finished .bin (float64 x, y, z)
+    whole = window.config.target_points * 3 * 8  # bytes of a finished .bin (float64 x, y, z)
     scan = window.cut.scan
+    if window.raw is not None:
+        raw = window.raw / f"{stamps[scan]}.bin"
+        if not raw.is_file():  # written atomically: one that exists is whole
+            write_scan(raw, cache.full(scan))
+        made.raw.append(scan)
     todo = []
     for res, path in window.targets:
         old = known.get((res.kind, int(stamps[scan])))
@@ -617,10 +679,19 @@ def _make_window(
 
 
 def _write_locations(
-    plans: list[_KindPlan], stamps: np.ndarray, poses: np.ndarray, made: _Made
+    plans: list[_KindPlan],
+    drive: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+    made: _Made,
+    raw_csv: Path | None = None,
 ) -> None:
     """Each kind's frame sidecar and locations CSV (its submaps that were made, in cut
-    order), written last, the CSV after its sidecar."""
+    order), written last, the CSV after its sidecar; then ``raw_csv`` listing the raw scans
+    kept (:mod:`.scans`)."""
+    poses, stamps, true = drive
+    if raw_csv is not None:
+        rows = [(int(stamps[i]), poses[i], None if true is None else true[i]) for i in made.raw]
+        write_raw_scans_csv(raw_csv, rows)
+        log.info("%s: %d raw scans -> %s", raw_csv.parent / RAW_FOLDER, len(rows), raw_csv.name)
     for plan in plans:
         res = plan.result
         cuts = [c for c in plan.cuts if (res.kind, c.scan) not in made.failed]
@@ -652,11 +723,13 @@ def prepare_drive(
     box_m: float | None = None,
     strides_m: dict[str, float] | None = None,
     g_config: GConfig | None = None,
+    keyframe_config: GConfig | None = None,
     seed: int = 0,
     max_points_per_scan: int | None = 10_000,
     max_range_m: float | None = None,
     scan_step: int = 1,
     min_scan_spacing_m: float = 0.05,
+    raw_scans: bool = False,
     resume: bool = False,
     overwrite: bool = False,
     progress: bool = True,
@@ -664,7 +737,9 @@ def prepare_drive(
     """Cut one drive into the submaps of several kinds (default: train and test) in one pass.
 
     - ``layout``: ``oxford`` or ``inhouse`` (folder and CSV names, default geometry);
-      ``kinds``: ``train`` and/or ``test``.
+      ``kinds``: ``train``, ``test`` and/or ``keyframe`` (single scans, one every
+      ``KEYFRAME_STRIDE_M`` unless ``strides_m`` says otherwise, each whole through
+      ``keyframe_config``: default :func:`~.preprocess.scan_config`, G with a range crop).
     - ``window_m``: travelled distance accumulated per submap (default: the layout's, 20 m
       oxford, 25 m inhouse), centred on the submap position.
     - ``box_m``: side of a square crop (UTM-aligned) around the submap position (default: none
@@ -678,6 +753,8 @@ def prepare_drive(
       ``min_scan_spacing_m`` (skip scans less than this far along the trajectory from the last
       one used: a car waiting at a light adds one scan, not hundreds) keep the
       accumulation fast on dense drives.
+    - ``raw_scans``: also keep the raw scan at each test submap, sensor frame, with its poses
+      (:mod:`.scans`: the single-scan queries of ``pnvlad eval --queries scans``).
     - ``resume``: keep submaps already on disk with the right size (same parameters required);
       ``overwrite``: remove what the folders hold first.
 
@@ -696,6 +773,7 @@ def prepare_drive(
     opts = _check_options(
         kinds,
         g_config if g_config is not None else GConfig(),
+        keyframe_config if keyframe_config is not None else scan_config(),
         seed=seed,
         max_points_per_scan=max_points_per_scan,
         max_range_m=max_range_m,
@@ -705,26 +783,32 @@ def prepare_drive(
     travelled = travelled_distance(poses)
     use = spaced_scans(travelled, min_scan_spacing_m)
     use[np.arange(len(use)) % scan_step != 0] = False
-    plans, windows = _plan(out, layout, kinds, window_m, box_m, strides_m or {}, travelled, stamps)
+    plans, windows = _plan(
+        out, layout, kinds, window_m, box_m, strides_m or {}, travelled, stamps, opts, raw_scans
+    )
     # Only now, with every argument checked, touch the output folders.
     manifests = [_manifest(drive, len(stamps), layout, plan, opts) for plan in plans]
     targets = [(p.result.folder, p.result.csv) for p in plans]
+    if raw_scans:
+        targets.append((out / RAW_FOLDER, out / RAW_CSV))
+        manifests.append({**manifests[0], "kind": "raw_scans", "g_config": None})
     known = _known_frames(plans) if resume else {}  # before claiming: that drops old sidecars
     claim_folders(targets, manifests, out, resume=resume, overwrite=overwrite)
     cache = _ScanCache(
         drive, seed=seed, max_points_per_scan=max_points_per_scan, max_range_m=max_range_m
     )
+    recorded = (poses, stamps, drive_true_poses(drive, len(stamps)))
     made = _make_submaps(
         windows,
         cache,
-        (poses, stamps, drive_true_poses(drive, len(stamps))),
+        recorded,
         use,
         opts,
         known=known,
         progress=progress,
         desc=f"prepare {out.name}",
     )
-    _write_locations(plans, stamps, poses, made)
+    _write_locations(plans, recorded, made, out / RAW_CSV if raw_scans else None)
     return PrepareResult(
         out_run_dir=out,
         layouts=[p.result for p in plans],

@@ -141,6 +141,18 @@ class GConfig(BaseModel):
             raise InputError(f"bad filter G settings: {exc}", path) from None
 
 
+#: How far from the sensor a single scan is kept (metres): the crop of keyframe maps and of
+#: single-scan queries, so that a query meets a map entry of its own kind.
+SCAN_MAX_RANGE_M = 50.0
+
+
+def scan_config(base: GConfig | None = None, max_range: float = SCAN_MAX_RANGE_M) -> GConfig:
+    """G for one scan in its sensor frame (keyframes, single-scan queries): ``base`` (default:
+    the default settings) with points farther than ``max_range`` metres from the sensor dropped."""
+    base = base or GConfig()
+    return base.model_copy(update={"max_range": float(max_range)})
+
+
 @dataclass(frozen=True)
 class GResult:
     """Output of :func:`apply_g`: the submap and what each step left.

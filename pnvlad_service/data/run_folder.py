@@ -101,3 +101,18 @@ def claim_folder(
     frames_path(csv).unlink(missing_ok=True)  # its frame sidecar likewise
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write_text(record, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+
+
+def recorded_g_config(run_dir: Path, folder: str) -> dict[str, Any] | None:
+    """The filter G settings a prepare call recorded for a layout folder of a run (its
+    ``.prepare-<folder>.json``), as JSON; ``None`` where none is recorded (trees from
+    elsewhere). :class:`InputError` naming the record when it cannot be read."""
+    record = manifest_path(Path(run_dir), Path(folder))
+    if not record.is_file():
+        return None
+    try:
+        doc = json.loads(record.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read the prepare record: {exc}", record) from None
+    g = doc.get("g_config") if isinstance(doc, dict) else None
+    return dict(g) if isinstance(g, dict) else None

@@ -5,7 +5,10 @@ areas ``business/``, ``residential/`` ...), each holding run folders. A run fold
 submaps of one or both roles of a layout (see ``LAYOUTS``):
 
 - ``train``: the training layout (Oxford ``pointcloud_20m_10overlap``, a submap every 10 m);
-- ``test``: the test layout (Oxford ``pointcloud_20m``, a submap every 20 m),
+- ``test``: the test layout (Oxford ``pointcloud_20m``, a submap every 20 m);
+- ``keyframe``: single scans, one every few metres of the drive (``pointcloud_keyframes``: each
+  one scan through G with a fixed range crop, the map kind a single-scan query meets best;
+  ours, not the published benchmark's, which other tools ignore),
 
 each as a folder of ``<timestamp>.bin`` files (float64 x, y, z interleaved, 4096 points,
 98,304 bytes, no header) and a CSV ``timestamp,northing,easting`` (timestamp: integer
@@ -35,15 +38,20 @@ from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_BYTES, SUBMAP_POINTS, 
 
 log = logging.getLogger(__name__)
 
-Kind = Literal["train", "test"]
-KINDS: tuple[Kind, Kind] = ("train", "test")
+Kind = Literal["train", "test", "keyframe"]
+KINDS: tuple[Kind, ...] = ("train", "test", "keyframe")
+
+#: The keyframe maps' folder and CSV, the same in every layout.
+KEYFRAME_FOLDER = "pointcloud_keyframes"
+KEYFRAME_CSV = "pointcloud_locations_keyframes.csv"
 
 CSV_COLUMNS = ("timestamp", "northing", "easting")
 
 
 @dataclass(frozen=True)
 class Layout:
-    """Folder and CSV names of one benchmark layout, for its two roles (train, test)."""
+    """Folder and CSV names of one benchmark layout, for its roles (train, test; keyframe maps
+    are named alike in every layout)."""
 
     name: str
     train_folder: str
@@ -52,15 +60,16 @@ class Layout:
     test_csv: str
 
     def folder(self, kind: Kind) -> str:
-        """Name of the submap folder for ``kind`` ("train" or "test")."""
-        return self.train_folder if kind == "train" else self.test_folder
+        """Name of the submap folder for ``kind`` ("train", "test" or "keyframe")."""
+        return {"train": self.train_folder, "test": self.test_folder}.get(kind, KEYFRAME_FOLDER)
 
     def csv(self, kind: Kind) -> str:
-        """Name of the locations CSV for ``kind`` ("train" or "test")."""
-        return self.train_csv if kind == "train" else self.test_csv
+        """Name of the locations CSV for ``kind`` ("train", "test" or "keyframe")."""
+        return {"train": self.train_csv, "test": self.test_csv}.get(kind, KEYFRAME_CSV)
 
-    def names(self) -> tuple[str, str, str, str]:
-        return (self.train_folder, self.train_csv, self.test_folder, self.test_csv)
+    def names(self) -> tuple[str, ...]:
+        own = (self.train_folder, self.train_csv, self.test_folder, self.test_csv)
+        return (*own, KEYFRAME_FOLDER, KEYFRAME_CSV)
 
 
 #: The benchmark's two layouts. Oxford: training submaps every 10 m, test submaps every 20 m.
@@ -301,7 +310,7 @@ class BenchmarkTree:
         out: dict[str, SubmapFrame] = {}
         for dataset in self.datasets:
             for run in self.runs(dataset):
-                for kind in ("train", "test"):
+                for kind in KINDS:
                     if not self.has(dataset, run, kind):
                         continue
                     rows = self.frames(dataset, run, kind)
@@ -346,7 +355,7 @@ class DatasetSummary:
     name: str
     runs: int = 0
     layouts: set[str] = field(default_factory=set)
-    submaps: dict[str, int] = field(default_factory=lambda: {"train": 0, "test": 0})
+    submaps: dict[str, int] = field(default_factory=lambda: dict.fromkeys(KINDS, 0))
     northing: tuple[float, float] = (math.inf, -math.inf)
     easting: tuple[float, float] = (math.inf, -math.inf)
 
@@ -502,7 +511,10 @@ def check_tree(root: str | Path, *, deep: bool = False, progress: bool = False) 
 
 def format_report(report: CheckReport, max_problems: int = 50) -> str:
     """A plain-text table of a ``CheckReport`` (datasets, runs, submaps, UTM extent)."""
-    head = f"{'dataset':<20} {'layout':<14} {'runs':>5} {'train':>8} {'test':>8}  UTM extent (m)"
+    head = (
+        f"{'dataset':<20} {'layout':<14} {'runs':>5} {'train':>8} {'test':>8} {'keyframe':>8}"
+        "  UTM extent (m)"
+    )
     lines = [head, "-" * len(head)]
     for s in report.datasets:
         ext = (
@@ -513,7 +525,7 @@ def format_report(report: CheckReport, max_problems: int = 50) -> str:
         lay = ",".join(sorted(s.layouts)) or "-"
         lines.append(
             f"{s.name:<20} {lay:<14} {s.runs:>5} {s.submaps['train']:>8} {s.submaps['test']:>8}"
-            f"  {ext}"
+            f" {s.submaps['keyframe']:>8}  {ext}"
         )
     if report.problems:
         lines.append("")

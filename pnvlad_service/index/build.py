@@ -37,7 +37,7 @@ from pnvlad_service.index.keys import (
     make_index,
     recall_at_1,
 )
-from pnvlad_service.index.manifest import Manifest, ModelRecord
+from pnvlad_service.index.manifest import Manifest, MapRecord, ModelRecord
 from pnvlad_service.io.readers import read_points
 from pnvlad_service.models.embedding import Embedder, embed_in_chunks
 from pnvlad_service.models.store import ModelIdentity, model_identity, resolve_model_dir
@@ -51,6 +51,8 @@ log = logging.getLogger(__name__)
 
 #: What ``geometry=`` may be (``--geometry``): store it when the tree has it, insist, or not.
 GEOMETRY_MODES = ("auto", "required", "off")
+#: The tree layouts a bundle can hold, and the kind of map each makes.
+LAYOUT_KINDS = {"test": "submap", "train": "submap", "keyframe": "keyframe"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -65,7 +67,8 @@ def list_database_submaps(
     layout: str = "test",
 ) -> list[Submap]:
     """Every submap of role ``layout`` ("test": ``pointcloud_20m`` / ``pointcloud_25m_25``;
-    "train": the 10 m ones) of the benchmark tree at ``root``.
+    "train": the 10 m ones; "keyframe": the keyframe maps, single scans) of the benchmark
+    tree at ``root``.
 
     ``datasets`` and ``runs`` restrict by folder name. Order: datasets and runs sorted, CSV
     rows in file order (:class:`pnvlad_service.data.tree.BenchmarkTree`'s order). Raises
@@ -73,8 +76,8 @@ def list_database_submaps(
     """
     from pnvlad_service.data.tree import BenchmarkTree
 
-    if layout not in ("test", "train"):
-        raise InputError(f"layout must be 'test' or 'train', got {layout!r}", "layout")
+    if layout not in LAYOUT_KINDS:
+        raise InputError(f"layout must be one of {list(LAYOUT_KINDS)}, got {layout!r}", "layout")
     tree = BenchmarkTree(root)
     wanted_runs = set(runs) if runs else None
     seen_runs: set[str] = set()
@@ -129,11 +132,32 @@ def load_encoder(
     return Encoder.from_checkpoint(resolve_model_dir(model), device=device, weights_sha256=sha)
 
 
-def default_preprocess_config() -> dict[str, Any]:
-    """The default filter G configuration as JSON (what raw scans go through)."""
-    from pnvlad_service.data.preprocess import GConfig
+def default_preprocess_config(layout: str = "test") -> dict[str, Any]:
+    """The default filter G configuration as JSON (what raw scans go through): G with the
+    single-scan range crop for keyframe maps, plain G for submaps."""
+    from pnvlad_service.data.preprocess import GConfig, scan_config
 
-    return GConfig().model_dump(mode="json")
+    return (scan_config() if layout == "keyframe" else GConfig()).model_dump(mode="json")
+
+
+def tree_preprocess_config(root: Path, records: Sequence[Submap]) -> dict[str, Any]:
+    """The G that the records' map entries went through, as the tree's prepare records say
+    (so that a raw query meets its own kind), else the layout's default. :class:`InputError`
+    when the runs indexed record different settings."""
+    from pnvlad_service.data.run_folder import recorded_g_config
+
+    found: dict[str, Any] | None = None
+    for run in dict.fromkeys(r.path.rsplit("/", 2)[0] for r in records):
+        folder = records[0].path.rsplit("/", 2)[1]
+        g = recorded_g_config(root.joinpath(*run.split("/")), folder)
+        if g is not None and found is not None and g != found:
+            raise InputError(
+                f"the runs indexed went through different filter G settings ({run} differs); "
+                "index them into separate bundles",
+                root,
+            )
+        found = g if g is not None else found
+    return found if found is not None else default_preprocess_config(records[0].kind)
 
 
 # --------------------------------------------------------------------------------------------
@@ -272,12 +296,15 @@ def build_bundle(
             index_key=index_key,
             model=record,
             indexed=[_indexed_entry(root, layout, records)],
-            preprocess=preprocess if preprocess is not None else default_preprocess_config(),
+            preprocess=preprocess
+            if preprocess is not None
+            else tree_preprocess_config(root, records),
             search_params=params,
             recall=recall,
             overwrite=overwrite,
             build={"processes": world, "embed_seconds": round(t_embed, 3)},
             geometry=None if frames is None else geometry_writer(root, records, frames),
+            map_record=MapRecord(LAYOUT_KINDS[layout], layout),
         )
     rate = len(desc) / t_embed if t_embed > 0 else float("inf")
     return BuildReport(out, len(desc), index_key, t_embed, t_index, rate, recall, manifest)
@@ -376,6 +403,13 @@ def add_to_bundle(
     bundle = IndexBundle.load(bundle_dir)
     identity = model_identity(model)
     bundle.manifest.check_model(identity)
+    kind = bundle.manifest.map_record.kind
+    if LAYOUT_KINDS.get(layout) != kind:
+        raise InputError(
+            f"the bundle holds {kind}s; add {kind}s to it (layout {layout!r} holds "
+            f"{LAYOUT_KINDS.get(layout, 'something else')}s)",
+            "layout",
+        )
     records = list_database_submaps(root, datasets, runs, layout)
     present = set(bundle.metadata.submap_id.tolist())
     dup = [r.submap_id for r in records if r.submap_id in present]
@@ -410,6 +444,7 @@ def add_to_bundle(
         build=m.build,
         extra=m.extra,
         geometry=None if frames is None else geometry_writer(root, records, frames, base),
+        map_record=m.map,
     )
     if base is not None:
         base.close()

@@ -47,6 +47,7 @@ from pnvlad_service.index.manifest import (
     VERSION,
     GeometryRecord,
     Manifest,
+    MapRecord,
     ModelRecord,
 )
 
@@ -305,6 +306,7 @@ def write_bundle(
     build: Mapping[str, Any] | None = None,
     extra: Mapping[str, Any] | None = None,
     geometry: Callable[[Path], GeometryRecord] | None = None,
+    map_record: MapRecord | None = None,
 ) -> Manifest:
     """Write index, metadata and manifest to ``out`` atomically; return the manifest.
 
@@ -344,6 +346,7 @@ def write_bundle(
             },
             build=build,
             geometry=geo,
+            map=map_record,
             extra=extra or {},
             path=Path(out),
         )

@@ -47,9 +47,22 @@ KEYS = (
     "modified",
     "files",
 )
-#: Keys a manifest may have: how the bundle was built (processes, embedding seconds) and the
-#: database submaps' points (:class:`GeometryRecord`; bundles without it have no ``geometry``).
-OPTIONAL_KEYS = ("build", "geometry")
+#: Keys a manifest may have: how the bundle was built (processes, embedding seconds), the
+#: database submaps' points (:class:`GeometryRecord`; bundles without it have no ``geometry``)
+#: and what kind of map it is (:class:`MapRecord`; bundles without it hold 20 m submaps).
+OPTIONAL_KEYS = ("build", "geometry", "map")
+
+#: The kinds of map entry a bundle can hold: accumulated submaps, or keyframes (single scans).
+MAP_KINDS = ("submap", "keyframe")
+#: The kinds of query: a preprocessed 4096-point cloud, one raw scan in its sensor frame, or
+#: raw scans accumulated over the last stretch of a drive (metres, a local frame).
+QUERY_KINDS = ("submap", "scan", "window")
+#: What each map kind answers: a keyframe map holds single scans, whose crop a window does
+#: not match (accumulated windows go to a submap map).
+ACCEPTS: dict[str, tuple[str, ...]] = {
+    "submap": ("submap", "scan", "window"),
+    "keyframe": ("submap", "scan"),
+}
 _MODEL_KEYS = ("checkpoint", "weights_sha256", "config_sha256", "config")
 #: The keys of the ``geometry`` entry, in the file's order.
 GEOMETRY_KEYS = (
@@ -172,6 +185,31 @@ class GeometryRecord:
 
 
 @dataclass(frozen=True)
+class MapRecord:
+    """The manifest's ``map`` entry: ``kind`` of the entries (:data:`MAP_KINDS`), the layout
+    they came from (``train``, ``test`` or ``keyframe``)."""
+
+    kind: str = "submap"
+    layout: str = "test"
+
+    @classmethod
+    def from_json(cls, doc: Any, source: str | Path | None = None) -> MapRecord:
+        """Parse the ``map`` entry; :class:`InputError` naming ``source`` when malformed."""
+        if not isinstance(doc, Mapping) or doc.get("kind") not in MAP_KINDS:
+            raise InputError(f"manifest's map entry needs a kind of {list(MAP_KINDS)}", source)
+        if not isinstance(doc.get("layout", "test"), str):
+            raise InputError("manifest's map layout is not a string", source)
+        return cls(str(doc["kind"]), str(doc.get("layout", "test")))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.kind, "layout": self.layout}
+
+    def accepts(self, query_kind: str) -> bool:
+        """Whether a query of ``query_kind`` (:data:`QUERY_KINDS`) meets its own kind here."""
+        return query_kind in ACCEPTS[self.kind]
+
+
+@dataclass(frozen=True)
 class Manifest:
     """``manifest.json`` of a bundle, one field per key (see :data:`KEYS`).
 
@@ -182,7 +220,9 @@ class Manifest:
     build or add (root, layout, datasets, runs, count, added); ``created`` / ``modified`` ISO
     8601 UTC; ``files`` maps each file name to its sha256; ``build`` (optional) how it was
     built; ``geometry`` (optional) the database submaps' points (:class:`GeometryRecord`,
-    ``None`` for a bundle without them). ``extra`` keeps keys this version does not know, so
+    ``None`` for a bundle without them); ``map`` the kind of its entries (:class:`MapRecord`:
+    ``None`` in bundles made before keyframe maps, which hold submaps: :attr:`map_record`).
+    ``extra`` keeps keys this version does not know, so
     :meth:`to_json` writes back what was read. ``path`` is the bundle directory the manifest
     belongs to (not in the file).
     """
@@ -204,6 +244,7 @@ class Manifest:
     files: Mapping[str, str]
     build: Mapping[str, Any] | None = None
     geometry: GeometryRecord | None = None
+    map: MapRecord | None = None
     extra: Mapping[str, Any] = field(default_factory=dict)
     path: Path | None = field(default=None, compare=False)
 
@@ -245,6 +286,8 @@ class Manifest:
         known["model"] = ModelRecord.from_json(doc["model"], source)
         if doc.get("geometry") is not None:
             known["geometry"] = GeometryRecord.from_json(doc["geometry"], source)
+        if doc.get("map") is not None:
+            known["map"] = MapRecord.from_json(doc["map"], source)
         extra = {k: v for k, v in doc.items() if k not in KEYS and k not in OPTIONAL_KEYS}
         path = None if bundle_dir is None else Path(bundle_dir)
         return cls(**known, extra=extra, path=path)
@@ -257,8 +300,15 @@ class Manifest:
             doc["build"] = _thaw(self.build)
         if self.geometry is not None:
             doc["geometry"] = self.geometry.to_json()
+        if self.map is not None:
+            doc["map"] = self.map.to_json()
         doc.update(_thaw(self.extra))
         return doc
+
+    @property
+    def map_record(self) -> MapRecord:
+        """What the bundle holds (a submap map when the manifest does not say)."""
+        return self.map or MapRecord()
 
     def check_model(self, identity: ModelIdentity) -> None:
         """Raise :class:`InputError` naming both files when the bundle was built with other
@@ -302,6 +352,7 @@ _TYPES: dict[str, tuple[type, ...]] = {
     "files": (dict,),
     "build": (dict, type(None)),
     "geometry": (dict, type(None)),
+    "map": (dict, type(None)),
 }
 
 

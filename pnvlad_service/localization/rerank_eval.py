@@ -595,8 +595,11 @@ def evaluate_rerank(
     off_map_share: float | None = None,
     workers: int = 4,
     progress: bool = False,
+    query_frames: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The ``rerank`` section of ``pnvlad eval --rerank K``: the threshold (``threshold``, or
+    """The ``rerank`` section of ``pnvlad eval --rerank K``: ``query_frames`` (absolute path
+    -> :class:`SubmapFrame`) for queries that are not the tree's submaps (raw scans through G,
+    :func:`pnvlad_service.evaluation.scan_queries.query_frames`); the threshold (``threshold``, or
     chosen on ``calibration_queries`` (None: :data:`CALIBRATION_QUERIES`) training-layout
     queries a run of each dataset of ``training``, with :data:`OFF_MAP_QUERIES` a run
     verified as if off the map weighing in as ``off_map_share`` of the queries (None:
@@ -604,7 +607,7 @@ def evaluate_rerank(
     then :func:`rerank_report` on the evaluation runs."""
     from pnvlad_service.data.tree import BenchmarkTree
 
-    frames = BenchmarkTree(root).frames_by_path()
+    frames = BenchmarkTree(root).frames_by_path() | (query_frames or {})
     reversed_runs = _reversed_runs(Path(root))
     if not frames:
         raise InputError(

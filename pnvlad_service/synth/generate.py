@@ -6,8 +6,13 @@
     OUT/<area>/<run>/pointcloud_locations_20m_10overlap.csv
     OUT/<area>/<run>/pointcloud_20m/<timestamp>.bin            test layout, every 20 m
     OUT/<area>/<run>/pointcloud_locations_20m.csv
+    OUT/<area>/<run>/pointcloud_keyframes/<timestamp>.bin      keyframe map: one scan every 5 m
+    OUT/<area>/<run>/pointcloud_locations_keyframes.csv
+    OUT/<area>/<run>/raw_scans/<timestamp>.bin, raw_scans.csv  the raw scan at each test submap
+                                                               (sensor frame, KITTI .bin, poses)
     OUT/<area>/test_regions.json     squares chosen on the area's route (read by `data splits`)
     OUT/splits.json                  training tuples and evaluation sets (data.splits)
+    OUT/splits_keyframes.json        the same of the keyframe maps (single-scan encoders)
     OUT/synth.json                   preset, seed, parameters, sizes and timings
 
 Every run is a :class:`~pnvlad_service.synth.runs.SimulatedDrive` cut into submaps by
@@ -66,6 +71,10 @@ class SynthPreset(BaseModel):
         0.35, gt=0, lt=1, description="share of each route inside the test regions"
     )
     region_half_size: float = Field(150.0, gt=0, description="test squares are ± this, m")
+    keyframe_stride: float | None = Field(
+        5.0, gt=0, description="metres between keyframes (single-scan map entries); None: none"
+    )
+    raw_scans: bool = Field(True, description="keep the raw scan at each test submap")
 
 
 def _areas(route_m: float, size: tuple[float, float], names: tuple[str, ...]) -> list[AreaSpec]:
@@ -278,12 +287,16 @@ def _run_job(job: dict[str, Any]) -> dict[str, Any]:
     area = AreaSpec.model_validate(job["area"])
     drive = _job_drive(job)
     t0 = time.perf_counter()
+    keyframes = preset.keyframe_stride is not None
     res = prepare_drive(
         drive,
         Path(job["out"]) / area.name / job["run"],
         layout="oxford",
+        kinds=("train", "test", "keyframe") if keyframes else ("train", "test"),
+        strides_m={"keyframe": preset.keyframe_stride} if keyframes else None,
         seed=job["run_seed"] % (2**31),
         max_points_per_scan=preset.max_points_per_scan,
+        raw_scans=preset.raw_scans,
         progress=False,
     )
     return {
@@ -379,7 +392,8 @@ def _summary(
         "preset": spec.model_dump(),
         "seed": seed,
         "runs": [{k: v for k, v in r.items() if k != "seconds"} for r in runs],
-        "submaps": sum(sum(r["submaps"].values()) for r in runs),
+        "submaps": sum(n for r in runs for k, n in r["submaps"].items() if k != "keyframe"),
+        "keyframes": sum(r["submaps"].get("keyframe", 0) for r in runs),
         "training_anchors": {g: len(t.anchors(2)) for g, t in splits.training.items()},
         "queries": {name: es.n_queries() for name, es in splits.evaluation.items()},
     }
@@ -419,6 +433,8 @@ def generate(
         t_splits = time.perf_counter()
         splits = build_splits(tmp)
         save_splits(tmp / "splits.json", splits)
+        if spec.keyframe_stride is not None:
+            save_splits(tmp / "splits_keyframes.json", build_splits(tmp, keyframes=True))
         elapsed = time.perf_counter() - started
         runs = sorted(results, key=lambda r: (r["area"], r["run"]))
         summary = _summary(spec, seed, runs, splits)

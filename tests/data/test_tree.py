@@ -171,10 +171,10 @@ def test_check_good_tree_counts_and_extent(tmp_path: Path) -> None:
     ox = by["oxford"]
     assert ox.runs == 2
     assert ox.layouts == {"oxford"}
-    assert ox.submaps == {"train": 4, "test": 3}
+    assert ox.submaps == {"train": 4, "test": 3, "keyframe": 0}
     assert ox.northing == (5734990.0, 5735025.5)
     assert ox.easting == (619998.0, 620002.0)
-    assert by["inhouse_datasets"].submaps == {"train": 1, "test": 1}
+    assert by["inhouse_datasets"].submaps == {"train": 1, "test": 1, "keyframe": 0}
 
 
 def _one_problem(root: Path, needle: str, deep: bool = False) -> str:

@@ -101,7 +101,7 @@ def test_refresh_truth_restores_the_sidecars(tiny: Path, tmp_path: Path) -> None
     sides = [
         frames_path(tree.csv_path("business", r, kind))
         for r in tree.runs("business")
-        for kind in ("train", "test")
+        for kind in ("train", "test", "keyframe")
     ]
     before = {p: p.read_text() for p in sides}
     for p in sides:  # another truth: every true position 1 m east

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
 from pnvlad_service.data.splits import load_splits
-from pnvlad_service.data.tree import check_tree
+from pnvlad_service.data.tree import BenchmarkTree, check_tree
 from pnvlad_service.errors import InputError
 from pnvlad_service.synth.generate import choose_test_regions, generate, get_preset
 from pnvlad_service.synth.runs import make_route
@@ -40,8 +40,36 @@ def test_tiny_tree_is_a_valid_benchmark_with_truth_in_every_run_pair(tiny: Path)
             assert any(len(t) > 0 for t in es.truth[j][i]), (i, j)
     (tuples,) = splits.training.values()
     assert len(tuples.anchors(2)) > 10
-    for sub in tiny.rglob("*.bin"):
+    for sub in tiny.rglob("pointcloud_*/*.bin"):
         assert sub.stat().st_size == 98_304
+
+
+def test_tiny_tree_keeps_a_raw_scan_at_every_test_submap_and_a_keyframe_map(tiny: Path) -> None:
+    from pnvlad_service.data.scans import read_raw_scans
+    from pnvlad_service.io.readers import read_points
+
+    tree = BenchmarkTree(tiny)
+    for run in tree.runs("business"):
+        test = tree.locations("business", run, "test")
+        scans = read_raw_scans(tiny / "business" / run)
+        # One raw scan a test submap, named by its timestamp and at its recorded position.
+        assert [s.timestamp for s in scans] == test.timestamp.tolist()
+        assert [s.northing for s in scans] == test.northing.tolist()
+        assert [s.easting for s in scans] == test.easting.tolist()
+        for s in scans[:3]:
+            pts = read_points(s.path, "kitti")
+            # Raw: the sensor frame (within the sensor's range of its origin), not G's [-1, 1].
+            assert len(pts) > 4096 and np.abs(pts).max() > 5.0
+            assert np.linalg.norm(pts, axis=1).max() <= get_preset("tiny").lidar.max_range + 1
+            assert s.true_pose is not None and s.true_pose[2, 2] == pytest.approx(1.0)
+        keys = tree.locations("business", run, "keyframe")
+        # A keyframe every 5 m of the drive: far more than the 20 m test submaps.
+        steps = np.hypot(np.diff(keys.northing), np.diff(keys.easting))
+        assert len(keys) > 3 * len(test) and np.median(steps) == pytest.approx(5.0, abs=1.0)
+    splits = load_splits(tiny / "splits_keyframes.json")
+    assert splits.params["kind"] == "keyframe"
+    (es,) = splits.evaluation.values()
+    assert all("/pointcloud_keyframes/" in f for db in es.database for f in db.files)
 
 
 def test_same_seed_same_bytes(tiny: Path, tmp_path: Path) -> None:

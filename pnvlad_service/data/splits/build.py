@@ -25,7 +25,7 @@ from pnvlad_service.data.splits.tuples import (
     TrainingTuples,
     build_training_tuples,
 )
-from pnvlad_service.data.tree import BenchmarkTree
+from pnvlad_service.data.tree import BenchmarkTree, Kind
 from pnvlad_service.errors import InputError
 
 #: Indices into the sorted Oxford run folders of the 23 evaluation runs (generate_test_sets.py).
@@ -88,13 +88,18 @@ def build_splits(
     neg_radius: float = NEG_RADIUS,
     truth_radius: float = TRUTH_RADIUS,
     published: bool = False,
+    keyframes: bool = False,
 ) -> Splits:
     """Training tuples, test tuples and evaluation sets of every (or the named) dataset.
 
     Runs named ``<area>_run<k>`` are grouped by area, each group keyed by its area name;
     otherwise everything is keyed by the dataset name. ``published`` picks the runs the
-    published scripts used (``published_runs``); by default every run is used.
+    published scripts used (``published_runs``); by default every run is used. ``keyframes``:
+    every tuple and set from the keyframe maps (single scans, ``pointcloud_keyframes``) in
+    place of the training and test layouts, for encoders of single scans.
     """
+    train_kind: Kind = "keyframe" if keyframes else "train"
+    test_kind: Kind = "keyframe" if keyframes else "test"
     tree = BenchmarkTree(root)
     names = list(datasets) if datasets else tree.datasets
     splits = Splits(
@@ -103,6 +108,7 @@ def build_splits(
             "neg_radius": float(neg_radius),
             "truth_radius": float(truth_radius),
             "published_runs": bool(published),
+            "kind": "keyframe" if keyframes else "submap",
             "regions": {},
         }
     )
@@ -111,14 +117,18 @@ def build_splits(
         eval_runs: Sequence[str] | None = None
         if published:
             train_runs, eval_runs = published_runs(tree, d)
-        train_runs = [r for r in train_runs if tree.has(d, r, "train")]
+        train_runs = [r for r in train_runs if tree.has(d, r, train_kind)]
         for g, g_runs in (evaluation_groups(d, train_runs) if train_runs else {}).items():
             reg = resolve_regions(tree, d, g, regions)
             splits.params["regions"][g] = reg.to_dict()
-            kw: dict[str, Any] = dict(pos_radius=pos_radius, neg_radius=neg_radius, runs=g_runs)
+            kw: dict[str, Any] = dict(
+                pos_radius=pos_radius, neg_radius=neg_radius, runs=g_runs, kind=train_kind
+            )
             splits.training[g] = build_training_tuples(tree, d, reg, **kw)
             splits.test_tuples[g] = build_training_tuples(tree, d, reg, inside=True, **kw)
-        sets = build_evaluation_sets(tree, d, regions, truth_radius=truth_radius, runs=eval_runs)
+        sets = build_evaluation_sets(
+            tree, d, regions, truth_radius=truth_radius, runs=eval_runs, kind=test_kind
+        )
         for es in sets:
             if es.name in splits.evaluation:
                 raise InputError(f"two evaluation sets named {es.name!r}", source=tree.root)

@@ -131,18 +131,20 @@ def build_evaluation_sets(
     *,
     truth_radius: float = TRUTH_RADIUS,
     runs: Sequence[str] | None = None,
+    kind: Kind = "test",
 ) -> list[EvaluationSet]:
     """Evaluation sets of ``dataset``: one per area for in-house style runs (``<area>_run<k>``),
-    else one for the dataset. ``runs`` restricts the runs (default: every run with the test
-    layout, sorted). Test regions resolved by ``resolve_regions``."""
+    else one for the dataset. ``runs`` restricts the runs (default: every run with the
+    ``kind`` layout, the test one unless told, sorted). Test regions resolved by
+    ``resolve_regions``."""
     chosen = [r for r in (tree.runs(dataset) if runs is None else runs)]
-    chosen = [r for r in chosen if tree.has(dataset, r, "test")]
+    chosen = [r for r in chosen if tree.has(dataset, r, kind)]
     out = []
     for group, group_runs in evaluation_groups(dataset, chosen).items():
         reg = resolve_regions(tree, dataset, group, regions)
         out.append(
             build_evaluation_set(
-                tree, dataset, group_runs, reg, name=group, truth_radius=truth_radius
+                tree, dataset, group_runs, reg, name=group, truth_radius=truth_radius, kind=kind
             )
         )
     return out
