@@ -39,6 +39,12 @@ from typing import Any, Literal
 
 import numpy as np
 
+from pnvlad_service.data.accumulate import (
+    accumulate,
+    scan_subset,
+    spaced_scans,
+    travelled_distance,
+)
 from pnvlad_service.data.drives import Drive, check_drive, snap_m
 from pnvlad_service.data.frames import (
     SubmapFrame,
@@ -94,32 +100,6 @@ GEOMETRY: dict[tuple[str, str], Geometry] = {
 
 # --------------------------------------------------------------------------------------------
 # Cutting a trajectory into submaps
-
-
-def travelled_distance(poses: np.ndarray) -> np.ndarray:
-    """Cumulative horizontal distance along the trajectory: float64 [T] metres, starting at 0.
-
-    ``poses``: float64 [T, 4, 4] sensor-to-world; only x (easting) and y (northing) count.
-    """
-    xy = np.asarray(poses, dtype=np.float64)[:, :2, 3]
-    steps = np.hypot(np.diff(xy[:, 0]), np.diff(xy[:, 1]))
-    return np.concatenate([[0.0], np.cumsum(steps)])
-
-
-def spaced_scans(travelled: np.ndarray, min_spacing_m: float) -> np.ndarray:
-    """bool [T]: scans at least ``min_spacing_m`` of travel after the previous one kept.
-
-    Scan 0 is always kept; with ``min_spacing_m`` = 0 every scan is. The choice depends on the
-    whole drive, not on a window, so every window uses the same scans (each read once).
-    """
-    d = np.asarray(travelled, dtype=np.float64)
-    keep = np.zeros(len(d), dtype=bool)
-    last = -math.inf
-    for i, value in enumerate(d.tolist()):
-        if value - last >= min_spacing_m:
-            keep[i] = True
-            last = value
-    return keep
 
 
 @dataclass(frozen=True)
@@ -239,11 +219,7 @@ class _ScanCache:
     def get(self, i: int) -> np.ndarray:
         """Scan ``i`` as windows accumulate it: at most ``max_points_per_scan`` points, a
         subset seeded by the scan index (the same whichever window asks)."""
-        pts = self.full(i)
-        if self.max_points is not None and len(pts) > self.max_points:
-            rng = np.random.default_rng([self.seed, i])
-            pts = pts[np.sort(rng.choice(len(pts), self.max_points, replace=False))]
-        return pts
+        return scan_subset(self.full(i), self.max_points, (self.seed, i))
 
     def _load(self, i: int) -> np.ndarray:
         name = getattr(self.drive, "name", "drive")
@@ -263,37 +239,6 @@ class _ScanCache:
     def evict_before(self, first: int) -> None:
         for i in [i for i in self.scans if i < first]:
             del self.scans[i]
-
-
-def accumulate(
-    poses: np.ndarray,
-    scans: dict[int, np.ndarray] | Sequence[np.ndarray],
-    indices: Sequence[int],
-    centre: np.ndarray,
-    box_m: float | None = None,
-) -> np.ndarray:
-    """Scans moved into a local world frame centred on ``centre``: float64 [M, 3] metres.
-
-    ``poses``: float64 [T, 4, 4] sensor-to-world; ``scans[i]``: [N_i, 3] sensor frame;
-    ``centre``: float64 [3] world position (UTM). The result has UTM axes (x east, y north,
-    z up) and origin ``centre``; translations are snapped and subtracted in float64 before the
-    points are added, so large UTM coordinates lose no precision. ``box_m`` keeps only points
-    with |x| and |y| <= box_m / 2 (a square, axis-aligned in UTM).
-    """
-    c = snap_m(centre)
-    parts = []
-    for i in indices:
-        pts = scans[i]
-        if len(pts) == 0:
-            continue
-        r = poses[i, :3, :3]
-        offset = snap_m(poses[i, :3, 3]) - c
-        parts.append(pts @ r.T + offset)
-    out = np.concatenate(parts) if parts else np.empty((0, 3))
-    if box_m is not None:
-        half = box_m / 2.0
-        out = out[(np.abs(out[:, 0]) <= half) & (np.abs(out[:, 1]) <= half)]
-    return out
 
 
 @dataclass(frozen=True)

@@ -146,3 +146,32 @@ def _outside(points: np.ndarray, bound: float) -> bool:
 
 def _first_outside(points: np.ndarray, bound: float) -> int:
     return int(np.argmax((np.abs(points) > bound).any(axis=1)))
+
+
+def query_kind(kind: str | None, preprocess: bool | None) -> tuple[str, bool]:
+    """``(kind, preprocess)`` of a query, each told by the other when absent: a ``submap`` is
+    4096 preprocessed points; a ``scan`` (one raw scan, sensor frame) and a ``window`` (raw scans
+    accumulated over the last stretch of a drive, its newest scan's frame) are metres that the
+    filter G runs on. Without either, a cloud is a preprocessed submap. :class:`InputError`
+    naming ``kind`` or ``preprocess`` when they disagree or the kind is unknown."""
+    from pnvlad_service.index.manifest import QUERY_KINDS
+
+    if kind is None:
+        return ("scan" if preprocess else "submap"), bool(preprocess)
+    if kind not in QUERY_KINDS:
+        raise InputError(f"must be one of {list(QUERY_KINDS)}, got {kind!r}", "kind")
+    if kind == "submap":
+        if preprocess:
+            raise InputError(
+                "a submap query is 4096 preprocessed points: send preprocess=false (or none), "
+                "or kind scan / window for metres",
+                "preprocess",
+            )
+        return kind, False
+    if preprocess is False:
+        raise InputError(
+            f"a {kind} query is sent raw, in metres, for the filter G: send preprocess=true (or "
+            "none)",
+            "preprocess",
+        )
+    return kind, True

@@ -43,7 +43,7 @@ from pnvlad_service.index.manifest import Manifest
 from pnvlad_service.io.submap import SUBMAP_POINTS
 from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
 from pnvlad_service.localization.calibration import CALIBRATION_FILE, read_calibration
-from pnvlad_service.localization.limits import Limits
+from pnvlad_service.localization.limits import Limits, query_kind
 from pnvlad_service.localization.verify import (
     PreparedCache,
     QueryCloud,
@@ -132,7 +132,9 @@ class Answer:
     Without ``verification`` the order is the descriptor distance's. With it the verified
     candidates come first, best score first, then the rest in distance order;
     ``retrieval_ranks[i]`` is match ``i``'s rank by distance. ``batch_size``: clouds embedded
-    together with this one.
+    together with this one. ``query_kind``: what was asked with (a preprocessed ``submap``, a
+    raw ``scan`` or an accumulated ``window``); ``map_kind``: what every match is (a
+    ``submap`` or a ``keyframe``).
     """
 
     matches: tuple[Match, ...]
@@ -140,6 +142,8 @@ class Answer:
     timings: Timings
     verification: Verification | None = None
     retrieval_ranks: tuple[int, ...] = ()
+    query_kind: str = "submap"
+    map_kind: str = "submap"
 
     @property
     def verified(self) -> bool | None:
@@ -152,8 +156,11 @@ class Answer:
         ranks = self.retrieval_ranks or tuple(m.rank for m in self.matches)
         return {
             "matches": [
-                match_json(m, scores.get(r), r) for m, r in zip(self.matches, ranks, strict=True)
+                {**match_json(m, scores.get(r), r), "kind": self.map_kind}
+                for m, r in zip(self.matches, ranks, strict=True)
             ],
+            "query_kind": self.query_kind,
+            "map_kind": self.map_kind,
             "verified": self.verified,
             "pose": None if v is None or v.pose is None else v.pose.to_json(),
             "verification": None if v is None else verification_json(v),
@@ -474,6 +481,22 @@ class Localizer:
             )
         return bool(verify)
 
+    @property
+    def map_kind(self) -> str:
+        """What the bundle's entries are: ``submap`` or ``keyframe`` (single scans)."""
+        return self.bundle.manifest.map_record.kind
+
+    def check_kind(self, kind: str, field: str = "kind") -> None:
+        """:class:`InputError` naming ``field`` when a query of ``kind`` does not meet its own
+        kind in this bundle (an accumulated window against a map of single scans)."""
+        if not self.bundle.manifest.map_record.accepts(kind):
+            raise InputError(
+                f"the index {self.bundle.path} holds {self.map_kind}s (single scans, cropped "
+                f"as a scan is), which a {kind} query does not match: send single scans (kind "
+                "scan), or ask a map of submaps (pnvlad index build --layout test)",
+                field,
+            )
+
     def search_k(self, top_n: int, verify: bool) -> int:
         """How many neighbours to search for: ``top_n``, or the candidates to verify."""
         return max(top_n, self.verify_config.candidates) if verify else top_n
@@ -542,6 +565,7 @@ class Localizer:
         total_s: float,
         top_n: int | None = None,
         verification: Verification | None = None,
+        query_kind: str = "submap",
     ) -> Answer:
         """One cloud's :class:`Answer` from its batch result, its verification (re-ranked) and
         its earlier stage times; ``top_n``: matches to keep (default: all searched)."""
@@ -561,25 +585,38 @@ class Localizer:
             verify=0.0 if verification is None else verification.seconds,
             total=total_s,
         )
-        return Answer(ordered, result.batch_size, timings, verification, tuple(ranks))
+        return Answer(
+            ordered,
+            result.batch_size,
+            timings,
+            verification,
+            tuple(ranks),
+            query_kind,
+            self.map_kind,
+        )
 
     def localize(
         self,
         points: np.ndarray,
         *,
-        preprocess: bool = False,
+        preprocess: bool | None = None,
         top_n: int = 5,
         limits: Limits | None = None,
         verify: bool | None = None,
         scale: float | None = None,
+        kind: str | None = None,
     ) -> Answer:
         """The ``top_n`` map places nearest to one cloud: exactly 4096 points in [-1, 1]
         float [4096, 3], or with ``preprocess`` a raw scan float [N, 3] in metres (checked
-        against ``limits``, default :class:`Limits`). ``verify``: register the top candidates
-        and re-rank them (default: when the bundle carries geometry); ``scale``: metres per
-        unit of a preprocessed cloud, for a metric pose (estimated when not given)."""
+        against ``limits``, default :class:`Limits`). ``kind``: ``submap``, ``scan`` or
+        ``window`` (:func:`~.limits.query_kind`; told by ``preprocess`` when absent).
+        ``verify``: register the top candidates and re-rank them (default: when the bundle
+        carries geometry); ``scale``: metres per unit of a preprocessed cloud, for a metric
+        pose (estimated when not given)."""
         t0 = time.perf_counter()
         limits = limits or Limits()
+        kind, preprocess = query_kind(kind, preprocess)
+        self.check_kind(kind)
         pts = limits.check_points(np.asarray(points), preprocess, "points")
         top_n = limits.check_top_n(top_n)
         scale = limits.check_scale(scale)
@@ -598,6 +635,7 @@ class Localizer:
             total_s=time.perf_counter() - t0,
             top_n=top_n,
             verification=verification,
+            query_kind=kind,
         )
 
     def _embed_and_search(

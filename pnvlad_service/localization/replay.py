@@ -14,10 +14,9 @@ reason, not the end of the replay.
 from __future__ import annotations
 
 import csv
-import json
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,16 +27,16 @@ from pnvlad_service.fileio import atomic_write_text
 
 #: Errors beyond this many metres are counted apart in the summary (a wrong place).
 FAR_M = 25.0
-
-#: Match fields written in their own columns; any other field of the top match (verification,
-#: pose) follows them, scalars as they are, lists and objects as JSON.
-_MATCH_FIELDS = ("timestamp", "run", "northing", "easting", "distance")
-_SKIP_FIELDS = {"rank", "dataset", "submap_id", "utm_zone", "path"}
+#: A verified pose farther than this from the truth is a wrong verified pose.
+WRONG_POSE_M = 5.0
 
 
 @dataclass
 class ReplayRow:
-    """One query: the scan, the service's top-1 answer (``None`` fields when it gave none)."""
+    """One query: the scan, the service's top-1 match and its answer-level verification and
+    pose (``None`` fields where it gave none), and, where the drive has poses, the truth and
+    the errors: ``error_m`` of the top-1 entry's position, ``pose_error_m`` /
+    ``pose_yaw_error_deg`` of the verified pose."""
 
     scan: int
     timestamp: int
@@ -45,23 +44,29 @@ class ReplayRow:
     status: str = "ok"
     submap: int | None = None
     run: str | None = None
+    kind: str | None = None
     northing: float | None = None
     easting: float | None = None
     distance: float | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    verified: bool | None = None
+    confidence: float | None = None
+    pose_northing: float | None = None
+    pose_easting: float | None = None
+    pose_yaw_deg: float | None = None
     true_northing: float | None = None
     true_easting: float | None = None
+    true_yaw_deg: float | None = None
     error_m: float | None = None
+    pose_error_m: float | None = None
+    pose_yaw_error_deg: float | None = None
 
     @property
     def answered(self) -> bool:
         return self.northing is not None
 
-    @property
-    def verified(self) -> bool | None:
-        """The top match's ``verified`` field, when the service gives one."""
-        value = self.extra.get("verified")
-        return None if value is None else bool(value)
+
+#: The CSV's columns, in order: :class:`ReplayRow`'s fields.
+COLUMNS = tuple(ReplayRow.__dataclass_fields__)
 
 
 def replay(
@@ -74,10 +79,11 @@ def replay(
 ) -> list[ReplayRow]:
     """Ask ``ask`` about scans 0, ``every``, 2 * ``every``, ... of ``drive``.
 
-    ``ask(points)`` returns the answer (``{"matches": [{"timestamp", "run", "northing",
-    "easting", "distance", ...}, ...], ...}``); an exception of a ``refused`` type makes a row
-    whose ``status`` is its message. With ``drive.poses`` (float64 [T, 4, 4], UTM) each answer
-    gets the scan's true position and the horizontal error of the top-1 submap's position.
+    ``ask(points)`` returns the service's answer (``{"matches": [{"timestamp", "run",
+    "northing", "easting", "distance", ...}, ...], "verified", "verification": {"confidence",
+    ...}, "pose": {"northing", "easting", "yaw_deg", ...}}``); an exception of a ``refused``
+    type makes a row whose ``status`` is its message. With ``drive.poses`` (float64 [T, 4, 4],
+    UTM) each answer gets the scan's true position and heading and its errors.
     """
     if every < 1:
         raise InputError(f"must be >= 1, got {every}", "every")
@@ -95,17 +101,14 @@ def replay(
         if poses is not None:
             row.true_northing = float(poses[i, 1, 3])
             row.true_easting = float(poses[i, 0, 3])
+            row.true_yaw_deg = math.degrees(math.atan2(poses[i, 1, 0], poses[i, 0, 0]))
         try:
             answer = ask(drive.scan(i))
         except refused as exc:
             row.status = f"refused: {getattr(exc, 'detail', None) or exc}"
             rows.append(row)
             continue
-        matches = answer.get("matches") or []
-        if not matches:
-            row.status = "no match"
-        else:
-            _fill(row, matches[0])
+        fill_row(row, answer)
         rows.append(row)
         if row.error_m is not None:
             bar.set_postfix(error=f"{row.error_m:.1f} m", refresh=False)
@@ -113,15 +116,41 @@ def replay(
     return rows
 
 
-def _fill(row: ReplayRow, top: dict[str, Any]) -> None:
+def _wrap_deg(a: float) -> float:
+    return (a + 180.0) % 360.0 - 180.0
+
+
+def fill_row(row: ReplayRow, answer: dict[str, Any]) -> None:
+    """``row``'s answer fields from the service's answer, and its errors where the truth is
+    known: the top-1 match, the answer-level ``verified`` and ``confidence``, the ``pose``."""
+    matches = answer.get("matches") or []
+    if not matches:
+        row.status = "no match"
+        return
+    top = matches[0]
     row.submap = int(top["timestamp"])
     row.run = str(top.get("run", ""))
+    row.kind = top.get("kind")
     row.northing = float(top["northing"])
     row.easting = float(top["easting"])
     row.distance = None if top.get("distance") is None else float(top["distance"])
-    row.extra = {k: v for k, v in top.items() if k not in _MATCH_FIELDS and k not in _SKIP_FIELDS}
-    if row.true_northing is not None and row.true_easting is not None:
-        row.error_m = math.hypot(row.northing - row.true_northing, row.easting - row.true_easting)
+    row.verified = answer.get("verified")
+    confidence = (answer.get("verification") or {}).get("confidence")
+    row.confidence = None if confidence is None else float(confidence)
+    pose = answer.get("pose")
+    if pose:
+        row.pose_northing = float(pose["northing"])
+        row.pose_easting = float(pose["easting"])
+        row.pose_yaw_deg = float(pose["yaw_deg"])
+    if row.true_northing is None or row.true_easting is None:
+        return
+    row.error_m = math.hypot(row.northing - row.true_northing, row.easting - row.true_easting)
+    if row.pose_northing is not None and row.pose_easting is not None:
+        row.pose_error_m = math.hypot(
+            row.pose_northing - row.true_northing, row.pose_easting - row.true_easting
+        )
+        if row.pose_yaw_deg is not None and row.true_yaw_deg is not None:
+            row.pose_yaw_error_deg = abs(_wrap_deg(row.pose_yaw_deg - row.true_yaw_deg))
 
 
 def _cell(value: Any) -> str:
@@ -131,29 +160,19 @@ def _cell(value: Any) -> str:
         return "true" if value else "false"
     if isinstance(value, float):
         return repr(value)
-    if isinstance(value, (list, dict)):
-        return json.dumps(value, separators=(",", ":"))
     return str(value)
 
 
 def write_replay_csv(rows: Sequence[ReplayRow], path: str | Path) -> Path:
-    """The rows as a CSV (atomically): scan, timestamp, time_s, status, the top-1 submap
-    (submap, run, northing, easting, distance), any other field of the service's match
-    (verification, pose), then true_northing, true_easting and error_m."""
-    extra: dict[str, None] = {}
-    for r in rows:
-        extra.update(dict.fromkeys(r.extra))
-    head = ["scan", "timestamp", "time_s", "status", "submap", "run", "northing", "easting"]
-    head += ["distance", *extra, "true_northing", "true_easting", "error_m"]
+    """The rows as a CSV (atomically), one column a :class:`ReplayRow` field (:data:`COLUMNS`):
+    the scan, the top-1 match, ``verified``, ``confidence``, the pose, the truth, the errors."""
     import io
 
     buf = io.StringIO()
     out = csv.writer(buf, lineterminator="\n")
-    out.writerow(head)
+    out.writerow(COLUMNS)
     for r in rows:
-        base = [r.scan, r.timestamp, r.time_s, r.status, r.submap, r.run, r.northing, r.easting]
-        tail = [r.true_northing, r.true_easting, r.error_m]
-        out.writerow(_cell(v) for v in [*base, r.distance, *(r.extra.get(k) for k in extra), *tail])
+        out.writerow(_cell(getattr(r, c)) for c in COLUMNS)
     path = Path(path)
     atomic_write_text(path, buf.getvalue())
     return path
@@ -161,40 +180,60 @@ def write_replay_csv(rows: Sequence[ReplayRow], path: str | Path) -> Path:
 
 @dataclass(frozen=True)
 class ReplaySummary:
-    """The summary line's figures. ``median_error_m``/``beyond_m`` are ``None`` without poses;
-    ``verified`` is ``None`` when the service gives no verification."""
+    """The summary line's figures. The error figures are ``None`` without poses; ``verified``
+    is ``None`` when the service gives no verification; pose errors are the verified poses'."""
 
     queries: int
     answered: int
+    within: int | None
     median_error_m: float | None
     beyond_m: int | None
     verified: int | None
+    median_pose_error_m: float | None = None
+    median_pose_yaw_deg: float | None = None
+    wrong_verified: int | None = None
     far_m: float = FAR_M
 
     def line(self) -> str:
         text = f"replay: {self.answered} of {self.queries} queries answered"
+        if self.within is not None:
+            text += f", {self.within} within {self.far_m:g} m"
         if self.verified is not None:
             text += f", {self.verified} verified"
         if self.median_error_m is not None:
-            text += f", median error {self.median_error_m:.1f} m"
-            text += f", {self.beyond_m} beyond {self.far_m:g} m"
+            text += f"; median error {self.median_error_m:.1f} m, {self.beyond_m} beyond "
+            text += f"{self.far_m:g} m"
         elif self.beyond_m is None:
             text += " (no poses in the bag: errors unknown)"
+        if self.median_pose_error_m is not None:
+            text += (
+                f"; verified poses {self.median_pose_error_m:.2f} m / "
+                f"{self.median_pose_yaw_deg or 0.0:.2f} deg off (median), "
+                f"{self.wrong_verified} more than {WRONG_POSE_M:g} m off"
+            )
         return text
 
 
 def summarise(rows: Sequence[ReplayRow], far_m: float = FAR_M) -> ReplaySummary:
-    """How many were answered, median error, how many beyond ``far_m``, how many verified."""
+    """How many were answered, within ``far_m`` of the truth, verified; the median error of
+    the top-1 places and of the verified poses, and the verified poses more than
+    :data:`WRONG_POSE_M` off."""
     answered = [r for r in rows if r.answered]
     errors = [r.error_m for r in answered if r.error_m is not None]
     flags = [r.verified for r in answered if r.verified is not None]
     has_poses = any(r.true_northing is not None for r in rows)
+    ver = [r for r in answered if r.verified and r.pose_error_m is not None]
+    yaws = [r.pose_yaw_error_deg for r in ver if r.pose_yaw_error_deg is not None]
     return ReplaySummary(
         queries=len(rows),
         answered=len(answered),
+        within=sum(e <= far_m for e in errors) if has_poses else None,
         median_error_m=float(np.median(errors)) if errors else None,
         beyond_m=sum(e > far_m for e in errors) if has_poses else None,
-        verified=sum(flags) if flags else None,
+        verified=sum(bool(f) for f in flags) if flags else None,
+        median_pose_error_m=float(np.median([r.pose_error_m for r in ver])) if ver else None,
+        median_pose_yaw_deg=float(np.median(yaws)) if yaws else None,
+        wrong_verified=sum(r.pose_error_m > WRONG_POSE_M for r in ver) if ver else None,
         far_m=far_m,
     )
 

@@ -14,6 +14,7 @@ import io
 import numpy as np
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.localization.limits import query_kind
 from pnvlad_service.server.contract import SCALE_RAW, BatchQueries, Contract, Query
 
 JSON = "application/json"
@@ -63,21 +64,22 @@ def read_query(
     dtype: str,
     verify: bool | None = None,
     scale: float | None = None,
+    kind: str | None = None,
 ) -> Query:
     """The cloud of a ``/localize`` body of content type ``ctype`` (JSON, raw xyz or .npy);
-    ``top_n``, ``preprocess``, ``dtype``, ``verify`` and ``scale`` are the query's, for binary
-    bodies."""
+    ``top_n``, ``preprocess``, ``dtype``, ``verify``, ``scale`` and ``kind`` are the query's,
+    for binary bodies (a ``scan`` or ``window`` is raw without saying ``preprocess``)."""
     if ctype == JSON:
         return contract.parse_query(body)
     limits = contract.limits
-    pre = bool(preprocess)
+    kind, pre = query_kind(kind, preprocess)
     raw = parse_npy(body, 2) if ctype == NPY else parse_binary_points(body, dtype)
     points = limits.check_points(raw, pre, "body")
     scale = limits.check_scale(scale)
     if pre and scale is not None:
         raise InputError(SCALE_RAW, "scale")
     n = top_n if top_n is not None else limits.default_top_n
-    return Query(points, pre, n, verify, scale)
+    return Query(points, pre, n, verify, scale, kind)
 
 
 def read_batch(
@@ -97,7 +99,9 @@ def read_batch(
     n = top_n if top_n is not None else limits.default_top_n
     arr = parse_npy(body, 3)
     limits.check_count(len(arr), "body")
+    kind = "scan" if pre else "submap"
     queries = tuple(
-        Query(limits.check_points(a, pre, f"body[{i}]"), pre, n, verify) for i, a in enumerate(arr)
+        Query(limits.check_points(a, pre, f"body[{i}]"), pre, n, verify, None, kind)
+        for i, a in enumerate(arr)
     )
     return BatchQueries(queries, n, verify)

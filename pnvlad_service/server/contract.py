@@ -19,7 +19,7 @@ import copy
 import functools
 import json
 from dataclasses import dataclass
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
@@ -33,7 +33,7 @@ from pydantic import (
 )
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.limits import Limits, show_value
+from pnvlad_service.localization.limits import Limits, query_kind, show_value
 
 
 class MalformedJSON(InputError):
@@ -67,6 +67,7 @@ class Query:
     top_n: int
     verify: bool | None = None
     scale: float | None = None
+    kind: str = "submap"
 
 
 @dataclass(frozen=True)
@@ -89,7 +90,7 @@ class Contract:
             req = self.query_model.model_validate_json(_utf8(body))
         except ValidationError as exc:
             raise _query_error(exc.errors(), self.limits) from None
-        return Query(req._array, req.preprocess, req.top_n, req.verify, req.scale)
+        return Query(req._array, req.preprocess, req.top_n, req.verify, req.scale, req._kind)
 
     def parse_batch(self, body: bytes) -> BatchQueries:
         """``{"queries": [{"points": ..., "preprocess": false}, ...], "top_n": 5}``."""
@@ -98,7 +99,8 @@ class Contract:
         except ValidationError as exc:
             raise _batch_error(exc.errors(), self.limits) from None
         queries = tuple(
-            Query(q._array, q.preprocess, req.top_n, req.verify, q.scale) for q in req.queries
+            Query(q._array, q.preprocess, req.top_n, req.verify, q.scale, q._kind)
+            for q in req.queries
         )
         return BatchQueries(queries, req.top_n, req.verify)
 
@@ -147,10 +149,20 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
             description="Metres per unit of a preprocessed cloud (its frame sidecar's scale), "
             "for a metric pose; estimated from the candidates when absent. Not for raw scans.",
         )
+        kind: Literal["submap", "scan", "window"] | None = Field(
+            None,
+            description="What the cloud is: 'submap' (4096 preprocessed points), 'scan' (one raw "
+            "scan, sensor frame, metres) or 'window' (raw scans accumulated over the last "
+            "stretch of a drive, in the newest scan's frame); 'scan' and 'window' need "
+            "preprocess true. Default: 'scan' with preprocess, else 'submap'. A map of "
+            "keyframes (single scans) refuses windows.",
+        )
         _array: np.ndarray = PrivateAttr()
+        _kind: str = PrivateAttr()
 
         @model_validator(mode="after")
         def _check_points(self) -> Cloud:
+            self._kind, _ = query_kind(self.kind, self.preprocess)
             pts = np.asarray(self.points, dtype=np.float64)
             self._array = limits.check_points(pts, self.preprocess, "points")
             if self.preprocess and self.scale is not None:
@@ -255,7 +267,8 @@ def _cloud_rank(err: dict[str, Any], loc: Loc) -> tuple[Any, ...]:
         if len(loc) == 2:
             return (6, loc[1], 0, 0)
         return (6, loc[1], int(kind == "float_type"), loc[2])
-    return {"top_n": (4,), "preprocess": (5,), "verify": (5, 1), "scale": (5, 2)}.get(loc[0], (8,))
+    ranks = {"top_n": (4,), "preprocess": (5,), "verify": (5, 1), "scale": (5, 2), "kind": (5, 3)}
+    return ranks.get(loc[0], (8,))
 
 
 def _cloud_error(
@@ -298,6 +311,11 @@ def _cloud_error(
         return InputError(f"point {i} must be [x, y, z], got {what}", field)
     if loc in (("preprocess",), ("verify",)):
         return InputError(f"expected true or false, got {show_value(value)}", loc[0])
+    if loc[0] == "kind":
+        return InputError(
+            f"must be one of ['submap', 'scan', 'window'], got {show_value(value)}",
+            f"{prefix}kind",
+        )
     if loc == ("scale",):
         try:
             limits.check_scale(value)
@@ -333,7 +351,7 @@ def _query_error(errors: list[dict[str, Any]], limits: Limits) -> InputError:
     if loc == ("top_n",):
         return _top_n_error(err.get("input"), limits)
     top = [e for e in errors if len(e["loc"]) == 1]
-    allowed = ["points", "preprocess", "scale", "top_n", "verify"]
+    allowed = ["kind", "points", "preprocess", "scale", "top_n", "verify"]
     return _cloud_error(err, loc, top, "body", "", allowed, limits)
 
 
@@ -379,6 +397,6 @@ def _batch_error(errors: list[dict[str, Any]], limits: Limits) -> InputError:
     if rank[0] == 6:
         i = loc[1]
         same = [e for e in errors if tuple(e["loc"][:2]) == ("queries", i) and len(e["loc"]) == 3]
-        allowed = ["points", "preprocess", "scale"]
+        allowed = ["kind", "points", "preprocess", "scale"]
         return _cloud_error(err, loc[2:], same, f"queries[{i}]", f"queries[{i}].", allowed, limits)
     return InputError(err.get("msg", "invalid value"), ".".join(map(str, loc)))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field, create_model
 
@@ -44,6 +44,9 @@ class MatchOut(BaseModel):
     retrieval_rank: int = Field(..., description="Rank by descriptor distance (1 = nearest).")
     score: float | None = Field(
         None, description="Verification score (share of query points registered), or null."
+    )
+    kind: Literal["submap", "keyframe"] = Field(
+        "submap", description="What the map entry is: a submap, or a keyframe (one scan)."
     )
 
 
@@ -87,8 +90,16 @@ ModelOut = _json_model(localizer.ModelInfo, "ModelOut", arch=None)
 IndexOut = _json_model(localizer.IndexInfo, "IndexOut")
 
 
+_QUERY_KIND = Field(
+    "submap", description="What the query was asked as: a submap, a raw scan or a window."
+)
+_MAP_KIND = Field("submap", description="What the map's entries are: submaps or keyframes.")
+
+
 class LocalizeResponse(BaseModel):
     matches: list[MatchOut]
+    query_kind: Literal["submap", "scan", "window"] = _QUERY_KIND
+    map_kind: Literal["submap", "keyframe"] = _MAP_KIND
     verified: bool | None = Field(
         None, description="Whether the best match is verified; null when verification was off."
     )
@@ -102,6 +113,8 @@ class LocalizeResponse(BaseModel):
 
 class BatchItem(BaseModel):
     matches: list[MatchOut]
+    query_kind: Literal["submap", "scan", "window"] = _QUERY_KIND
+    map_kind: Literal["submap", "keyframe"] = _MAP_KIND
     verified: bool | None = None
     pose: PoseOut | None = None
     verification: VerificationOut | None = None

@@ -38,8 +38,9 @@ class LineDrive:
 
 
 def fake_service(points: np.ndarray) -> dict:
-    """Answers scan i with a submap 3 m east of it (scan 4: 40 m off, scan 6: refused, scan 8:
-    no match); even scans are verified."""
+    """Answers scan i as the server does: a submap 3 m east of it (scan 4: 40 m off, scan 6:
+    refused, scan 8: no match); scans 0 and 4 verified, with a pose 0.5 m north of the truth
+    and turned 2 degrees (scan 4's: 40 m off, a wrong verified pose)."""
     i = int(points[0, 0])
     if i == 6:
         raise InputError("only 3 points left after G", "points")
@@ -47,9 +48,17 @@ def fake_service(points: np.ndarray) -> dict:
         return {"matches": []}
     north = 5_735_000.0 + 10.0 * i + (40.0 if i == 4 else 0.0)
     top = {"rank": 1, "timestamp": 1000 + i, "run": "r0", "northing": north,
-           "easting": 620_003.0, "distance": 0.25 * i, "verified": i % 4 == 0,
-           "pose": [1.0, 0.0, 3.0], "submap_id": "x"}  # fmt: skip
-    return {"matches": [top, {**top, "rank": 2}]}
+           "easting": 620_003.0, "distance": 0.25 * i, "submap_id": "x", "kind": "keyframe",
+           "score": 0.4}  # fmt: skip
+    verified = i % 4 == 0
+    pose = {"northing": north + 0.5 - (0.0 if i != 4 else 0.0), "easting": 620_000.0,
+            "yaw_deg": 2.0, "height": 1.0}  # fmt: skip
+    return {
+        "matches": [top, {**top, "rank": 2}],
+        "verified": verified,
+        "verification": {"confidence": 0.3 if verified else 0.01},
+        "pose": pose if verified else None,
+    }
 
 
 def test_replay_rows_csv_and_summary(tmp_path: Path) -> None:
@@ -61,23 +70,35 @@ def test_replay_rows_csv_and_summary(tmp_path: Path) -> None:
     assert rows[4].status == "no match"
     assert rows[1].error_m == pytest.approx(3.0)
     assert rows[2].error_m == pytest.approx(math.hypot(40.0, 3.0))
+    # verified and the pose are the answer's (not its top match's, which has neither)
     assert [r.verified for r in rows] == [True, False, True, None, None]
+    assert [r.confidence for r in rows] == [0.3, 0.01, 0.3, None, None]
+    assert rows[0].pose_error_m == pytest.approx(0.5) and rows[0].pose_yaw_error_deg == 2.0
+    assert rows[1].pose_northing is None and rows[1].pose_error_m is None
+    assert rows[2].pose_error_m == pytest.approx(40.5)
+    assert rows[0].kind == "keyframe"
     s = summarise(rows)
-    assert (s.queries, s.answered, s.verified, s.beyond_m) == (5, 3, 2, 1)
+    assert (s.queries, s.answered, s.within, s.verified, s.beyond_m) == (5, 3, 2, 2, 1)
     assert s.median_error_m == pytest.approx(3.0)
-    assert (
-        s.line() == "replay: 3 of 5 queries answered, 2 verified, median error 3.0 m, 1 beyond 25 m"
+    assert s.median_pose_error_m == pytest.approx(np.median([0.5, 40.5]))
+    assert s.wrong_verified == 1
+    assert s.line() == (
+        "replay: 3 of 5 queries answered, 2 within 25 m, 2 verified; median error 3.0 m, 1 "
+        "beyond 25 m; verified poses 20.50 m / 2.00 deg off (median), 1 more than 5 m off"
     )
 
     path = write_replay_csv(rows, tmp_path / "answers.csv")
     with open(path, newline="") as fh:
         table = list(csv.DictReader(fh))
-    assert list(table[0]) == ["scan", "timestamp", "time_s", "status", "submap", "run",
-                              "northing", "easting", "distance", "verified", "pose",
-                              "true_northing", "true_easting", "error_m"]  # fmt: skip
+    assert list(table[0]) == ["scan", "timestamp", "time_s", "status", "submap", "run", "kind",
+                              "northing", "easting", "distance", "verified", "confidence",
+                              "pose_northing", "pose_easting", "pose_yaw_deg", "true_northing",
+                              "true_easting", "true_yaw_deg", "error_m", "pose_error_m",
+                              "pose_yaw_error_deg"]  # fmt: skip
     assert table[1]["timestamp"] == "7000000" and table[1]["time_s"] == "2.0"
     assert table[1]["submap"] == "1002" and table[1]["verified"] == "false"
-    assert table[1]["pose"] == "[1.0,0.0,3.0]"
+    assert table[0]["verified"] == "true" and float(table[0]["pose_error_m"]) == 0.5
+    assert table[1]["pose_northing"] == "" and table[3]["verified"] == ""
     assert float(table[2]["error_m"]) == pytest.approx(math.hypot(40.0, 3.0))
     assert table[3]["northing"] == "" and table[3]["status"].startswith("refused")
     # The summary's figures follow from the CSV alone.
@@ -89,8 +110,12 @@ def test_replay_without_poses_and_bad_every(tmp_path: Path) -> None:
     rows = replay(LineDrive(3, poses=False), fake_service, every=1, progress=False)
     assert all(r.error_m is None and r.true_northing is None for r in rows)
     s = summarise(rows)
-    assert s.median_error_m is None and s.beyond_m is None
-    assert s.line().endswith("(no poses in the bag: errors unknown)")
+    assert s.median_error_m is None and s.beyond_m is None and s.within is None
+    assert s.median_pose_error_m is None
+    assert (
+        s.line()
+        == "replay: 3 of 3 queries answered, 1 verified (no poses in the bag: errors unknown)"
+    )
     with pytest.raises(InputError, match=">= 1"):
         replay(LineDrive(3), fake_service, every=0)
 
@@ -157,10 +182,20 @@ def check_summary(line: str, rows: list[dict[str, str]]) -> None:
     """The summary line's figures, recomputed from the CSV."""
     errors = [float(r["error_m"]) for r in rows if r["error_m"]]
     answered = sum(1 for r in rows if r["northing"])
+    verified = sum(r["verified"] == "true" for r in rows)
     expected = (
-        f"replay: {answered} of {len(rows)} queries answered, median error "
+        f"replay: {answered} of {len(rows)} queries answered, "
+        f"{sum(e <= 25.0 for e in errors)} within 25 m, {verified} verified; median error "
         f"{float(np.median(errors)):.1f} m, {sum(e > 25.0 for e in errors)} beyond 25 m"
     )
+    posed = [float(r["pose_error_m"]) for r in rows if r["verified"] == "true"]
+    if posed:
+        yaws = [float(r["pose_yaw_error_deg"]) for r in rows if r["verified"] == "true"]
+        expected += (
+            f"; verified poses {float(np.median(posed)):.2f} m / "
+            f"{float(np.median(yaws)):.2f} deg off (median), "
+            f"{sum(e > 5.0 for e in posed)} more than 5 m off"
+        )
     assert line == expected
 
 
@@ -227,7 +262,8 @@ def test_replay_without_poses_and_bad_options(city: dict, tmp_path: Path) -> Non
     assert len(rows) == 2 and all(r["error_m"] == "" and r["true_northing"] == "" for r in rows)
     assert not Path(f"{out}.png").exists()
     assert res.stdout.strip().splitlines()[-1] == (
-        "replay: 2 of 2 queries answered (no poses in the bag: errors unknown)"
+        f"replay: 2 of 2 queries answered, {sum(r['verified'] == 'true' for r in rows)} verified "
+        "(no poses in the bag: errors unknown)"
     )
     cases = [
         ([*base], "--rosbag needs --cloud-topic"),

@@ -70,16 +70,17 @@ async def localize_one(
     params: tuple[Any, ...],
 ) -> Response:
     """``POST /localize``; ``params``: the query's ``top_n``, ``preprocess``, ``dtype``,
-    ``verify`` and ``scale``."""
+    ``verify``, ``scale`` and ``kind``."""
     t0 = time.perf_counter()
     ctype = _content_type(request, (JSON, OCTET, NPY))
     body = await request.body()
-    top_n, preprocess, dtype, verify, scale = params
+    top_n, preprocess, dtype, verify, scale, kind = params
     dtype = dtype or request.headers.get("x-points-dtype", "float32")
     with loc.announce():
         cloud = await run_in_threadpool(
-            read_query, contract, ctype, body, top_n, preprocess, dtype, verify, scale
+            read_query, contract, ctype, body, top_n, preprocess, dtype, verify, scale, kind
         )
+        loc.check_kind(cloud.kind)
         parse_s = time.perf_counter() - t0
         wants = loc.wants_verify(cloud.verify)
         t1 = time.perf_counter()
@@ -95,6 +96,7 @@ async def localize_one(
         total_s=time.perf_counter() - t0,
         top_n=cloud.top_n,
         verification=verification,
+        query_kind=cloud.kind,
     )
     metrics.observe(answer.timings.seconds())
     return JSONResponse({**answer.to_json(), **loc.info.to_json()})
@@ -113,6 +115,8 @@ async def localize_many(
     ctype = _content_type(request, (JSON, NPY))
     body = await request.body()
     batch = await run_in_threadpool(read_batch, contract, ctype, body, *params)
+    for i, q in enumerate(batch.queries):
+        loc.check_kind(q.kind, f"queries[{i}].kind")
     parse_s = time.perf_counter() - t0
     wants = loc.wants_verify(batch.verify)
     t1 = time.perf_counter()
@@ -130,8 +134,9 @@ async def localize_many(
             total_s=total_s,
             top_n=batch.top_n,
             verification=v,
+            query_kind=q.kind,
         )
-        for r, v in zip(results, checks, strict=True)
+        for r, v, q in zip(results, checks, batch.queries, strict=True)
     ]
     for a in answers:
         metrics.observe(a.timings.seconds())
@@ -173,6 +178,15 @@ def router(contract: Contract) -> APIRouter:
         le=contract.limits.max_scale,
         description="Metres per unit of a preprocessed cloud, for a metric pose (binary bodies).",
     )
+    query_kind = Query(
+        None,
+        pattern="^(submap|scan|window)$",
+        description="What the cloud is (binary bodies): 'submap' (4096 preprocessed points), "
+        "'scan' (one raw scan, sensor frame, metres) or 'window' (raw scans accumulated over the "
+        "last stretch of a drive, in the newest scan's frame); scan and window are raw (the "
+        "filter G runs first). Default: 'scan' with preprocess=true, else 'submap'. A map of "
+        "keyframes refuses windows (422).",
+    )
     query_dtype = Query(
         None,
         pattern="^(float32|float64)$",
@@ -198,6 +212,7 @@ def router(contract: Contract) -> APIRouter:
         dtype: str | None = query_dtype,
         verify: bool | None = query_verify,
         scale: float | None = query_scale,
+        kind: str | None = query_kind,
         loc: Localizer = Depends(get_localizer),
         metrics: Metrics = Depends(get_metrics),
     ) -> Response:
@@ -211,7 +226,7 @@ def router(contract: Contract) -> APIRouter:
         ``application/octet-stream`` (little-endian xyz, float32 unless ``dtype=float64``) or
         ``application/x-npy`` ([N, 3]); then ``top_n`` and ``preprocess`` are query parameters.
         """
-        params = (top_n, preprocess, dtype, verify, scale)
+        params = (top_n, preprocess, dtype, verify, scale, kind)
         return await localize_one(request, contract, loc, metrics, params)
 
     @_post(

@@ -1,0 +1,187 @@
+"""Scans laid into one cloud: how a submap is accumulated, offline from a whole drive or online
+from the last stretch of a drive.
+
+``pnvlad data prepare`` and ``pnvlad synth`` cut submaps with :func:`accumulate` (through
+:mod:`.prepare`); a robot with poses (a bag's pose topic, /tf, or LiDAR odometry,
+:mod:`.odometry`) asks with the last ``window_m`` of its drive, gathered scan by scan by a
+:class:`WindowAccumulator` through the very same steps: scans spaced along the trajectory
+(:func:`spaced_scans`), each cut to a seeded subset (:func:`scan_subset`), moved into one
+local frame (:func:`accumulate`). Poses are float64 [4, 4] sensor-to-world, world x = easting,
+y = northing, z = up (or any odometry frame: only relative poses matter to the cloud).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from pnvlad_service.data.drives import snap_m
+from pnvlad_service.errors import InputError
+
+
+def travelled_distance(poses: np.ndarray) -> np.ndarray:
+    """Cumulative horizontal distance along the trajectory: float64 [T] metres, starting at 0.
+
+    ``poses``: float64 [T, 4, 4] sensor-to-world; only x (easting) and y (northing) count.
+    """
+    xy = np.asarray(poses, dtype=np.float64)[:, :2, 3]
+    steps = np.hypot(np.diff(xy[:, 0]), np.diff(xy[:, 1]))
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def spaced_scans(travelled: np.ndarray, min_spacing_m: float) -> np.ndarray:
+    """bool [T]: scans at least ``min_spacing_m`` of travel after the previous one kept.
+
+    Scan 0 is always kept; with ``min_spacing_m`` = 0 every scan is. The choice depends on the
+    whole drive, not on a window, so every window uses the same scans (each read once).
+    """
+    d = np.asarray(travelled, dtype=np.float64)
+    keep = np.zeros(len(d), dtype=bool)
+    last = -math.inf
+    for i, value in enumerate(d.tolist()):
+        if value - last >= min_spacing_m:
+            keep[i] = True
+            last = value
+    return keep
+
+
+def accumulate(
+    poses: np.ndarray,
+    scans: dict[int, np.ndarray] | Sequence[np.ndarray],
+    indices: Sequence[int],
+    centre: np.ndarray,
+    box_m: float | None = None,
+) -> np.ndarray:
+    """Scans moved into a local world frame centred on ``centre``: float64 [M, 3] metres.
+
+    ``poses``: float64 [T, 4, 4] sensor-to-world; ``scans[i]``: [N_i, 3] sensor frame;
+    ``centre``: float64 [3] world position (UTM). The result has UTM axes (x east, y north,
+    z up) and origin ``centre``; translations are snapped and subtracted in float64 before the
+    points are added, so large UTM coordinates lose no precision. ``box_m`` keeps only points
+    with |x| and |y| <= box_m / 2 (a square, axis-aligned in UTM).
+    """
+    c = snap_m(centre)
+    parts = []
+    for i in indices:
+        pts = scans[i]
+        if len(pts) == 0:
+            continue
+        r = poses[i, :3, :3]
+        offset = snap_m(poses[i, :3, 3]) - c
+        parts.append(pts @ r.T + offset)
+    out = np.concatenate(parts) if parts else np.empty((0, 3))
+    if box_m is not None:
+        half = box_m / 2.0
+        out = out[(np.abs(out[:, 0]) <= half) & (np.abs(out[:, 1]) <= half)]
+    return out
+
+
+def scan_subset(points: np.ndarray, max_points: int | None, seed: Sequence[int]) -> np.ndarray:
+    """At most ``max_points`` rows of ``points``, a random subset in file order seeded by
+    ``seed`` (prepare seeds it with its seed and the scan index: the same whichever window
+    asks); ``points`` itself when it is small enough or ``max_points`` is None."""
+    if max_points is None or len(points) <= max_points:
+        return points
+    rng = np.random.default_rng(list(seed))
+    return points[np.sort(rng.choice(len(points), max_points, replace=False))]
+
+
+@dataclass
+class _Held:
+    """One scan a :class:`WindowAccumulator` holds: travelled distance, pose, points."""
+
+    distance: float
+    pose: np.ndarray
+    points: np.ndarray
+
+
+@dataclass
+class WindowAccumulator:
+    """The last ``window_m`` metres of a drive, scan by scan, as one cloud.
+
+    :meth:`add` each scan (sensor frame, metres) with its pose; :meth:`cloud` gives the scans of
+    the last ``window_m`` of travel laid together as ``pnvlad data prepare`` lays a submap's
+    (:func:`accumulate`), about the newest scan: in the world's axes (``frame="enu"``: with
+    poses in UTM, the axes of the map's submaps) or in the newest scan's own axes
+    (``frame="sensor"``: for odometry, whose frame is nobody's map). Scans less than
+    ``min_spacing_m`` from the last one kept replace it (a robot standing still holds one
+    scan, its newest); each keeps at most ``max_points_per_scan`` points within ``max_range_m``
+    (prepare's options, default none).
+    """
+
+    window_m: float = 20.0
+    min_spacing_m: float = 0.05
+    max_points_per_scan: int | None = None
+    max_range_m: float | None = None
+    frame: Literal["enu", "sensor"] = "sensor"
+    seed: int = 0
+    _held: deque[_Held] = field(default_factory=deque, init=False, repr=False)
+    _count: int = field(default=0, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.window_m) and self.window_m > 0):
+            raise InputError(
+                f"must be a positive number of metres, got {self.window_m}", "window_m"
+            )
+        if self.frame not in ("enu", "sensor"):
+            raise InputError(f"must be enu or sensor, got {self.frame!r}", "frame")
+
+    def add(self, points: np.ndarray, pose: np.ndarray) -> None:
+        """Take one scan float [N, 3+] (sensor frame, metres) at ``pose`` float64 [4, 4]."""
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (4, 4) or not np.isfinite(pose).all():
+            raise InputError(f"a pose must be a finite [4, 4] matrix, got {pose.shape}", "pose")
+        pts = np.asarray(points)[:, :3]
+        pts = pts[np.isfinite(pts).all(axis=1)].astype(np.float64)
+        if self.max_range_m is not None:
+            pts = pts[np.einsum("ij,ij->i", pts, pts) <= self.max_range_m**2]
+        pts = scan_subset(pts, self.max_points_per_scan, (self.seed, self._count))
+        self._count += 1
+        distance = 0.0
+        if self._held:
+            last = self._held[-1]
+            step = float(np.hypot(*(pose[:2, 3] - last.pose[:2, 3])))
+            distance = last.distance + step
+            if step < self.min_spacing_m:
+                self._held.pop()  # standing still: the newest scan stands for the place
+                distance = last.distance
+        self._held.append(_Held(distance, pose, pts))
+        while self._held[-1].distance - self._held[0].distance > self.window_m:
+            self._held.popleft()
+
+    def clear(self) -> None:
+        """Forget every scan (after a gap in the poses, say)."""
+        self._held.clear()
+
+    @property
+    def span_m(self) -> float:
+        """Metres of travel between the oldest and the newest scan held."""
+        return self._held[-1].distance - self._held[0].distance if self._held else 0.0
+
+    @property
+    def scans(self) -> int:
+        return len(self._held)
+
+    @property
+    def newest_pose(self) -> np.ndarray:
+        if not self._held:
+            raise InputError("no scan added yet", "window")
+        return self._held[-1].pose
+
+    def cloud(self) -> np.ndarray:
+        """float64 [M, 3]: the held scans laid into the newest scan's frame (see the class)."""
+        if not self._held:
+            raise InputError("no scan added yet", "window")
+        poses = np.stack([h.pose for h in self._held])
+        newest = poses[-1]
+        local = accumulate(
+            poses, [h.points for h in self._held], range(len(self._held)), newest[:3, 3]
+        )
+        if self.frame == "sensor":
+            local = local @ newest[:3, :3]  # rows: R^T p, the newest scan's axes
+        return local
