@@ -90,7 +90,30 @@ _LAYOUT = typer.Option(
 _KIND = typer.Option(
     "both",
     "--kind",
-    help="train, test or both (both layouts in one pass; each scan read once).",
+    help="train, test, keyframe, a comma list of them, both (train,test) or all "
+    "(train,test,keyframe); every kind in one pass, each scan read once. keyframe: one scan "
+    "every --keyframe-stride metres, whole, through G with a --scan-range crop: the map for "
+    "single-scan queries.",
+    rich_help_panel=_GEOMETRY,
+)
+_KEYFRAME_STRIDE = typer.Option(
+    None,
+    "--keyframe-stride",
+    help="Metres travelled between keyframes (default 5).",
+    rich_help_panel=_GEOMETRY,
+)
+_SCAN_RANGE = typer.Option(
+    None,
+    "--scan-range",
+    help="Metres from the sensor a keyframe keeps (default 50): single-scan queries to its "
+    "map are cropped alike.",
+    rich_help_panel=_GEOMETRY,
+)
+_RAW_SCANS = typer.Option(
+    False,
+    "--raw-scans",
+    help="Also keep the raw scan at each test submap (OUT/raw_scans/, KITTI .bin, with its "
+    "poses in raw_scans.csv): single-scan queries for pnvlad eval --queries scans.",
     rich_help_panel=_GEOMETRY,
 )
 _WINDOW = typer.Option(
@@ -209,9 +232,15 @@ def _kinds(
         raise InputError(
             "give one of --kitti SEQ_DIR, --scans DIR --poses CSV or --rosbag BAG", "--kitti"
         )
-    if kind not in ("train", "test", "both"):
-        raise InputError(f"expected train, test or both, got {kind!r}", "--kind")
-    return ("train", "test") if kind == "both" else (kind,)
+    aliases = {"both": "train,test", "all": "train,test,keyframe"}
+    kinds = tuple(dict.fromkeys(k.strip() for k in aliases.get(kind, kind).split(",")))
+    bad = [k for k in kinds if k not in ("train", "test", "keyframe")]
+    if bad or not kinds:
+        raise InputError(
+            f"expected train, test, keyframe, a comma list of them, both or all, got {kind!r}",
+            "--kind",
+        )
+    return kinds
 
 
 def _open_drive(
@@ -267,25 +296,34 @@ def _open_drive(
 
 
 def _strides(
-    kinds: tuple[str, ...], stride: float | None, test_stride: float | None
+    kinds: tuple[str, ...],
+    stride: float | None,
+    test_stride: float | None,
+    keyframe_stride: float | None = None,
 ) -> dict[str, float]:
-    """Kind -> stride: ``--stride`` for the first kind asked for, ``--test-stride`` for test."""
+    """Kind -> stride: ``--stride`` for the first submap kind asked for, ``--test-stride`` for
+    test, ``--keyframe-stride`` for keyframes."""
     from pnvlad_service.errors import InputError
 
-    if test_stride is not None and len(kinds) != 2:
+    submaps = [k for k in kinds if k != "keyframe"]
+    if test_stride is not None and submaps != ["train", "test"]:
         raise InputError("--test-stride goes with --kind both (else use --stride)", "--kind")
     strides: dict[str, float] = {}
-    if stride is not None:
-        strides[kinds[0]] = stride
+    if stride is not None and submaps:
+        strides[submaps[0]] = stride
     if test_stride is not None:
         strides["test"] = test_stride
+    if keyframe_stride is not None:
+        if "keyframe" not in kinds:
+            raise InputError("goes with --kind keyframe (or all)", "--keyframe-stride")
+        strides["keyframe"] = keyframe_stride
     return strides
 
 
 def _report(result: PrepareResult, scans: int) -> None:
     """One line per kind (submaps, written, kept, failed) and one on speed."""
     for res in result.layouts:
-        line = f"{res.kind:5s} {res.folder}: {res.submaps - res.failed} submaps"
+        line = f"{res.kind:8s} {res.folder}: {res.submaps - res.failed} submaps"
         extra = [f"{res.written} written"]
         if res.resumed:
             extra.append(f"{res.resumed} kept")
@@ -315,6 +353,9 @@ def prepare(
     out: Path = _OUT,
     layout: str = _LAYOUT,
     kind: str = _KIND,
+    keyframe_stride: float = _KEYFRAME_STRIDE,
+    scan_range: float = _SCAN_RANGE,
+    raw_scans: bool = _RAW_SCANS,
     window: float = _WINDOW,
     box: str = _BOX,
     stride: float = _STRIDE,
@@ -348,10 +389,13 @@ def prepare(
 
       pnvlad data prepare --rosbag drive.bag --cloud-topic /points --pose-topic /odom
       --origin 5735712.8,620084.4 --out bench/city/run1
+
+      pnvlad data prepare --kitti dataset/sequences/00 --kind all --raw-scans
+      --out bench/kitti/00   (a keyframe map and single-scan queries beside the submaps)
     """
     with user_errors():
         from pnvlad_service.data.prepare import prepare_drive
-        from pnvlad_service.data.preprocess import GConfig
+        from pnvlad_service.data.preprocess import GConfig, scan_config
         from pnvlad_service.errors import InputError
 
         if list_topics:
@@ -363,7 +407,14 @@ def prepare(
         if out is None:
             raise InputError("missing: the run folder to write", "--out")
         config = None if g_config is None else GConfig.from_file(g_config)
-        strides = _strides(kinds, stride, test_stride)
+        strides = _strides(kinds, stride, test_stride, keyframe_stride)
+        if scan_range is not None and not scan_range > 0:
+            raise InputError(
+                f"must be a positive number of metres, got {scan_range}", "--scan-range"
+            )
+        if scan_range is not None and "keyframe" not in kinds:
+            raise InputError("goes with --kind keyframe (or all)", "--scan-range")
+        keyframe_config = scan_config(config, scan_range) if scan_range else scan_config(config)
         if resume and overwrite:
             raise InputError("--resume and --overwrite exclude each other", "--resume")
         bag = {"rosbag": rosbag, "cloud_topic": cloud_topic, "pose_topic": pose_topic}
@@ -379,11 +430,13 @@ def prepare(
                 box_m=None if box is None else _parse_box(box),
                 strides_m=strides,
                 g_config=config,
+                keyframe_config=keyframe_config,
                 seed=seed,
                 max_points_per_scan=points_per_scan or None,
                 max_range_m=max_range,
                 scan_step=scan_step,
                 min_scan_spacing_m=min_spacing,
+                raw_scans=raw_scans,
                 resume=resume,
                 overwrite=overwrite,
             )
