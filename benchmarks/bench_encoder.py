@@ -27,13 +27,13 @@ import numpy as np
 import torch
 
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.factory import build_model
 from pnvlad_service.models.inference import (
     Encoder,
     bf16_supported,
     other_distances,
     top1_agreement,
 )
-from pnvlad_service.models.pointnetvlad import build_model
 
 REPO = Path(__file__).resolve().parents[1]
 

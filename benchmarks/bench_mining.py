@@ -35,7 +35,7 @@ def main() -> None:
     from pnvlad_service.data.dataset import load_eval_runs
     from pnvlad_service.evaluation.evaluate import evaluate_runs
     from pnvlad_service.models.embedding import module_embedder
-    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.factory import build_model
     from pnvlad_service.models.store import load_model
     from pnvlad_service.training.config import TrainConfig
     from pnvlad_service.training.train import train
