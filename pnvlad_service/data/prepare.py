@@ -35,6 +35,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from pnvlad_service.data.cuts import Cut
 from pnvlad_service.data.drives import Drive, check_drive, snap_m
 from pnvlad_service.data.frames import (
     SubmapFrame,
@@ -108,21 +109,6 @@ def spaced_scans(travelled: np.ndarray, min_spacing_m: float) -> np.ndarray:
             keep[i] = True
             last = value
     return keep
-
-
-@dataclass(frozen=True)
-class Cut:
-    """One submap position along the trajectory.
-
-    ``distance_m``: travelled distance of the window centre; ``scan``: index of the scan whose
-    travelled distance is nearest to it (ties: the earlier scan): it gives the submap's
-    timestamp and position; ``first``/``last``: the scans of the window (inclusive).
-    """
-
-    distance_m: float
-    scan: int
-    first: int
-    last: int
 
 
 def submap_cuts(travelled: np.ndarray, window_m: float, stride_m: float) -> list[Cut]:
