@@ -8,7 +8,7 @@ from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "pnvlad_service"
 
-#: The stages each stage may import (besides errors, fileio, extras and the package's __version__).
+#: The stages each stage may import (besides SHARED and the package's __version__).
 ALLOWED: dict[str, set[str]] = {
     "io": set(),
     "data": {"io"},
@@ -20,7 +20,7 @@ ALLOWED: dict[str, set[str]] = {
     "localization": {"io", "data", "models", "evaluation", "index"},
     "server": {"io", "localization"},
 }
-SHARED = {"errors", "fileio", "extras", "configs"}
+SHARED = {"errors", "fileio", "extras", "progress", "configs"}
 WEB = ("fastapi", "starlette", "uvicorn")
 
 

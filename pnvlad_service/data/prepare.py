@@ -542,7 +542,7 @@ def _make_submaps(
     ``drive``: (poses, timestamps, true poses or None). A target in ``known`` (resume) already
     on disk with the size of a whole submap is kept, with its recorded frame row.
     """
-    from tqdm.auto import tqdm
+    from pnvlad_service.progress import tqdm
 
     made = _Made()
     journals = {}

@@ -203,13 +203,13 @@ def rerank_pairs(
     the nearest database submaps by descriptor among those farther than this from it (every
     one a wrong answer, the hardest the descriptors offer), so the outcomes sample the
     confidences of queries from off the map."""
-    from tqdm.auto import tqdm
+    from pnvlad_service.progress import tqdm
 
     areas: dict[str, list[int]] = {}
     for k, r in enumerate(runs):
         areas.setdefault(r.area, []).append(k)
     total = sum(len(runs[j].query_paths) * (len(m) - 1) for m in areas.values() for j in m)
-    bar = tqdm(total=total, desc="re-rank", unit="query", disable=None if progress else True)
+    bar = tqdm(total=total, desc="re-rank", unit="query", disable=not progress)
     outcomes: list[QueryOutcome] = []
     pairs: list[tuple[int, int]] = []
     store = _Store(frames)
