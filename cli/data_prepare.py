@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import typer
 
 from pnvlad_cli import rosbag as bag_options
-from pnvlad_cli.common import user_errors
+from pnvlad_cli.common import progress_option, user_errors
 
 if TYPE_CHECKING:
     from pnvlad_service.data.drives import Drive
@@ -327,6 +327,7 @@ def prepare(
     min_spacing: float = _MIN_SPACING,
     resume: bool = _RESUME,
     overwrite: bool = _OVERWRITE,
+    progress: bool = progress_option(),
 ) -> None:
     """Cut a recorded drive into benchmark submaps (filter G) with their locations CSV.
 
@@ -386,6 +387,7 @@ def prepare(
                 min_scan_spacing_m=min_spacing,
                 resume=resume,
                 overwrite=overwrite,
+                progress=progress,
             )
         finally:
             getattr(drive, "close", lambda: None)()

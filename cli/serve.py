@@ -15,7 +15,7 @@ import typer
 
 from pnvlad_cli import replay as replay_options
 from pnvlad_cli import rosbag as bag_options
-from pnvlad_cli.common import model_option, user_errors
+from pnvlad_cli.common import model_option, progress_option, user_errors
 
 
 def serve(
@@ -263,6 +263,7 @@ def localize(
     out: Path = replay_options.OUT,
     map_bundle: Path = replay_options.MAP,
     plot: bool = replay_options.PLOT,
+    progress: bool = progress_option(),
 ) -> None:
     """Where was this scan taken? Print the nearest map places (UTM metres) as a table.
 
@@ -318,6 +319,7 @@ def localize(
                 map_bundle=map_bundle,
                 plot=plot,
                 top_n=top_n,
+                progress=progress,
             )
             return
         bag_options.check_unused(None, **bag)
