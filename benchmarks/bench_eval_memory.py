@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from entry import run
 
 
 def peak_rss_mib() -> float:
@@ -116,4 +117,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -17,6 +17,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from entry import run
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -83,4 +85,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

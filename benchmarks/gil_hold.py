@@ -14,6 +14,7 @@ import threading
 import time
 
 import numpy as np
+from entry import run
 
 
 def main() -> None:
@@ -51,4 +52,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from entry import run
 from scipy.spatial.transform import Rotation
 
 SCANS = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_scans"
@@ -85,4 +86,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run(main)
