@@ -1,5 +1,5 @@
-"""Learning curves of several `pnvlad train` runs on one figure (docs/TRAINING.md's recipe
-table): smoothed loss and validation recall@1 / recall@1% against wall-clock minutes.
+"""Learning curves of several `pnvlad train` runs on one figure (docs/results/training.md's
+recipe table): smoothed loss and validation recall@1 / recall@1% against wall-clock minutes.
 
     python benchmarks/plot_runs.py runs/a runs/b --names base augmented -o curves.png
 """

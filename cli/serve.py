@@ -82,7 +82,7 @@ def serve(
     # spin about 0.2 ms between the ~100 parallel regions of a forward pass instead of 300,000
     # iterations. The single cloud of an idle server keeps its speed, and under load the
     # spinning threads give the cores back to the cloud workers and the registration sooner
-    # (docs/SERVICE.md, "One OpenMP team"). A value the user set is kept. The verification
+    # (docs/SERVICE.md, "How a request runs"). A value the user set is kept. The verification
     # child drops the one set here (the marker says so) and lets its threads sleep instead.
     from pnvlad_service.localization.verify_process import SPINCOUNT_MARK  # no torch
 

@@ -68,7 +68,7 @@ OFF_MAP_M = 50.0
 #: The share of queries the threshold is chosen to expect whose place is not among their
 #: candidates (off the map, or missed by retrieval): an assumption about where the service
 #: runs, not a measurement. The training layout cannot measure it: a model knows its
-#: training places (run 29 of docs/TRAINING.md answered 0.8 % of them wrongly before
+#: training places (run 29 of docs/results/training.md answered 0.8 % of them wrongly before
 #: verification, the test queries 5.8 %; its recall@10 misses 2.1 % of the test queries).
 OFF_MAP_SHARE = 0.05
 
