@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from entry import run
 
 
 def read_submaps(root: Path, files: list[str]) -> np.ndarray:
@@ -97,4 +98,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

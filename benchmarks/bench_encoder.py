@@ -18,22 +18,22 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
+from entry import run
 
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.factory import build_model
 from pnvlad_service.models.inference import (
     Encoder,
     bf16_supported,
     other_distances,
     top1_agreement,
 )
-from pnvlad_service.models.pointnetvlad import build_model
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -299,4 +299,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from entry import run
 
 
 def peak_rss_mib() -> float:
@@ -84,8 +85,8 @@ def main() -> None:
     from pnvlad_service.data.dataset import load_eval_runs
     from pnvlad_service.evaluation.evaluate import evaluate_runs
     from pnvlad_service.models.config import ModelConfig
+    from pnvlad_service.models.factory import build_model
     from pnvlad_service.models.inference import Encoder
-    from pnvlad_service.models.pointnetvlad import build_model
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -116,4 +117,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from entry import run
 
 
 def unit(x: np.ndarray) -> np.ndarray:
@@ -318,4 +319,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -17,6 +17,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from entry import run
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -35,7 +37,7 @@ def main() -> None:
     from pnvlad_service.data.dataset import load_eval_runs
     from pnvlad_service.evaluation.evaluate import evaluate_runs
     from pnvlad_service.models.embedding import module_embedder
-    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.factory import build_model
     from pnvlad_service.models.store import load_model
     from pnvlad_service.training.config import TrainConfig
     from pnvlad_service.training.train import train
@@ -83,4 +85,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

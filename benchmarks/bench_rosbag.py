@@ -25,6 +25,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from entry import run
+
+from pnvlad_service.extras import require
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # tests.data.test_rosbag's bag builders
@@ -52,6 +55,7 @@ def main() -> None:
     parser.add_argument("--scans", type=Path, default=Path(default))
     parser.add_argument("--work", type=Path, default=None, help="scratch folder (default: tmp)")
     args = parser.parse_args()
+    require("rosbags", "rosbags", "rosbag", "Writing and reading ROS bags")
 
     from pnvlad_service.data.drives import KittiSequence
     from pnvlad_service.data.prepare import prepare_drive
@@ -136,4 +140,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -36,11 +36,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from entry import run
 from port_model import PortPNVLAD
 
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.factory import build_model
 from pnvlad_service.models.inference import bf16_supported
-from pnvlad_service.models.pointnetvlad import build_model
 from pnvlad_service.training.losses import lazy_quadruplet_loss
 
 CONFIGS = {"paper": ModelConfig.paper, "compact": ModelConfig.compact, "port-cfg": ModelConfig.port}
@@ -158,4 +159,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

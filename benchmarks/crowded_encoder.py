@@ -24,6 +24,7 @@ from pathlib import Path
 os.environ.setdefault("GOMP_SPINCOUNT", "20000")  # as `pnvlad serve` sets it, before torch
 
 import numpy as np
+from entry import run
 
 
 def verify_forever(index: str) -> None:
@@ -106,4 +107,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -18,10 +18,12 @@ from __future__ import annotations
 import argparse
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
+from entry import run
 from local_server import start_server
+
+from pnvlad_service.errors import MissingDependencyError
 
 
 def main() -> int:
@@ -34,9 +36,8 @@ def main() -> int:
     ap.add_argument("--exclude-checks", default="positive_data_acceptance")
     args = ap.parse_args()
     st = shutil.which("st") or shutil.which("schemathesis")
-    if st is None:
-        print("schemathesis is not installed: pip install schemathesis", file=sys.stderr)
-        return 2
+    if st is None:  # its command, not its module: it runs as a child process
+        raise MissingDependencyError("schemathesis", "fuzz", "Fuzzing the HTTP API")
     proc = None
     url = args.url
     if url is None:
@@ -70,4 +71,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run(main)

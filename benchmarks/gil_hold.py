@@ -1,8 +1,8 @@
 """Does small_gicp's binding release the GIL? A Python thread counts in a loop while the main
 thread runs ``small_gicp.preprocess_points`` (one OpenMP thread) on a large cloud; the
 counter's rate during the calls, over its idle rate, is the share of the time the GIL was free.
-Near 100 %: the binding releases it; near 0: it holds it (docs/VERIFY.md, "Where the
-re-ranking time went").
+Near 100 %: the binding releases it; near 0: it holds it (docs/results/verify.md,
+"the GIL, and verification in a child process").
 
     python benchmarks/gil_hold.py --points 200000
 """
@@ -14,6 +14,7 @@ import threading
 import time
 
 import numpy as np
+from entry import run
 
 
 def main() -> None:
@@ -51,4 +52,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -42,6 +42,7 @@ from pathlib import Path
 from urllib.parse import urlparse
 
 import numpy as np
+from entry import run
 from local_server import start_server
 
 from pnvlad_service.localization.client import LocalizeClient, ServerError
@@ -520,4 +521,4 @@ def rerank_targets(phases: list[dict]) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

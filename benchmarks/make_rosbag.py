@@ -19,6 +19,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from entry import run
+
+from pnvlad_service.extras import require
 
 
 def true_poses(drive) -> np.ndarray:
@@ -60,6 +63,7 @@ def main() -> None:
     parser.add_argument("--max-scans", type=int, default=0, help="only the first N (0: all)")
     parser.add_argument("--tf", action="store_true", help="also write the poses on /tf")
     args = parser.parse_args()
+    require("rosbags", "rosbags", "rosbag", "Writing ROS bags")  # before minutes of simulation
 
     from pnvlad_service.data.rosbag_write import write_drive_bag
     from pnvlad_service.synth.generate import get_preset, simulated_drive
@@ -100,4 +104,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -1,5 +1,5 @@
-"""Learning curves of several `pnvlad train` runs on one figure (docs/TRAINING.md's recipe
-table): smoothed loss and validation recall@1 / recall@1% against wall-clock minutes.
+"""Learning curves of several `pnvlad train` runs on one figure (docs/results/training.md's
+recipe table): smoothed loss and validation recall@1 / recall@1% against wall-clock minutes.
 
     python benchmarks/plot_runs.py runs/a runs/b --names base augmented -o curves.png
 """
@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from entry import run
 
 from pnvlad_service.training.curves import read_curve, write_learning_curves
 
@@ -27,4 +29,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

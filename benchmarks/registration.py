@@ -29,6 +29,8 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from entry import run
+
 from pnvlad_service.localization import registration as reg
 from tests.localization import submap_pairs as sp
 
@@ -247,4 +249,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run(main)

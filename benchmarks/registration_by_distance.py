@@ -30,6 +30,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from entry import run
+
 from pnvlad_service.data.dataset import load_eval_runs
 from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.localization import registration as reg
@@ -134,4 +136,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -8,7 +8,7 @@ time and the translation / rotation error of the estimate. Every variant converg
 3.58 m forward and 1.17 degrees of yaw, while the poses file says 4.29 m and 0.59 degrees: five
 independent methods agree with each other and not with the file, so the second scan is not
 frame 5 of those poses. The evidence and the test that checks what can be checked are in
-docs/VERIFY.md ("KITTI 00, frames 0 and 5").
+docs/results/verify.md ("KITTI 00, frames 0 and 5").
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from entry import run
 from scipy.spatial.transform import Rotation
 
 SCANS = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_scans"
@@ -85,4 +86,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run(main)

@@ -27,6 +27,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from entry import run
+
 from pnvlad_service.data.dataset import load_eval_runs
 from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.evaluation.evaluate import embed_runs, model_encoder
@@ -92,4 +94,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

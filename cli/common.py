@@ -66,6 +66,15 @@ def model_option(default: Any = None, help: str = "", panel: str | None = None) 
     )
 
 
+def progress_option() -> Any:
+    """``--progress/--no-progress`` (on by default), the same on every long command."""
+    return typer.Option(
+        True,
+        "--progress/--no-progress",
+        help="Show progress on stderr: a bar on a terminal, plain lines in a log.",
+    )
+
+
 def root_option(default: Any = None, panel: str | None = None) -> Any:
     """``-r/--root``: a benchmark tree."""
     return typer.Option(

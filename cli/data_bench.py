@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from pnvlad_cli.common import user_errors
+from pnvlad_cli.common import progress_option, user_errors
 
 if TYPE_CHECKING:
     from pnvlad_service.data.splits import Splits
@@ -22,6 +22,7 @@ def check(
         False, "--deep", help="Also read every .bin and check its values are finite, in [-1, 1]."
     ),
     max_problems: int = typer.Option(50, help="Problems listed at most (all are counted)."),
+    progress: bool = progress_option(),
 ) -> None:
     """Check a benchmark tree and print a summary.
 
@@ -39,7 +40,7 @@ def check(
     from pnvlad_service.data.tree import check_tree, format_report
 
     with user_errors():
-        report = check_tree(root, deep=deep, progress=True)
+        report = check_tree(root, deep=deep, progress=progress)
     typer.echo(format_report(report, max_problems=max_problems))
     if not report.ok:
         raise typer.Exit(code=1)
@@ -71,6 +72,7 @@ def splits(
         help="Use the runs the published scripts picked (Oxford: train on all sorted runs but "
         "the last, evaluate on 23 of them; in-house: evaluate entries 1-14). Default: all runs.",
     ),
+    progress: bool = progress_option(),
 ) -> None:
     """Build training tuples and evaluation sets by the published rules.
 
@@ -104,7 +106,7 @@ def splits(
         _summary(result)
         typer.echo(f"wrote {target}")
         if export_pickles:
-            for p in sp.export_pickles(result, export_pickles, progress=True):
+            for p in sp.export_pickles(result, export_pickles, progress=progress):
                 typer.echo(f"wrote {p}")
 
 
@@ -158,6 +160,7 @@ def import_pickles(
 def export_pickles(
     splits_file: Path = typer.Argument(..., help="Our splits JSON file."),
     out: Path = typer.Option(..., "--out", "-o", help="Folder for the pickles."),
+    progress: bool = progress_option(),
 ) -> None:
     """Write the published pickles from our splits file.
 
@@ -172,7 +175,7 @@ def export_pickles(
     from pnvlad_service.data import splits as sp
 
     with user_errors():
-        for p in sp.export_pickles(sp.load_splits(splits_file), out, progress=True):
+        for p in sp.export_pickles(sp.load_splits(splits_file), out, progress=progress):
             typer.echo(f"wrote {p}")
 
 

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import typer
 
 from pnvlad_cli import rosbag as bag_options
-from pnvlad_cli.common import user_errors
+from pnvlad_cli.common import progress_option, user_errors
 
 if TYPE_CHECKING:
     from pnvlad_service.data.drives import Drive
@@ -368,6 +368,7 @@ def prepare(
     min_spacing: float = _MIN_SPACING,
     resume: bool = _RESUME,
     overwrite: bool = _OVERWRITE,
+    progress: bool = progress_option(),
 ) -> None:
     """Cut a recorded drive into benchmark submaps (filter G) with their locations CSV.
 
@@ -439,6 +440,7 @@ def prepare(
                 raw_scans=raw_scans,
                 resume=resume,
                 overwrite=overwrite,
+                progress=progress,
             )
         finally:
             getattr(drive, "close", lambda: None)()

@@ -9,7 +9,14 @@ from pathlib import Path
 
 import typer
 
-from pnvlad_cli.common import model_option, pickles_option, root_option, splits_option, user_errors
+from pnvlad_cli.common import (
+    model_option,
+    pickles_option,
+    progress_option,
+    root_option,
+    splits_option,
+    user_errors,
+)
 
 _WHAT = "What to evaluate"
 _DATA = "Data"
@@ -139,7 +146,7 @@ def evaluate(
         "natively (AVX512-BF16 or AMX; refused elsewhere): the recall it would serve at.",
     ),
     workers: int = typer.Option(4, "--workers", help="Threads reading submaps."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+    progress: bool = progress_option(),
 ) -> None:
     """Evaluate place recognition as the PointNetVLAD benchmark does.
 

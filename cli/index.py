@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from pnvlad_cli.common import model_option, root_option, user_errors
+from pnvlad_cli.common import model_option, progress_option, root_option, user_errors
 
 if TYPE_CHECKING:
     from pnvlad_service.index.manifest import Manifest
@@ -100,6 +100,7 @@ def build(
     geometry: str = typer.Option(
         "auto", "--geometry", callback=_geometry_mode, help=_GEOMETRY_HELP
     ),
+    progress: bool = progress_option(),
 ) -> None:
     """Embed every database submap of a benchmark tree and write an index bundle.
 
@@ -129,6 +130,7 @@ def build(
             recall_sample=recall_sample,
             overwrite=overwrite,
             geometry=geometry,
+            progress=progress,
         )
     if rep.path is None:  # a non-zero torchrun rank
         return
@@ -161,6 +163,7 @@ def add(
         "without a frame sidecar); 'required': also refuse a bundle without geometry; 'off': "
         "drop the bundle's geometry.",
     ),
+    progress: bool = progress_option(),
 ) -> None:
     """Append new runs to a bundle.
 
@@ -183,6 +186,7 @@ def add(
             layout=layout,
             batch_size=batch_size,
             geometry=geometry,
+            progress=progress,
         )
     assert rep.manifest is not None
     typer.echo(

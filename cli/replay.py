@@ -123,6 +123,7 @@ def replay_rosbag(
     map_bundle: Path | None,
     plot: bool,
     top_n: int = 5,
+    progress: bool = True,
 ) -> None:
     """The whole replay: open the bag, ask, write OUT.csv and OUT.png, print the summary."""
     from pnvlad_service.data.rosbag import RosbagClouds
@@ -152,7 +153,7 @@ def replay_rosbag(
     try:
         map_ne = _map_positions(index if index is not None else map_bundle)
         with _service(url, index, model, api_key, top_n) as ask:
-            rows = replay(drive, ask, every=every)
+            rows = replay(drive, ask, every=every, progress=progress)
     finally:
         drive.close()
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ import typer
 
 from pnvlad_cli import replay as replay_options
 from pnvlad_cli import rosbag as bag_options
-from pnvlad_cli.common import model_option, user_errors
+from pnvlad_cli.common import model_option, progress_option, user_errors
 
 
 def serve(
@@ -82,7 +82,7 @@ def serve(
     # spin about 0.2 ms between the ~100 parallel regions of a forward pass instead of 300,000
     # iterations. The single cloud of an idle server keeps its speed, and under load the
     # spinning threads give the cores back to the cloud workers and the registration sooner
-    # (docs/SERVICE.md, "One OpenMP team"). A value the user set is kept. The verification
+    # (docs/SERVICE.md, "How a request runs"). A value the user set is kept. The verification
     # child drops the one set here (the marker says so) and lets its threads sleep instead.
     from pnvlad_service.localization.verify_process import SPINCOUNT_MARK  # no torch
 
@@ -263,6 +263,7 @@ def localize(
     out: Path = replay_options.OUT,
     map_bundle: Path = replay_options.MAP,
     plot: bool = replay_options.PLOT,
+    progress: bool = progress_option(),
 ) -> None:
     """Where was this scan taken? Print the nearest map places (UTM metres) as a table.
 
@@ -318,6 +319,7 @@ def localize(
                 map_bundle=map_bundle,
                 plot=plot,
                 top_n=top_n,
+                progress=progress,
             )
             return
         bag_options.check_unused(None, **bag)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from pnvlad_cli.common import user_errors
+from pnvlad_cli.common import progress_option, user_errors
 
 
 def synth(
@@ -41,7 +41,7 @@ def synth(
         "tree OUT (made by an older pnvlad, whose truth was the centre scan's) from its "
         "synth.json, in seconds. Give --trajectories if the tree was made with them.",
     ),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+    progress: bool = progress_option(),
 ) -> None:
     """Generate a synthetic LiDAR benchmark in the public PointNetVLAD layout.
 

@@ -6,7 +6,13 @@ from pathlib import Path
 
 import typer
 
-from pnvlad_cli.common import pickles_option, root_option, splits_option, user_errors
+from pnvlad_cli.common import (
+    pickles_option,
+    progress_option,
+    root_option,
+    splits_option,
+    user_errors,
+)
 
 _DATA = "Data"
 _RUN = "Run"
@@ -123,7 +129,7 @@ def train(
     workers: int = _WORKERS,
     assignments: list[str] = _SET,
     dump_config: bool = _DUMP,
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+    progress: bool = progress_option(),
 ) -> None:
     """Train PointNetVLAD on a benchmark tree and its splits.
 

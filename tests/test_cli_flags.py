@@ -39,3 +39,29 @@ def test_every_command_that_takes_a_model_says_model() -> None:
         for param in cmd.params:
             if "--checkpoint" in param.opts:
                 assert "--model" in param.opts and "-m" in param.opts, path
+
+
+#: The commands that draw progress bars (minutes on a big tree, a long drive or a bag).
+LONG = {
+    "pnvlad data check",
+    "pnvlad data splits",
+    "pnvlad data export-pickles",
+    "pnvlad data prepare",
+    "pnvlad synth",
+    "pnvlad train",
+    "pnvlad eval",
+    "pnvlad index build",
+    "pnvlad index add",
+    "pnvlad localize",
+}
+
+
+def test_every_long_command_takes_the_same_progress_switch() -> None:
+    switches = {}
+    for path, cmd in _commands(typer.main.get_command(app)):
+        for param in cmd.params:
+            if "--progress" in param.opts:
+                switches[path] = (*param.opts, *param.secondary_opts, param.default, param.help)
+    assert set(switches) == LONG
+    assert len(set(switches.values())) == 1
+    assert switches["pnvlad localize"][:3] == ("--progress", "--no-progress", True)

@@ -1,4 +1,5 @@
-"""The stages import one way (docs/ARCHITECTURE.md): a new import against the flow fails here."""
+"""The stages import one way (docs/ARCHITECTURE.md), and no module imports itself back through
+others, inside a stage or across: a new import against the flow fails here."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "pnvlad_service"
 
-#: The stages each stage may import (besides errors, fileio, extras and the package's __version__).
+#: The stages each stage may import (besides SHARED and the package's __version__).
 ALLOWED: dict[str, set[str]] = {
     "io": set(),
     "data": {"io"},
@@ -19,7 +20,7 @@ ALLOWED: dict[str, set[str]] = {
     "localization": {"io", "data", "models", "evaluation", "index"},
     "server": {"io", "localization"},
 }
-SHARED = {"errors", "fileio", "extras", "configs"}
+SHARED = {"errors", "fileio", "extras", "progress", "configs"}
 WEB = ("fastapi", "starlette", "uvicorn")
 
 
@@ -54,3 +55,89 @@ def test_stages_import_only_the_stages_before_them() -> None:
 def test_every_stage_is_listed() -> None:
     stages = {p.name for p in SRC.iterdir() if (p / "__init__.py").is_file()}
     assert stages == set(ALLOWED)
+
+
+def _module_name(path: Path, root: Path) -> str:
+    parts = path.relative_to(root.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_graph(root: Path) -> dict[str, set[str]]:
+    """Each module of the package at ``root`` -> the package's modules it imports, wherever the
+    import stands (top level, inside a function, under ``TYPE_CHECKING``). ``from p import x``
+    counts as importing the module ``p.x`` when there is one, else ``p``; relative imports are
+    resolved."""
+    paths = {_module_name(p, root): p for p in root.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for me, path in paths.items():
+        package = me if path.name == "__init__.py" else me.rpartition(".")[0]
+        names: list[str] = []
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names += [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    base = ".".join([*anchor, base] if base else anchor)
+                names += [
+                    f"{base}.{a.name}" if f"{base}.{a.name}" in paths else base for a in node.names
+                ]
+        graph[me] = {n for n in names if n in paths and n != me}
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every group of modules that import one another (strongly connected components of more
+    than one module), each sorted, the groups sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    groups: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan's algorithm
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                groups.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(groups)
+
+
+def test_no_module_imports_itself_back() -> None:
+    assert import_cycles(import_graph(SRC)) == []
+
+
+def test_the_cycle_check_sees_deferred_relative_and_type_checking_imports(tmp_path: Path) -> None:
+    pkg = tmp_path / "pkg"
+    (pkg / "stage").mkdir(parents=True)
+    files = {
+        "__init__.py": "",
+        "stage/__init__.py": "",
+        "stage/a.py": "from pkg.stage.b import f\n",
+        "stage/b.py": "def f():\n    from pkg.stage import a\n",  # back inside a function
+        "stage/c.py": "from . import d\n",
+        "stage/d.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .c import x\n",
+        "e.py": "import pkg.stage.a\nfrom pkg import __version__\n",  # one way: no cycle
+    }
+    for name, text in files.items():
+        (pkg / name).write_text(text)
+    graph = import_graph(pkg)
+    assert graph["pkg.e"] == {"pkg.stage.a", "pkg"}
+    assert import_cycles(graph) == [["pkg.stage.a", "pkg.stage.b"], ["pkg.stage.c", "pkg.stage.d"]]

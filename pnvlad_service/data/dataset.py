@@ -183,7 +183,7 @@ def load_clouds(
 def _run_parallel(
     fn: Callable[[int], None], n: int, workers: int, progress: bool, desc: str
 ) -> None:
-    from tqdm import tqdm
+    from pnvlad_service.progress import tqdm
 
     bar = tqdm(total=n, desc=desc, unit="submap", disable=not progress, leave=False)
     try:

@@ -45,6 +45,7 @@ from pnvlad_service.data.accumulate import (
     spaced_scans,
     travelled_distance,
 )
+from pnvlad_service.data.cuts import Cut
 from pnvlad_service.data.drives import Drive, check_drive, snap_m
 from pnvlad_service.data.frames import (
     SubmapFrame,
@@ -102,19 +103,6 @@ GEOMETRY: dict[tuple[str, str], Geometry] = {
 # Cutting a trajectory into submaps
 
 
-@dataclass(frozen=True)
-class Cut:
-    """One submap position along the trajectory.
-
-    ``distance_m``: travelled distance of the window centre; ``scan``: index of the scan whose
-    travelled distance is nearest to it (ties: the earlier scan): it gives the submap's
-    timestamp and position; ``first``/``last``: the scans of the window (inclusive).
-    """
-
-    distance_m: float
-    scan: int
-    first: int
-    last: int
 
 
 def submap_cuts(travelled: np.ndarray, window_m: float, stride_m: float) -> list[Cut]:
@@ -558,7 +546,7 @@ def _make_submaps(
     ``drive``: (poses, timestamps, true poses or None). A target in ``known`` (resume) already
     on disk with the size of a whole submap is kept, with its recorded frame row.
     """
-    from tqdm.auto import tqdm
+    from pnvlad_service.progress import tqdm
 
     made = _Made()
     journals = {}

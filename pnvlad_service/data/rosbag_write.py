@@ -234,12 +234,10 @@ def write_drive_bag(
     if truth is not None:
         truth = np.asarray(truth, dtype=np.float64).copy()
         truth[:, :3, 3] -= shift
-    from tqdm.auto import tqdm
+    from pnvlad_service.progress import tqdm
 
     with BagWriter(path, ros=ros, storage=storage) as bag:
-        for i in tqdm(
-            range(len(drive)), desc="bag", unit="scan", disable=None if progress else True
-        ):
+        for i in tqdm(range(len(drive)), desc="bag", unit="scan", disable=not progress):
             ns = int(drive.timestamps[i]) * 1000
             pts = np.asarray(drive.scan(i), dtype=np.float32)
             bag.write(cloud_topic, pointcloud2(bag.types, pts, ns, frame_id), ns)

@@ -497,7 +497,7 @@ def check_tree(root: str | Path, *, deep: bool = False, progress: bool = False) 
             checker.add(tree.root / d, "empty dataset: no run folders")
     jobs: Iterable[tuple[str, str]] = [(d, r) for d in datasets for r in tree.runs(d)]
     if progress:
-        from tqdm import tqdm
+        from pnvlad_service.progress import tqdm
 
         jobs = tqdm(jobs, desc="check", unit="run")
     for d, r in jobs:

@@ -263,7 +263,7 @@ def recall_at_n(
     skipped: list[tuple[int, int]] = []
     runs = range(len(query_desc))
     if progress:
-        from tqdm import tqdm
+        from pnvlad_service.progress import tqdm
 
         runs = tqdm(runs, desc="recall", unit="query run")
     for j in runs:

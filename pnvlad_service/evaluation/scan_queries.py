@@ -176,7 +176,7 @@ def preprocess_queries(
     """The runs with each query scan replaced by its G output (a 4096-point submap file under
     ``out_dir``), G run in ``workers`` processes (default: the CPUs); G's centre and scale of
     each go to ``qs.g_frames`` (for :func:`query_frames`)."""
-    from tqdm.auto import tqdm
+    from pnvlad_service.progress import tqdm
 
     out_dir = Path(out_dir)
     cfg = qs.g_config.model_dump(mode="json")

@@ -87,7 +87,7 @@ def replay(
     """
     if every < 1:
         raise InputError(f"must be >= 1, got {every}", "every")
-    from tqdm.auto import tqdm
+    from pnvlad_service.progress import tqdm
 
     stamps = np.asarray(drive.timestamps, dtype=np.int64)
     if len(stamps) == 0:

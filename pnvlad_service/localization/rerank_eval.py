@@ -68,7 +68,7 @@ OFF_MAP_M = 50.0
 #: The share of queries the threshold is chosen to expect whose place is not among their
 #: candidates (off the map, or missed by retrieval): an assumption about where the service
 #: runs, not a measurement. The training layout cannot measure it: a model knows its
-#: training places (run 29 of docs/TRAINING.md answered 0.8 % of them wrongly before
+#: training places (run 29 of docs/results/training.md answered 0.8 % of them wrongly before
 #: verification, the test queries 5.8 %; its recall@10 misses 2.1 % of the test queries).
 OFF_MAP_SHARE = 0.05
 
@@ -203,13 +203,13 @@ def rerank_pairs(
     the nearest database submaps by descriptor among those farther than this from it (every
     one a wrong answer, the hardest the descriptors offer), so the outcomes sample the
     confidences of queries from off the map."""
-    from tqdm.auto import tqdm
+    from pnvlad_service.progress import tqdm
 
     areas: dict[str, list[int]] = {}
     for k, r in enumerate(runs):
         areas.setdefault(r.area, []).append(k)
     total = sum(len(runs[j].query_paths) * (len(m) - 1) for m in areas.values() for j in m)
-    bar = tqdm(total=total, desc="re-rank", unit="query", disable=None if progress else True)
+    bar = tqdm(total=total, desc="re-rank", unit="query", disable=not progress)
     outcomes: list[QueryOutcome] = []
     pairs: list[tuple[int, int]] = []
     store = _Store(frames)

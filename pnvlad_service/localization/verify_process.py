@@ -6,7 +6,7 @@ of its idle rate). In the server's process a registration therefore stops every 
 thread for milliseconds at a time: the micro-batcher's lanes between the encoder's operators,
 the event loop parsing the next requests. Under load the cores then wait on the lock rather
 than work. A child process has a GIL of its own: it registers while the parent embeds and
-answers (docs/VERIFY.md, "Where the re-ranking time went").
+answers (docs/VERIFY.md, "In the server").
 
 :class:`VerifyProcess` starts one child (``spawn``: nothing of the parent's torch or OpenMP
 state is inherited) that maps the bundle's geometry itself, read-only, and keeps its own

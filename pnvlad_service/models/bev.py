@@ -6,9 +6,9 @@ runs 1-27). Here the points are first counted into an image of ``bev_grid`` x ``
 over x, y in [-1, 1] with ``bev_height_bins`` channels (one height slice of ``bev_z_range`` each,
 log(1 + count) per cell), so neighbouring structure is next to each other before any layer runs;
 3x3 convolutions (batch norm, ReLU) turn it into a ``bev_cells`` x ``bev_cells`` map of
-``bev_feature_dim`` features, and the NetVLAD head of :mod:`.pointnetvlad` (soft assignment to K
+``bev_feature_dim`` features, and PN_VLAD's NetVLAD head (:mod:`.netvlad`: soft assignment to K
 clusters, residual sums, normalisations, fully connected layer, context gating) pools its cells
-as it pools points. The submaps keep the world's axes (x east, y north), so no rotation
+as PN_VLAD pools points. The submaps keep the world's axes (x east, y north), so no rotation
 invariance is needed; a translation moves the image and NetVLAD's sums do not see where a
 feature is.
 
@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pnvlad_service.models.config import ModelConfig
-from pnvlad_service.models.pointnetvlad import NetVLAD
+from pnvlad_service.models.netvlad import NetVLAD
 
 
 def bev_image(points: torch.Tensor, cfg: ModelConfig) -> torch.Tensor:

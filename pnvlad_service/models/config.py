@@ -222,7 +222,7 @@ class ModelConfig(BaseModel):
         """bev-netvlad (models/bev.py): the points counted into a 128 x 128 x 8 bird's-eye image,
         six 3x3 convolutions (32, 32, 64, 64, 128, 128 channels, the first, third and fifth of
         stride 2), a 1x1 to 256, NetVLAD with K = 16 over the 16 x 16 cells, output 256. About
-        0.34 GFLOP a cloud, for any number of points (docs/TRAINING.md, run 29)."""
+        0.34 GFLOP a cloud, for any number of points (docs/results/training.md, run 29)."""
         base: dict[str, object] = {"arch": "bev-netvlad", "cluster_size": 16}
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]

@@ -44,7 +44,7 @@ def embed_in_chunks(
     ``load(start, stop)`` returns the clouds float32 [stop - start, N, 3]; memory holds one
     chunk of clouds and the descriptors, never all the clouds. ``count == 0`` gives [0, 0].
     """
-    from tqdm import tqdm
+    from pnvlad_service.progress import tqdm
 
     out: np.ndarray | None = None
     with tqdm(total=count, desc=desc, unit="cloud", disable=not progress) as bar:

@@ -65,8 +65,8 @@ BF16_MIN_AGREEMENT = 0.99
 # throttles the spinning its threads do between regions to about 100 iterations, and each of
 # the ~100 parallel regions of a forward pass then waits for a futex wake-up instead: the
 # paper model's batch-1 embedding took 33-38 ms against 24-25 on the same 2 cores
-# (docs/SERVICE.md, "One OpenMP team"). So all of the Encoder's multi-threaded work - loading
-# and folding the weights, single clouds, the head - runs on this thread, whichever thread
+# (docs/results/service.md, "one OpenMP team"). So all of the Encoder's multi-threaded work -
+# loading and folding the weights, single clouds, the head - runs on this thread, whichever thread
 # calls; the cloud workers run on one intra-op thread each, which opens no team (and take the
 # head too while the encoder is crowded: Encoder._forward).
 _torch_thread: ThreadPoolExecutor | None = None
@@ -329,7 +329,7 @@ class Encoder:
                 alone = False
             # Crowded, the head (and bev-netvlad's whole module) goes to a cloud worker too: on
             # all threads, its parallel regions each wait at a barrier for the thread that has
-            # no core (docs/SERVICE.md, "A crowded encoder").
+            # no core (docs/SERVICE.md, "How a request runs").
             if self._module is not None:
                 fn, args = self._module_forward, (x, q)
             else:
@@ -399,7 +399,7 @@ class Encoder:
         ``crowded_by`` says other work holds the cores), when every cloud goes to the workers:
         a team of threads of which one waits for a busy core spends its time at the barriers
         of the forward pass's ~100 parallel regions (one paper cloud beside a busy core: 93 ms
-        on all threads, 52 ms on a worker; docs/SERVICE.md, "A crowded encoder").
+        on all threads, 52 ms on a worker; docs/results/service.md, "a crowded encoder").
         """
         b = x.shape[0]
         pool = self._worker_pool() if self.device.type == "cpu" and (b > 1 or not alone) else None

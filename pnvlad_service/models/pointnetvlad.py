@@ -11,16 +11,15 @@ Parameter names (the layout ``model.safetensors`` stores):
 - ``input_tnet.*`` / ``feature_tnet.*`` (:class:`TransformNet`): ``points.{i}`` Linear,
   ``points_bn.{i}``, ``fcs.{i}`` Linear, ``fcs_bn.{i}``, ``out`` Linear to k*k (identity added).
 - ``stem.{i}`` / ``stem_bn.{i}`` and ``trunk.{i}`` / ``trunk_bn.{i}``: per-point Linear layers.
-- PN_VLAD ``pool.*`` (:class:`NetVLAD`): ``cluster_weights`` [D, K], ``cluster_bn`` (or
-  ``cluster_biases`` [K]), ``centers`` [D, K], ``fc.weight`` [out, D*K] over the residuals
-  flattened feature-major (index d*K + k, as both published codes), ``fc_bn`` (or ``fc.bias``),
-  ``gating.gate.weight`` [out, out], ``gating.gate_bn`` (or ``gating.gate.bias``).
-- PN_MAX ``pool.fc`` Linear(D, out) and ``pool.gating.*`` as above.
+- PN_VLAD ``pool.*``: the NetVLAD head (:class:`~.netvlad.NetVLAD`, whose docstring lists its
+  parameters).
+- PN_MAX ``pool.fc`` Linear(D, out) and ``pool.gating.*`` as NetVLAD's.
+
+The forward pass is :func:`fast_forward`, built from :mod:`.training_path`'s fused operations;
+:meth:`PointNetVLAD.reference_forward` is the same computation layer by layer.
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 import torch.nn.functional as F
@@ -28,6 +27,14 @@ from torch import nn
 
 from pnvlad_service.models.config import ModelConfig
 from pnvlad_service.models.local_shape import split_inputs
+from pnvlad_service.models.netvlad import ContextGating, NetVLAD
+from pnvlad_service.models.training_path import (
+    affine_netvlad_forward,
+    folded_linear,
+    lin_act,
+    linear_bn_max,
+    netvlad_forward,
+)
 
 
 class TransformNet(nn.Module):
@@ -72,62 +79,6 @@ class TransformNet(nn.Module):
             h = F.relu(bn(lin(h)))
         t = self.out(h) + self.identity
         return t.reshape(b, self.k, self.k)
-
-
-class ContextGating(nn.Module):
-    """``x * sigmoid(BN(x @ W))`` (or ``x @ W + b`` without batch norm); x float32 [B, C]."""
-
-    def __init__(self, dim: int, bn: bool) -> None:
-        super().__init__()
-        self.gate = nn.Linear(dim, dim, bias=not bn)
-        nn.init.normal_(self.gate.weight, std=1.0 / math.sqrt(dim))
-        if not bn:
-            nn.init.normal_(self.gate.bias, std=1.0 / math.sqrt(dim))
-        self.gate_bn = nn.BatchNorm1d(dim) if bn else nn.Identity()
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x * torch.sigmoid(self.gate_bn(self.gate(x)))
-
-
-class NetVLAD(nn.Module):
-    """NetVLAD pooling with K learned clusters, a fully connected layer and context gating.
-
-    ``forward(x float32 [B, N, D]) -> float32 [B, out]`` (not yet L2-normalised):
-    soft assignment ``a = softmax(BN(x @ cluster_weights))`` [B, N, K]; residual sums
-    ``v[d, k] = sum_n a[n, k] * (x[n, d] - centers[d, k])``; intra-normalisation (L2 over d for
-    every cluster k); L2 over the whole D*K vector (flattened d-major); ``fc``; batch norm;
-    context gating.
-    """
-
-    def __init__(self, dim: int, clusters: int, out: int, bn: bool, gating: bool) -> None:
-        super().__init__()
-        self.dim, self.clusters, self.bn = dim, clusters, bn
-        std = 1.0 / math.sqrt(dim)
-        self.cluster_weights = nn.Parameter(torch.randn(dim, clusters) * std)
-        if bn:
-            self.cluster_bn = nn.BatchNorm1d(clusters)
-        else:
-            self.cluster_biases = nn.Parameter(torch.randn(clusters) * std)
-        self.centers = nn.Parameter(torch.randn(dim, clusters) * std)
-        self.fc = nn.Linear(dim * clusters, out, bias=not bn)
-        nn.init.normal_(self.fc.weight, std=1.0 / math.sqrt(clusters))
-        if not bn:
-            nn.init.zeros_(self.fc.bias)
-        self.fc_bn = nn.BatchNorm1d(out) if bn else nn.Identity()
-        self.gating = ContextGating(out, bn) if gating else None
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        b, n, d = x.shape
-        logits = x.reshape(b * n, d) @ self.cluster_weights
-        logits = self.cluster_bn(logits) if self.bn else logits + self.cluster_biases
-        a = torch.softmax(logits, dim=-1).reshape(b, n, self.clusters)
-        # [b, K, N] x [b, N, D]: x is used as stored (no copy), the small result is transposed.
-        vlad = torch.bmm(a.transpose(1, 2), x).transpose(1, 2)
-        vlad = vlad - a.sum(dim=1, keepdim=True) * self.centers  # [b, D, K]
-        vlad = F.normalize(vlad, dim=1)  # intra-normalisation
-        vlad = F.normalize(vlad.reshape(b, d * self.clusters), dim=1)
-        y = self.fc_bn(self.fc(vlad))
-        return self.gating(y) if self.gating is not None else y
 
 
 class MaxPoolHead(nn.Module):
@@ -219,21 +170,75 @@ class PointNetVLAD(nn.Module):
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         if not self.fast_path:
             return self.reference_forward(points)
-        from pnvlad_service.models.training_path import fast_forward
-
         return fast_forward(self, points)
 
     def reference_forward(self, points: torch.Tensor) -> torch.Tensor:
         """The forward pass layer by layer through the modules (what :meth:`forward` computes
-        faster, see ``training_path.py``; kept as its reference and for comparisons)."""
+        faster, :func:`fast_forward`; kept as its reference and for comparisons)."""
         return F.normalize(self.pool(self.point_features(points)), dim=1)
 
 
-def build_model(cfg: ModelConfig) -> nn.Module:
-    """A freshly initialised encoder for ``cfg`` (in training mode, float32, on the CPU): a
-    :class:`PointNetVLAD`, or for ``arch`` 'bev-netvlad' a :class:`.bev.BEVNetVLAD`."""
-    if cfg.arch == "bev-netvlad":
-        from pnvlad_service.models.bev import BEVNetVLAD
+def _tnet(net: TransformNet, x: torch.Tensor) -> torch.Tensor:
+    """The transform net's k x k matrix [B, k, k] of x [B, N, C] (reference
+    ``TransformNet.forward``)."""
+    b, n, c = x.shape
+    h = x.reshape(b * n, c)
+    last = len(net.points) - 1
+    for lin, bn in zip(list(net.points)[:last], list(net.points_bn)[:last], strict=True):
+        h = lin_act(lin, bn, h, True)
+    g = linear_bn_max(net.points[last], net.points_bn[last], h.reshape(b, n, -1), relu=True)
+    for lin, bn in zip(net.fcs, net.fcs_bn, strict=True):
+        g = F.relu(bn(lin(g)))
+    return (net.out(g) + net.identity).reshape(b, net.k, net.k)
 
-        return BEVNetVLAD(cfg)
-    return PointNetVLAD(cfg)
+
+def fast_forward(model: PointNetVLAD, points: torch.Tensor) -> torch.Tensor:
+    """``model(points)`` computed the fast way: points [B, N, 3] -> [B, out], unit rows."""
+    cfg = model.cfg
+    xyz, shape = split_inputs(points, cfg.local_k)
+    b, n, _ = xyz.shape
+    h = xyz.reshape(b * n, 3)
+    pending: torch.Tensor | None = None  # a transform to fold into the next per-point layer
+    if model.input_tnet is not None:
+        pending = _tnet(model.input_tnet, xyz)
+    if shape is not None:  # the transform turns x, y, z only: apply it, then append the rest
+        x = xyz if pending is None else torch.bmm(xyz, pending)
+        h = torch.cat([x, shape], dim=2).reshape(b * n, -1)
+        pending = None
+    layers = [(lin, bn, True) for lin, bn in zip(model.stem, model.stem_bn, strict=True)]
+    feat_at = len(layers)
+    last = len(model.trunk) - 1
+    layers += [
+        (lin, bn, i < last or cfg.last_relu)
+        for i, (lin, bn) in enumerate(zip(model.trunk, model.trunk_bn, strict=True))
+    ]
+    vlad = isinstance(model.pool, NetVLAD)
+    for i, (lin, bn, relu) in enumerate(layers):
+        if i == feat_at and model.feature_tnet is not None:
+            if pending is not None:  # no stem layer took the input transform
+                h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
+            pending = _tnet(model.feature_tnet, h.reshape(b, n, -1))
+        if i == len(layers) - 1 and vlad and not relu and not cfg.point_l2_norm:
+            if pending is not None:
+                h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
+            assert isinstance(model.pool, NetVLAD)
+            return F.normalize(affine_netvlad_forward(model.pool, lin, bn, h, b, n), dim=1)
+        if i == len(layers) - 1 and not vlad:
+            src = h if pending is None else torch.bmm(h.reshape(b, n, -1), pending)
+            g = linear_bn_max(lin, bn, src.reshape(b, n, -1), relu)
+            y = model.pool.fc(g)
+            gating = model.pool.gating
+            return F.normalize(gating(y) if gating is not None else y, dim=1)
+        if pending is not None:
+            z = bn(folded_linear(lin, pending, h, b, n))
+            h = z.relu_() if relu else z
+            pending = None
+        else:
+            h = lin_act(lin, bn, h, relu)
+    if pending is not None:  # a transform after the last layer (not a shipped configuration)
+        h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
+    assert isinstance(model.pool, NetVLAD)
+    inv = None
+    if cfg.point_l2_norm:
+        inv = 1.0 / torch.linalg.vector_norm(h, dim=1, keepdim=True).clamp_min(1e-12)
+    return F.normalize(netvlad_forward(model.pool, h, inv, b, n), dim=1)

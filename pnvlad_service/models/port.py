@@ -169,7 +169,7 @@ def convert_port_state(
     """
     import torch
 
-    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.factory import build_model
 
     kmap = port_key_map(cfg.feature_transform)
     ours = build_model(cfg).state_dict()
@@ -223,7 +223,7 @@ def import_port(
     Returns (out_dir, config). ``model.json`` records the source file's name and SHA-256 and the
     checkpoint's epoch/iteration when present.
     """
-    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.factory import build_model
     from pnvlad_service.models.store import save_model
 
     path = Path(path)

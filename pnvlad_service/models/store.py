@@ -195,7 +195,7 @@ def load_model(
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.factory import build_model
 
     directory = Path(directory)
     cfg, doc = read_model_json(directory)

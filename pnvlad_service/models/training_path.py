@@ -1,7 +1,9 @@
-"""The fast forward pass of :class:`~pnvlad_service.models.pointnetvlad.PointNetVLAD` (training
-and eval mode, with autograd), numerically the modules' own forward (``reference_forward``).
+"""The fused operations of :class:`~pnvlad_service.models.pointnetvlad.PointNetVLAD`'s fast
+forward pass (``pointnetvlad.fast_forward``: training and eval mode, with autograd), numerically
+the modules' own forward (``reference_forward``). They take layers and the NetVLAD head as
+arguments and know nothing of the encoder that composes them.
 
-What it does differently from the layer-by-layer reference:
+What the fast pass does differently from the layer-by-layer reference:
 
 - **Max-pooled layers** (the last per-point layer of each transform net, and of PN_MAX's trunk)
   never materialise their [B*N, C_out] output for autograd. ``BN(x W + b)`` followed by ReLU
@@ -19,7 +21,8 @@ What it does differently from the layer-by-layer reference:
   added input (``baddbmm``), never a [B, N, K, D] tensor.
 - **An affine last layer** (the port's configuration: no ReLU after it, no per-point
   normalisation) never forms its [B*N, D] output: NetVLAD's logits and residual sums are taken
-  from its C-wide input (``_affine_netvlad``); the encoder does the same (``inference.py``).
+  from its C-wide input (``affine_netvlad_forward``); the encoder does the same
+  (``inference.py``).
 - **ReLU in place** where autograd allows it (after batch norm and after a product).
 - **Transforms folded**: ``(x T) W`` as ``x (T W)`` per cloud for the layer after each
   transform (one [C, C] product instead of a pass over every point).
@@ -27,14 +30,13 @@ What it does differently from the layer-by-layer reference:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-if TYPE_CHECKING:
-    from pnvlad_service.models.pointnetvlad import NetVLAD, PointNetVLAD, TransformNet
+from pnvlad_service.models.netvlad import NetVLAD
 
 
 class LinearMax(torch.autograd.Function):
@@ -137,7 +139,7 @@ def linear_bn_max(lin: nn.Linear, bn: nn.Module, x: torch.Tensor, relu: bool) ->
     return LinearMax.apply(x, w, t, relu)
 
 
-def _lin_act(lin: nn.Linear, bn: nn.Module, h: torch.Tensor, relu: bool) -> torch.Tensor:
+def lin_act(lin: nn.Linear, bn: nn.Module, h: torch.Tensor, relu: bool) -> torch.Tensor:
     """``act(bn(lin(h)))`` on [M, C] rows, ReLU in place. (Folding the batch norm here too, with
     statistics from the input covariance, made the narrow layers slower: the float64 [C, C]
     covariance costs as much as the layer itself when C_out is no wider than C_in.)"""
@@ -145,29 +147,13 @@ def _lin_act(lin: nn.Linear, bn: nn.Module, h: torch.Tensor, relu: bool) -> torc
     return z.relu_() if relu else z
 
 
-def _folded_linear(
-    lin: nn.Linear, t: torch.Tensor, h: torch.Tensor, b: int, n: int
-) -> torch.Tensor:
+def folded_linear(lin: nn.Linear, t: torch.Tensor, h: torch.Tensor, b: int, n: int) -> torch.Tensor:
     """``lin(h @ T)`` as ``h @ (T W^T) + bias`` per cloud: h [B*N, C], t [B, C, C] -> [B*N, O]."""
     wt = torch.matmul(t, lin.weight.t())  # [B, C, O]
     out = torch.baddbmm(lin.bias, h.reshape(b, n, -1), wt) if lin.bias is not None else None
     if out is None:
         out = torch.bmm(h.reshape(b, n, -1), wt)
     return out.reshape(b * n, -1)
-
-
-def _tnet(net: TransformNet, x: torch.Tensor) -> torch.Tensor:
-    """The transform net's k x k matrix [B, k, k] of x [B, N, C] (reference
-    ``TransformNet.forward``)."""
-    b, n, c = x.shape
-    h = x.reshape(b * n, c)
-    last = len(net.points) - 1
-    for lin, bn in zip(list(net.points)[:last], list(net.points_bn)[:last], strict=True):
-        h = _lin_act(lin, bn, h, True)
-    g = linear_bn_max(net.points[last], net.points_bn[last], h.reshape(b, n, -1), relu=True)
-    for lin, bn in zip(net.fcs, net.fcs_bn, strict=True):
-        g = F.relu(bn(lin(g)))
-    return (net.out(g) + net.identity).reshape(b, net.k, net.k)
 
 
 def _vlad_head(pool: NetVLAD, vlad: torch.Tensor) -> torch.Tensor:
@@ -180,7 +166,7 @@ def _vlad_head(pool: NetVLAD, vlad: torch.Tensor) -> torch.Tensor:
     return pool.gating(y) if pool.gating is not None else y
 
 
-def _netvlad(pool: NetVLAD, h: torch.Tensor, inv: torch.Tensor | None, b: int, n: int):
+def netvlad_forward(pool: NetVLAD, h: torch.Tensor, inv: torch.Tensor | None, b: int, n: int):
     """NetVLAD of features h [B*N, D], each row to be scaled by ``inv`` [B*N, 1] (the per-point
     L2 normalisation, folded) or not (None) -> [B, out] (reference ``NetVLAD.forward``)."""
     d, k = pool.dim, pool.clusters
@@ -196,7 +182,7 @@ def _netvlad(pool: NetVLAD, h: torch.Tensor, inv: torch.Tensor | None, b: int, n
     return _vlad_head(pool, vlad)
 
 
-def _affine_netvlad(
+def affine_netvlad_forward(
     pool: NetVLAD, lin: nn.Linear, bn: nn.Module, x: torch.Tensor, b: int, n: int
 ) -> torch.Tensor:
     """NetVLAD of ``h = bn(lin(x))`` for x [B*N, C] when nothing non-linear comes between the
@@ -218,58 +204,3 @@ def _affine_netvlad(
     shift = a.sum(1).unsqueeze(2) * (t.unsqueeze(1) - pool.centers).t()  # [B, K, D]
     vlad = torch.baddbmm(shift, ax, w.expand(b, c, d))
     return _vlad_head(pool, vlad)
-
-
-def fast_forward(model: PointNetVLAD, points: torch.Tensor) -> torch.Tensor:
-    """``model(points)`` computed the fast way: points [B, N, 3] -> [B, out], unit rows."""
-    from pnvlad_service.models.local_shape import split_inputs
-    from pnvlad_service.models.pointnetvlad import NetVLAD
-
-    cfg = model.cfg
-    xyz, shape = split_inputs(points, cfg.local_k)
-    b, n, _ = xyz.shape
-    h = xyz.reshape(b * n, 3)
-    pending: torch.Tensor | None = None  # a transform to fold into the next per-point layer
-    if model.input_tnet is not None:
-        pending = _tnet(model.input_tnet, xyz)
-    if shape is not None:  # the transform turns x, y, z only: apply it, then append the rest
-        x = xyz if pending is None else torch.bmm(xyz, pending)
-        h = torch.cat([x, shape], dim=2).reshape(b * n, -1)
-        pending = None
-    layers = [(lin, bn, True) for lin, bn in zip(model.stem, model.stem_bn, strict=True)]
-    feat_at = len(layers)
-    last = len(model.trunk) - 1
-    layers += [
-        (lin, bn, i < last or cfg.last_relu)
-        for i, (lin, bn) in enumerate(zip(model.trunk, model.trunk_bn, strict=True))
-    ]
-    vlad = isinstance(model.pool, NetVLAD)
-    for i, (lin, bn, relu) in enumerate(layers):
-        if i == feat_at and model.feature_tnet is not None:
-            if pending is not None:  # no stem layer took the input transform
-                h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
-            pending = _tnet(model.feature_tnet, h.reshape(b, n, -1))
-        if i == len(layers) - 1 and vlad and not relu and not cfg.point_l2_norm:
-            if pending is not None:
-                h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
-            assert isinstance(model.pool, NetVLAD)
-            return F.normalize(_affine_netvlad(model.pool, lin, bn, h, b, n), dim=1)
-        if i == len(layers) - 1 and not vlad:
-            src = h if pending is None else torch.bmm(h.reshape(b, n, -1), pending)
-            g = linear_bn_max(lin, bn, src.reshape(b, n, -1), relu)
-            y = model.pool.fc(g)
-            gating = model.pool.gating
-            return F.normalize(gating(y) if gating is not None else y, dim=1)
-        if pending is not None:
-            z = bn(_folded_linear(lin, pending, h, b, n))
-            h = z.relu_() if relu else z
-            pending = None
-        else:
-            h = _lin_act(lin, bn, h, relu)
-    if pending is not None:  # a transform after the last layer (not a shipped configuration)
-        h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
-    assert isinstance(model.pool, NetVLAD)
-    inv = None
-    if cfg.point_l2_norm:
-        inv = 1.0 / torch.linalg.vector_norm(h, dim=1, keepdim=True).clamp_min(1e-12)
-    return F.normalize(_netvlad(model.pool, h, inv, b, n), dim=1)

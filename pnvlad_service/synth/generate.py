@@ -363,7 +363,7 @@ def _run_jobs(
     jobs: list[dict[str, Any]], workers: int | None, progress: bool, desc: str
 ) -> tuple[list[dict[str, Any]], int]:
     """Run every job (in worker processes when more than one): (results in job order, workers)."""
-    from tqdm import tqdm
+    from pnvlad_service.progress import tqdm
 
     n_workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
     results: list[dict[str, Any]] = []
@@ -465,9 +465,8 @@ def refresh_truth(
     re-simulating each run's poses (no scan is cast: seconds, not the generation's minutes).
     For trees made before the truth became the window's (``data.truth.frame_truth``); the
     submaps, CSVs and splits are left as they are. Returns the rows rewritten."""
-    from tqdm.auto import tqdm
-
     from pnvlad_service.data.prepare import refresh_truth as refresh_run
+    from pnvlad_service.progress import tqdm
 
     out = Path(out)
     meta = out / "synth.json"

@@ -55,7 +55,7 @@ def setup_runtime(t: TrainSection) -> Runtime:
     """Join the process group (under torchrun), pick the device, set the CPU threads and choose
     the mixed-precision dtype: bf16 or fp16 on CUDA as ``t.amp`` says; on the CPU bf16 only when
     asked for (``amp: bf16``) and the CPU has native bfloat16 (AVX512-BF16 or AMX), else none
-    (``auto`` stays float32 on the CPU: docs/TRAINING.md, "Training step speed")."""
+    (``auto`` stays float32 on the CPU: docs/TRAINING.md, "Limits and known failures")."""
     import torch
 
     cuda_wanted = t.device.startswith("cuda") or (t.device == "auto" and torch.cuda.is_available())

@@ -146,7 +146,7 @@ def build_state(
     sampler and the tuple RNG, all as at step 0."""
     import torch
 
-    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.factory import build_model
 
     t = cfg.train
     torch.manual_seed(t.seed)

@@ -423,7 +423,7 @@ def _run_steps(loop: _Loop, state: TrainState) -> str:
     """Steps until ``loop.total`` (``"done"``) or the time budget is spent (``"max_minutes"``,
     every rank at the same step), with cache refreshes, logging, validation and checkpoints on
     schedule."""
-    from tqdm import tqdm
+    from pnvlad_service.progress import tqdm
 
     cfg, rt, t = loop.cfg, loop.rt, loop.cfg.train
     loss_fn = make_loss(cfg)

@@ -180,7 +180,7 @@ def test_real_model_path_on_tiny_model(tmp_path: Path) -> None:
     torch = pytest.importorskip("torch")
     from pnvlad_service.models.config import ModelConfig
     from pnvlad_service.models.embedding import module_embedder
-    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.factory import build_model
 
     runs, _ = hand_case(tmp_path)
     torch.manual_seed(0)

@@ -65,7 +65,7 @@ def make_checkpoint(path: Path, seed: int = 0) -> Path:
     import torch
 
     from pnvlad_service.models.config import ModelConfig
-    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.factory import build_model
     from pnvlad_service.models.store import save_model
 
     torch.manual_seed(seed)

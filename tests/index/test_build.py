@@ -272,7 +272,7 @@ def test_a_bev_netvlad_model_builds_a_bundle_that_finds_each_submap(
     import torch
 
     from pnvlad_service.models.config import ModelConfig
-    from pnvlad_service.models.pointnetvlad import build_model
+    from pnvlad_service.models.factory import build_model
     from pnvlad_service.models.store import save_model
 
     torch.manual_seed(0)

@@ -265,6 +265,13 @@ def test_replay_without_poses_and_bad_options(city: dict, tmp_path: Path) -> Non
         f"replay: 2 of 2 queries answered, {sum(r['verified'] == 'true' for r in rows)} verified "
         "(no poses in the bag: errors unknown)"
     )
+    # stderr is not a terminal here: the progress comes as plain lines, the last one 2 of 2.
+    bar = [line for line in res.stderr.splitlines() if line.startswith("replay:")]
+    assert "\r" not in res.stderr and bar[-1].startswith("replay: 100% 2/2 [")
+    res = CliRunner().invoke(app, [*base, "--cloud-topic", "/points", "--every", "12",
+                                   "--out", str(out), "--no-plot", "--no-progress"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "replay:" not in res.stderr
     cases = [
         ([*base], "--rosbag needs --cloud-topic"),
         ([*base, "--cloud-topic", "/odom"], "holds nav_msgs/msg/Odometry"),

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from pnvlad_service.models.config import ModelConfig
-from pnvlad_service.models.pointnetvlad import build_model
+from pnvlad_service.models.factory import build_model
 
 SMALL = 256  # points per cloud in most tests
 

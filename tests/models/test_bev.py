@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 from pnvlad_service.models.bev import BEVNetVLAD, bev_image
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.factory import build_model
 from pnvlad_service.models.inference import Encoder, bf16_supported
-from pnvlad_service.models.pointnetvlad import build_model
 from pnvlad_service.models.store import config_sha256, load_model, save_model
 from tests.models.helpers import clouds
 

@@ -10,8 +10,8 @@ import torch
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.factory import build_model
 from pnvlad_service.models.inference import Encoder, bf16_supported, top1_agreement
-from pnvlad_service.models.pointnetvlad import build_model
 from tests.models.helpers import CONFIGS, clouds, trained_like
 
 

@@ -5,11 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.factory import build_model
 from pnvlad_service.models.inference import Encoder
-from pnvlad_service.models.pointnetvlad import build_model
 from tests.models.helpers import CONFIGS, SMALL, clouds, trained_like
 
 
@@ -27,39 +26,6 @@ def test_forward_shape_unit_norm_and_permutation_invariance(name: str) -> None:
     assert torch.allclose(y.norm(dim=1), torch.ones(3), atol=1e-6)
     assert (y - y_perm).abs().max() < 1e-5
     assert (y[0] - y[1]).abs().max() > 1e-3  # different clouds, different descriptors
-
-
-def netvlad_reference(x: torch.Tensor, pool: torch.nn.Module) -> torch.Tensor:
-    """NetVLAD of one cloud x [N, D] with loops over clusters and points (eval-mode BN)."""
-    n, d = x.shape
-    k = pool.clusters
-    bn = pool.cluster_bn
-    logits = x.double() @ pool.cluster_weights.double()
-    logits = (logits - bn.running_mean.double()) / torch.sqrt(bn.running_var.double() + bn.eps)
-    logits = logits * bn.weight.double() + bn.bias.double()
-    a = torch.softmax(logits, dim=1)
-    v = torch.zeros(d, k, dtype=torch.float64)
-    for j in range(k):
-        for i in range(n):
-            v[:, j] += a[i, j] * (x[i].double() - pool.centers[:, j].double())
-        v[:, j] /= v[:, j].norm()
-    flat = torch.stack([v[dd, j] for dd in range(d) for j in range(k)])  # d-major, as published
-    return flat / flat.norm()
-
-
-def test_netvlad_matches_loop_reference() -> None:
-    cfg = ModelConfig.compact(trunk_widths=(8,), cluster_size=3, output_dim=5, num_points=7)
-    model = trained_like(cfg)
-    pool = model.pool
-    x = torch.rand(2, 7, 8)
-    with torch.no_grad():
-        got = pool(x)
-        for b in range(2):
-            flat = netvlad_reference(x[b], pool)
-            y = F.linear(flat.float().unsqueeze(0), pool.fc.weight)
-            y = pool.fc_bn(y)
-            gates = torch.sigmoid(pool.gating.gate_bn(pool.gating.gate(y)))
-            assert torch.allclose(got[b], (y * gates)[0], atol=1e-5)
 
 
 def test_tf_variant_normalises_points_port_does_not() -> None:

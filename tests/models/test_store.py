@@ -13,8 +13,8 @@ import torch
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.factory import build_model
 from pnvlad_service.models.inference import Encoder
-from pnvlad_service.models.pointnetvlad import build_model
 from pnvlad_service.models.store import (
     config_sha256,
     load_model,

@@ -1,7 +1,8 @@
-"""The fast forward pass (models/training_path.py) against the modules' own layer-by-layer
-forward (``PointNetVLAD.reference_forward``, the implementation before it): same weights and
-inputs give the same descriptors, the same gradients of every parameter and the same batch-norm
-running statistics, in training and in eval mode."""
+"""The fast forward pass (``pointnetvlad.fast_forward`` and the fused operations of
+models/training_path.py) against the modules' own layer-by-layer forward
+(``PointNetVLAD.reference_forward``, the implementation before it): same weights and inputs give
+the same descriptors, the same gradients of every parameter and the same batch-norm running
+statistics, in training and in eval mode."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 import torch
 
 from pnvlad_service.models.config import ModelConfig
-from pnvlad_service.models.pointnetvlad import build_model
+from pnvlad_service.models.factory import build_model
 from pnvlad_service.models.training_path import LinearMax
 from tests.models.helpers import CONFIGS, clouds, trained_like
 

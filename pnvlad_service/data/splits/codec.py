@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 SPLITS_FORMAT = "pnvlad-splits"
 SPLITS_VERSION = 1
 
-#: ``save_splits`` packs index lists (docs/SPLITS.md, "Packed index lists") above this many.
+#: ``save_splits`` packs index lists (docs/SPLITS.md, "Our splits file") above this many.
 PACK_THRESHOLD = 100_000
 _PACKING = "delta-zlib-base64"
 

@@ -34,7 +34,7 @@ def _write_tuples_pickle(path: Path, t: TrainingTuples, progress: bool = False) 
     n = len(t)
     it: Any = range(n)
     if progress:
-        from tqdm import tqdm
+        from pnvlad_service.progress import tqdm
 
         it = tqdm(it, desc=path.name, unit="tuple")
     with atomic_open(path, "wb") as fh:
