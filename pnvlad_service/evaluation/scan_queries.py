@@ -190,9 +190,7 @@ def preprocess_queries(
             paths.append(dst)
         runs.append(replace(run, query_paths=paths))
     n = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
-    bar = tqdm(
-        total=len(jobs), desc="G of query scans", unit="scan", disable=None if progress else True
-    )
+    bar = tqdm(total=len(jobs), desc="G of query scans", unit="scan", disable=not progress)
     if n == 1:
         results = []
         for job in jobs:
