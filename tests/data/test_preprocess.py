@@ -352,6 +352,8 @@ def test_g_config_from_file_errors_name_the_file(tmp_path: Path) -> None:
 
 # --- real scans ------------------------------------------------------------------------------
 
+# What G does to a real scan, no pose needed: the two KITTI files are real HDL-64E scans of
+# unknown frames (not frames 0 and 5 of sequence 00; the data README).
 REAL = [
     ("kitti00_000000.bin", "kitti", 1.0),
     ("kitti00_000005.bin", "kitti", 1.0),
