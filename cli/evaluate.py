@@ -104,12 +104,26 @@ _PLOT = typer.Option(
 _QUERIES = typer.Option(
     "submaps",
     "--queries",
-    help="What the queries are: 'submaps' (the benchmark's, accumulated offline) or 'scans' "
+    help="What the queries are: 'submaps' (the benchmark's, accumulated offline), 'scans' "
     "(the raw scan at each query submap's place, run through the map's filter G, in the "
-    "sensor's frame: what a robot sends; needs raw_scans/ in the runs). The map is the one "
-    "--splits describes: splits.json the 20 m submaps, splits_keyframes.json the keyframes.",
+    "sensor's frame: what a robot sends; needs raw_scans/ in the runs) or 'windows' (the "
+    "scans of the last --window-m of driving before each place, laid with --window-poses: a "
+    "pnvlad synth tree's runs are cast again for them). The map is the one --splits "
+    "describes: splits.json the 20 m submaps, splits_keyframes.json the keyframes.",
     rich_help_panel=_DATA,
 )
+_WINDOW_POSES = typer.Option(
+    "recorded",
+    "--window-poses",
+    help="With --queries windows: 'recorded' (the run's GNSS/INS poses, as a bag's pose topic: "
+    "the window in the map's axes) or 'odometry' (KISS-ICP from the scans alone, extra "
+    "'odometry': the window in the newest scan's axes).",
+    rich_help_panel=_DATA,
+)
+_WINDOW_M = typer.Option(
+    20.0, "--window-m", help="With --queries windows: metres of driving a window holds.",
+    rich_help_panel=_DATA,
+)  # fmt: skip
 _NUM_POINTS = typer.Option(
     None,
     "--num-points",
@@ -128,6 +142,8 @@ def evaluate(
     pickles: Path = _PICKLES,
     sets: list[str] = _SETS,
     queries: str = _QUERIES,
+    window_poses: str = _WINDOW_POSES,
+    window_m: float = _WINDOW_M,
     joint: bool = _JOINT,
     out: Path = _OUT_OPT,
     figures: Path = _FIGURES,
@@ -210,21 +226,27 @@ def evaluate(
             raise InputError(f"must be float32 or bfloat16, got {dtype!r}", "--dtype")
         if baseline and dtype != "float32":
             raise InputError("the baseline has no encoder to run in bfloat16", "--dtype")
-        if queries not in ("submaps", "scans"):
-            raise InputError(f"must be submaps or scans, got {queries!r}", "--queries")
-        if queries == "scans" and (root is None or pickles is not None):
-            raise InputError("scan queries are read from the tree: give --root", "--queries")
+        if queries not in ("submaps", "scans", "windows"):
+            raise InputError(f"must be submaps, scans or windows, got {queries!r}", "--queries")
+        if queries != "submaps" and (root is None or pickles is not None):
+            raise InputError(f"{queries} queries are read from the tree: give --root", "--queries")
         enc = ev.baseline_encoder() if baseline else ev.model_encoder(model, device, dtype)
         points = enc.num_points if num_points is None else num_points
         scan_set = None
-        if queries == "scans":
+        if queries != "submaps":
             from pnvlad_service.data.dataset import load_splits_any
             from pnvlad_service.evaluation import scan_queries
 
             scan_set = scan_queries.scan_query_set(root, load_splits_any(root, splits), sets)
-            runs = scan_queries.preprocess_queries(
-                scan_set, stack.enter_context(tempfile.TemporaryDirectory()), progress=progress
-            )
+            tmp = Path(stack.enter_context(tempfile.TemporaryDirectory()))
+            if queries == "windows":
+                from pnvlad_service.synth.windows import window_queries
+
+                scan_set = window_queries(
+                    scan_set, root, tmp / "windows", poses=window_poses, window_m=window_m,
+                    progress=progress,
+                )  # fmt: skip
+            runs = scan_queries.preprocess_queries(scan_set, tmp / "g", progress=progress)
         else:
             runs = load_eval_runs(root, splits, pickles, sets)
         if len(runs) < 2:

@@ -7,7 +7,12 @@
 #   4. build a FAISS index bundle of every run but one;
 #   5. start `pnvlad serve` on 127.0.0.1, localise query submaps of the held-out run over HTTP,
 #      print their top-5 with UTM coordinates and distances and whether each is within 25 m;
-#   6. stop the server.
+#      stop the server;
+#   6. train the single-scan encoder (-c bev_scan: bev-netvlad on the keyframe maps, each cloud
+#      turned to its own dominant direction; 18 epochs, PNVLAD_DEMO_SCAN_MINUTES caps them,
+#      default 4) and build a bundle of the indexed runs' keyframes (one scan every 5 m);
+#   7. serve it and localise raw single scans of the held-out run, as a robot's sensor makes
+#      them, over HTTP.
 # Everything goes under runs/demo (PNVLAD_DEMO_DIR). Re-running reuses the city and the model.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -15,22 +20,23 @@ cd "$(dirname "$0")/.."
 VENV="${PNVLAD_VENV:-.venv}"
 OUT="${PNVLAD_DEMO_DIR:-runs/demo}"
 MINUTES="${PNVLAD_DEMO_MINUTES:-5}"
+SCAN_MINUTES="${PNVLAD_DEMO_SCAN_MINUTES:-4}"
 PORT="${PNVLAD_DEMO_PORT:-8765}"
 SEED="${PNVLAD_DEMO_SEED:-0}"
 start=$(date +%s)
 
 step() { printf '\n\033[1m== %s\033[0m  (%ds)\n' "$*" "$(( $(date +%s) - start ))"; }
 
-step "1/5 set up $VENV"
+step "1/7 set up $VENV"
 . scripts/venv.sh
 ensure_venv plot
 export PATH="$PWD/$VENV/bin:$PATH"
 pnvlad --version
 
 CITY="$OUT/city"
-step "2/5 synthetic city -> $CITY"
-if [ ! -f "$CITY/splits.json" ]; then
-    pnvlad -q synth --preset demo --seed "$SEED" --out "$CITY"
+step "2/7 synthetic city -> $CITY"
+if [ ! -f "$CITY/splits_keyframes.json" ]; then
+    pnvlad -q synth --preset demo --seed "$SEED" --out "$CITY" --overwrite
 fi
 pnvlad data check "$CITY"
 
@@ -47,34 +53,57 @@ EOF
 echo "area $DATASET: index runs ${INDEXED//,/ }; queries from held-out run $HELD"
 
 MODEL="$OUT/train"
-step "3/5 train the bev-netvlad encoder (-c bev, at most $MINUTES min) -> $MODEL"
+step "3/7 train the bev-netvlad encoder (-c bev, at most $MINUTES min) -> $MODEL"
 if [ ! -f "$MODEL/model/model.json" ]; then
     pnvlad train -c bev --root "$CITY" --splits "$CITY/splits.json" -o "$MODEL" \
         --max-minutes "$MINUTES"
 fi
 
 BUNDLE="$OUT/map.index"
-step "4/5 index bundle of $DATASET without $HELD -> $BUNDLE"
+step "4/7 index bundle of $DATASET without $HELD -> $BUNDLE"
 run_args=()
 IFS=',' read -ra runs <<< "$INDEXED"
 for r in "${runs[@]}"; do run_args+=(--run "$r"); done
 pnvlad index build -m "$MODEL/model" -r "$CITY" -d "$DATASET" "${run_args[@]}" -o "$BUNDLE" --overwrite
 
-step "5/5 serve on 127.0.0.1:$PORT and localise held-out queries"
-pnvlad serve --index "$BUNDLE" --checkpoint "$MODEL/model" --host 127.0.0.1 --port "$PORT" \
-    --log-level warning &
-server=$!
-trap 'kill "$server" 2>/dev/null || true; wait "$server" 2>/dev/null || true' EXIT
-for _ in $(seq 1 120); do
-    if python - "$PORT" <<'EOF' 2>/dev/null
+# serve BUNDLE MODEL: start `pnvlad serve` in the background and wait until it is ready.
+serve() {
+    pnvlad serve --index "$1" --checkpoint "$2" --host 127.0.0.1 --port "$PORT" \
+        --log-level warning &
+    server=$!
+    trap 'kill "$server" 2>/dev/null || true; wait "$server" 2>/dev/null || true' EXIT
+    for _ in $(seq 1 120); do
+        if python - "$PORT" <<'EOF' 2>/dev/null
 import sys, urllib.request
 urllib.request.urlopen(f"http://127.0.0.1:{sys.argv[1]}/readyz", timeout=1)
 EOF
-    then break; fi
-    if ! kill -0 "$server" 2>/dev/null; then echo "the server exited" >&2; exit 1; fi
-    sleep 0.5
-done
+        then return 0; fi
+        if ! kill -0 "$server" 2>/dev/null; then echo "the server exited" >&2; exit 1; fi
+        sleep 0.5
+    done
+}
+stop() { kill "$server" 2>/dev/null || true; wait "$server" 2>/dev/null || true; }
+
+step "5/7 serve on 127.0.0.1:$PORT and localise held-out query submaps"
+serve "$BUNDLE" "$MODEL/model"
 python scripts/demo_localize.py --url "http://127.0.0.1:$PORT" --root "$CITY" \
     --dataset "$DATASET" --run "$HELD" --count 6 --top-n 5
+stop
 
-step "done: stopping the server"
+SCAN_MODEL="$OUT/train_scan"
+KEYS="$OUT/keyframes.index"
+step "6/7 train the single-scan encoder (-c bev_scan, at most $SCAN_MINUTES min), index keyframes"
+if [ ! -f "$SCAN_MODEL/model/model.json" ]; then
+    pnvlad train -c bev_scan --root "$CITY" --splits "$CITY/splits_keyframes.json" \
+        -o "$SCAN_MODEL" --epochs 18 --max-minutes "$SCAN_MINUTES"
+fi
+pnvlad index build -m "$SCAN_MODEL/model" -r "$CITY" -d "$DATASET" "${run_args[@]}" \
+    --layout keyframe -o "$KEYS" --overwrite
+
+step "7/7 serve the keyframe map and localise held-out raw single scans"
+serve "$KEYS" "$SCAN_MODEL/model"
+python scripts/demo_localize.py --url "http://127.0.0.1:$PORT" --root "$CITY" \
+    --dataset "$DATASET" --run "$HELD" --count 6 --top-n 5 --scans
+stop
+
+step "done"

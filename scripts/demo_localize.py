@@ -7,10 +7,13 @@ descriptor distances and verification scores, and says whether the best match li
 ``--radius`` metres of where the query really was (the benchmark's 25 m rule). When the server
 verified the answer it prints the query's pose on the map and its error against the
 simulator's truth (the true pose of the query's frame, before the GNSS/INS error).
+With ``--scans`` the queries are the run's raw single scans at those places instead (its
+``raw_scans/``: what a robot's sensor sends, in the sensor's frame), sent raw (``kind=scan``)
+to a server of a keyframe map; a verified pose is the sensor's, compared with its true pose.
 Exits non-zero if the server cannot be reached.
 
     python scripts/demo_localize.py --url http://127.0.0.1:8000 --root runs/demo/city \
-        --dataset business --run 2026-03-18-09-00-00 --count 8
+        --dataset business --run 2026-03-18-09-00-00 --count 8 [--scans]
 """
 
 from __future__ import annotations
@@ -19,13 +22,14 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from pnvlad_cli.serve import verdict
 from pnvlad_service.data.frames import SubmapFrame
 from pnvlad_service.data.splits import resolve_regions
-from pnvlad_service.data.tree import BenchmarkTree, Submap
+from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.errors import PnvladError
 from pnvlad_service.io.readers import read_points
 from pnvlad_service.localization.client import LocalizeClient
@@ -45,13 +49,28 @@ def pose_line(answer: dict, frame: SubmapFrame | None) -> str:
     return line
 
 
-def report(q: Submap, answer: dict, radius: float, frame: SubmapFrame | None = None) -> bool:
-    """Print one query's matches; whether its top-1 lies within ``radius`` metres of it."""
+def scan_pose_line(answer: dict, true_pose: np.ndarray | None) -> str:
+    """The verdict line of a raw scan, and for a verified answer the error of the sensor's
+    pose against its true pose."""
+    line = "  " + verdict(answer)
+    if answer.get("verified") and true_pose is not None:
+        p = answer["pose"]
+        err = math.hypot(p["easting"] - true_pose[0, 3], p["northing"] - true_pose[1, 3])
+        yaw = math.degrees(math.atan2(true_pose[1, 0], true_pose[0, 0]))
+        dyaw = (p["yaw_deg"] - yaw + 180.0) % 360.0 - 180.0
+        line += f"; off the truth by {err:.2f} m and {abs(dyaw):.2f} deg"
+    return line
+
+
+def report(q: Any, answer: dict, radius: float, pose: str, kind: str = "submap") -> bool:
+    """Print one query's matches and ``pose`` (its verdict line); whether its top-1 lies
+    within ``radius`` metres of it. ``q``: a :class:`Submap` or a raw scan (``run`` and
+    ``timestamp``, ``northing``, ``easting``)."""
     best = answer["matches"][0]
     err = math.hypot(best["northing"] - q.northing, best["easting"] - q.easting)
     ok = err <= radius
     print(
-        f"\nquery {q.run}/{q.timestamp}  true N {q.northing:.1f} E {q.easting:.1f}  "
+        f"\n{kind} {q.run}/{q.timestamp}  true N {q.northing:.1f} E {q.easting:.1f}  "
         f"(embed {answer['timings_ms']['embed']:.1f} ms, search "
         f"{answer['timings_ms']['search']:.2f} ms)"
     )
@@ -67,7 +86,7 @@ def report(q: Submap, answer: dict, radius: float, frame: SubmapFrame | None = N
             f"{m['distance']:>7.3f} {score:>6} {off:>6.1f} m"
         )
     print(f"  top-1 is {err:.1f} m from the truth: {'WITHIN' if ok else 'NOT within'} {radius:g} m")
-    print(pose_line(answer, frame))
+    print(pose)
     return ok
 
 
@@ -80,7 +99,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--count", type=int, default=8)
     ap.add_argument("--top-n", type=int, default=5)
     ap.add_argument("--radius", type=float, default=25.0)
+    ap.add_argument("--scans", action="store_true", help="ask with the run's raw single scans")
     args = ap.parse_args(argv)
+    if args.scans:
+        return localize_scans(args)
 
     tree = BenchmarkTree(args.root)
     submaps = tree.submaps(args.dataset, args.run, "test")
@@ -115,11 +137,50 @@ def main(argv: list[str] | None = None) -> int:
             except PnvladError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return 1
-            hits += report(q, answer, args.radius, frame)
+            hits += report(q, answer, args.radius, pose_line(answer, frame))
             verified += bool(answer.get("verified"))
     print(
         f"\n{hits}/{len(chosen)} queries localised within {args.radius:g} m by their top-1 match; "
         f"{verified} verified with a pose."
+    )
+    return 0
+
+
+def localize_scans(args: argparse.Namespace) -> int:
+    """``--scans``: the held-out run's raw scans inside the test regions, sent raw."""
+    from types import SimpleNamespace
+
+    from pnvlad_service.data.scans import read_raw_scans
+
+    tree = BenchmarkTree(args.root)
+    regions = resolve_regions(tree, args.dataset, args.dataset)
+    scans = read_raw_scans(args.root / args.dataset / args.run)
+    inside = regions.contains(
+        np.array([s.northing for s in scans]), np.array([s.easting for s in scans])
+    )
+    scans = [s for s, keep in zip(scans, inside, strict=True) if keep]
+    if not scans:
+        print(f"no raw scans for {args.dataset}/{args.run} under {args.root}", file=sys.stderr)
+        return 2
+    chosen = scans[:: max(len(scans) // args.count, 1)][: args.count]
+    hits = verified = 0
+    with LocalizeClient(args.url, timeout=60) as client:
+        for s in chosen:
+            pts = read_points(s.path, reader="kitti")
+            try:
+                answer = client.localize(pts, args.top_n, kind="scan")
+            except PnvladError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 1
+            q = SimpleNamespace(
+                run=args.run, timestamp=s.timestamp, northing=s.northing, easting=s.easting
+            )
+            print(f"\n{len(pts):,} points in the sensor's frame, matched to {answer['map_kind']}s:")
+            hits += report(q, answer, args.radius, scan_pose_line(answer, s.true_pose), "scan")
+            verified += bool(answer.get("verified"))
+    print(
+        f"\n{hits}/{len(chosen)} single scans localised within {args.radius:g} m by their top-1 "
+        f"match; {verified} verified with a pose."
     )
     return 0
 

@@ -57,6 +57,8 @@ class ScanQuerySet:
     map_kind: str
     g_config: GConfig
     g_frames: dict[str, tuple[list[float], float]] = field(default_factory=dict)
+    window: dict[str, Any] | None = None
+    drift_m: list[float] = field(default_factory=list)
 
 
 def _run_dir(root: Path, db_file: str) -> Path:
@@ -260,11 +262,20 @@ def scan_report(
     from pnvlad_service.evaluation.evaluate import evaluate_embedded
 
     out: dict[str, Any] = {
-        "queries_kind": "scan",
+        "queries_kind": "window" if qs.window else "scan",
         "map_kind": qs.map_kind,
         "query_g_config": qs.g_config.model_dump(mode="json"),
         "direction": {},
     }
+    if qs.window:
+        drift = np.asarray(qs.drift_m, dtype=np.float64)
+        out["window"] = {**qs.window, "n": int(sum(len(x) for x in qs.scans))}
+        if len(drift):
+            out["window"]["drift_m"] = {
+                "median": float(np.median(drift)),
+                "p90": float(np.percentile(drift, 90)),
+                "max": float(drift.max()),
+            }
     for name, opposite in (("same", False), ("opposite", True)):
         rep = evaluate_embedded(
             direction_subsets(qs, runs, opposite), db_desc, q_desc, num_points=num_points

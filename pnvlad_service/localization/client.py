@@ -77,19 +77,22 @@ class LocalizeClient:
         *,
         verify: bool | None = None,
         scale: float | None = None,
+        kind: str | None = None,
     ) -> dict[str, Any]:
         """The server's answer for one cloud float [N, 3] (a raw scan with ``preprocess``):
-        ``{"matches": [...], "verified", "pose", "verification", "batch_size", "timings_ms",
-        "model", "index"}``. ``verify``: ask for (true) or skip (false) the verification
-        (default: the server's); ``scale``: metres per unit of a preprocessed cloud."""
+        ``{"matches": [...], "query_kind", "map_kind", "verified", "pose", "verification",
+        "batch_size", "timings_ms", "model", "index"}``. ``verify``: ask for (true) or skip
+        (false) the verification (default: the server's); ``scale``: metres per unit of a
+        preprocessed cloud; ``kind``: ``submap``, ``scan`` or ``window`` (a scan or window is
+        raw: ``preprocess`` need not be said)."""
         arr = np.asarray(points)
         dtype = "float64" if arr.dtype == np.float64 else "float32"
         body = np.ascontiguousarray(arr, dtype="<f8" if dtype == "float64" else "<f4")
-        params: dict[str, Any] = {
-            "top_n": top_n,
-            "preprocess": str(preprocess).lower(),
-            "dtype": dtype,
-        }
+        params: dict[str, Any] = {"top_n": top_n, "dtype": dtype}
+        if kind is None or preprocess:
+            params["preprocess"] = str(preprocess).lower()
+        if kind is not None:
+            params["kind"] = kind
         if verify is not None:
             params["verify"] = str(verify).lower()
         if scale is not None:
