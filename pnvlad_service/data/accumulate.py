@@ -20,7 +20,7 @@ from typing import Literal
 
 import numpy as np
 
-from pnvlad_service.data.drives import snap_m
+from pnvlad_service.data.drive import snap_m
 from pnvlad_service.errors import InputError
 
 

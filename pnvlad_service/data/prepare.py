@@ -1,8 +1,8 @@
 """A recorded drive -> one benchmark run: submaps cut along the trajectory, filtered by G.
 
 A *drive* is a sequence of LiDAR scans with their poses (the
-:class:`~pnvlad_service.data.drives.Drive` protocol; the sources are in
-:mod:`pnvlad_service.data.drives`). This module accumulates the scans of a stretch of
+:class:`~pnvlad_service.data.drive.Drive` protocol; the sources are in
+:mod:`pnvlad_service.data.sources`). This module accumulates the scans of a stretch of
 trajectory in the world frame, cuts a submap every ``stride`` metres of travelled distance, runs
 the filter G (:mod:`pnvlad_service.data.preprocess`) on each and writes the benchmark's files
 (see docs/PREPARE.md and BENCHMARK_FORMAT.md)::
@@ -18,7 +18,7 @@ the filter G (:mod:`pnvlad_service.data.preprocess`) on each and writes the benc
 
 Conventions (docs/ARCHITECTURE.md): world frame x = easting, y = northing, z = up, UTM metres;
 timestamps are integer microseconds. Translations are snapped to a 2**-26 m (15 nm) grid
-(:func:`~pnvlad_service.data.drives.snap_m`) so that adding a UTM origin and subtracting the
+(:func:`~pnvlad_service.data.drive.snap_m`) so that adding a UTM origin and subtracting the
 submap centre are exact in float64: the same drive placed at northing 0 or 5.7e6 gives
 byte-identical submaps.
 
@@ -46,7 +46,7 @@ from pnvlad_service.data.accumulate import (
     travelled_distance,
 )
 from pnvlad_service.data.cuts import Cut
-from pnvlad_service.data.drives import Drive, check_drive, snap_m
+from pnvlad_service.data.drive import Drive, check_drive, snap_m
 from pnvlad_service.data.frames import (
     SubmapFrame,
     frames_path,

@@ -19,7 +19,7 @@ from pnvlad_service.errors import InputError
 
 if TYPE_CHECKING:
     from pnvlad_service.data.cuts import Cut
-    from pnvlad_service.data.drives import Drive
+    from pnvlad_service.data.drive import Drive
 
 
 def drive_true_poses(drive: Drive, n: int) -> np.ndarray | None:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pnvlad_service.data.drives import Drive
+from pnvlad_service.data.drive import Drive
 
 FRAMES = 40  # scans in the synthetic KITTI sequence
 STEP_M = 1.5  # metres between consecutive scans (camera z, i.e. forward)

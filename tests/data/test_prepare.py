@@ -16,8 +16,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service.data.drives import CsvDrive, Drive, KittiSequence
+from pnvlad_service.data.drive import Drive
 from pnvlad_service.data.prepare import prepare_drive, submap_cuts, travelled_distance
+from pnvlad_service.data.sources.csv_drive import CsvDrive
+from pnvlad_service.data.sources.kitti import KittiSequence
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_BYTES
 from tests.data.helpers import (
