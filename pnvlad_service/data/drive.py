@@ -59,6 +59,21 @@ def yaw_matrix(yaw_rad: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def place_in_utm(
+    local: np.ndarray, origin_ne: tuple[float, float] = (0.0, 0.0), yaw_deg: float = 0.0
+) -> np.ndarray:
+    """Poses float64 [T, 4, 4] of a local metric frame (z up) placed in UTM: the frame turned by
+    ``yaw_deg`` counter-clockwise from east, its translations snapped to :data:`SNAP_M`, then its
+    origin put at ``origin_ne`` = (northing, easting), height 0. Snapping before the origin is
+    added keeps the result minus the origin independent of the origin's magnitude."""
+    place = np.eye(4)
+    place[:3, :3] = yaw_matrix(math.radians(yaw_deg))
+    world = place @ local
+    origin = snap_m(np.array([origin_ne[1], origin_ne[0], 0.0]))
+    world[:, :3, 3] = snap_m(world[:, :3, 3]) + origin
+    return world
+
+
 def check_drive(drive: Drive) -> tuple[np.ndarray, np.ndarray]:
     """Validate a drive's arrays: (timestamps int64 [T], poses float64 [T, 4, 4])."""
     name = getattr(drive, "name", "drive")

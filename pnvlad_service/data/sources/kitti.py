@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pnvlad_service.data.drive import snap_m, yaw_matrix
+from pnvlad_service.data.drive import place_in_utm
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.readers import read_points
 
@@ -103,12 +103,7 @@ def kitti_poses_to_world(
         tr = np.asarray(velo_to_cam, dtype=np.float64)
     tr_inv = np.linalg.inv(tr)
     local = tr_inv @ p @ tr  # Velodyne i -> Velodyne frame of scan 0
-    place = np.eye(4)
-    place[:3, :3] = yaw_matrix(math.radians(yaw_deg))
-    world = place @ local
-    origin = snap_m(np.array([origin_ne[1], origin_ne[0], 0.0]))
-    world[:, :3, 3] = snap_m(world[:, :3, 3]) + origin
-    return world
+    return place_in_utm(local, origin_ne, yaw_deg)
 
 
 class KittiSequence:

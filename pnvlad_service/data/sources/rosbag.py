@@ -41,7 +41,6 @@ whose message names the topic.
 from __future__ import annotations
 
 import logging
-import math
 import struct
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass
@@ -50,7 +49,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
-from pnvlad_service.data.drive import snap_m, yaw_matrix
+from pnvlad_service.data.drive import place_in_utm
 from pnvlad_service.data.sources.pointcloud2 import CloudError, decode_pointcloud2, header_stamp
 from pnvlad_service.data.sources.pose_streams import (
     POSE_AFTER,
@@ -442,12 +441,7 @@ class RosbagDrive(RosbagClouds):
         except BaseException:
             self.close()
             raise
-        place = np.eye(4)
-        place[:3, :3] = yaw_matrix(math.radians(yaw_deg))
-        world = place @ local
-        origin = snap_m(np.array([origin_ne[1], origin_ne[0], 0.0]))
-        world[:, :3, 3] = snap_m(world[:, :3, 3]) + origin
-        self.poses = world
+        self.poses = place_in_utm(local, origin_ne, yaw_deg)
 
     # -- poses ----------------------------------------------------------------------------
 
