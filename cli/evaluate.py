@@ -243,9 +243,10 @@ def evaluate(
             rep.update(scan_queries.scan_report(scan_set, runs, db_desc, q_desc, points))
         if rerank is not None:
             from pnvlad_service.data.dataset import load_splits_any
-            from pnvlad_service.localization import rerank_eval, rerank_report
+            from pnvlad_service.evaluation import rerank_report
+            from pnvlad_service.evaluation.rerank import evaluate_rerank
 
-            rep["rerank"] = rerank_eval.evaluate_rerank(
+            rep["rerank"] = evaluate_rerank(
                 enc.embed,
                 points,
                 runs,

@@ -1,8 +1,9 @@
 """``pnvlad eval --rerank K``: what geometric verification adds on a benchmark.
 
 For every ordered pair of runs of an area (database i, queries j), each query's K nearest
-database submaps by descriptor are registered to it (:func:`..verify.verify`) and re-ranked
-by score. The report holds, averaged over pairs as the benchmark averages recall:
+database submaps by descriptor are registered to it
+(:func:`~pnvlad_service.localization.verify.verify`, the server's own cascade) and re-ranked by
+score. The report holds, averaged over pairs as the benchmark averages recall:
 
 - recall@1 and recall@1% before and after re-ranking, and recall@K before (the ceiling);
 

@@ -1,4 +1,4 @@
-"""localization.rerank_eval: the figures of pnvlad eval --rerank on hand-worked outcomes."""
+"""evaluation.rerank: the figures of pnvlad eval --rerank on hand-worked outcomes."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pnvlad_service.data.frames import pose_matrix
-from pnvlad_service.localization.rerank_eval import (
+from pnvlad_service.evaluation.rerank import (
     QueryOutcome,
     _outcome,
     choose_threshold,
@@ -137,7 +137,7 @@ def test_off_map_verification_offers_only_far_candidates(tiny, tmp_path) -> None
     from pnvlad_service.data.dataset import load_eval_runs
     from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.evaluation.evaluate import embed_runs
-    from pnvlad_service.localization.rerank_eval import rerank_pairs
+    from pnvlad_service.evaluation.rerank import rerank_pairs
     from pnvlad_service.localization.verify import VerifyConfig
     from pnvlad_service.models.inference import Encoder
     from tests.index.helpers import make_checkpoint
@@ -215,7 +215,7 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
     assert rep["verified"]["threshold"] == cal["threshold"]
     # Off-map queries weighed in: their share, count and acceptance at the chosen threshold,
     # which a curve row of their own repeats.
-    from pnvlad_service.localization.rerank_eval import OFF_MAP_SHARE
+    from pnvlad_service.evaluation.rerank import OFF_MAP_SHARE
 
     off = cal["off_map"]
     assert off["share"] == OFF_MAP_SHARE and off["n_queries"] > 0 and len(off["curve"]) == 101
@@ -231,7 +231,7 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
     assert (tmp_path / "f" / "verified_pr.png").stat().st_size > 1000
     assert (tmp_path / "f" / "pose_errors.png").stat().st_size > 1000
     # The help names the library's calibration default, not a copy that drifts from it.
-    from pnvlad_service.localization.rerank_eval import CALIBRATION_QUERIES
+    from pnvlad_service.evaluation.rerank import CALIBRATION_QUERIES
 
     helped = CliRunner().invoke(app, ["eval", "--help"], env={"COLUMNS": "200"})
     assert f"(default: {CALIBRATION_QUERIES}," in helped.output
@@ -260,7 +260,7 @@ def test_off_map_descriptors_come_from_the_calibrations_own(tiny, tmp_path) -> N
     them afresh; runs with a submap the calibration never embedded are embedded."""
     from pnvlad_service.data.dataset import load_eval_runs
     from pnvlad_service.evaluation.evaluate import embed_runs
-    from pnvlad_service.localization.rerank_eval import _descriptors_of, subsample_queries
+    from pnvlad_service.evaluation.rerank import _descriptors_of, subsample_queries
     from pnvlad_service.models.inference import Encoder
     from tests.index.helpers import make_checkpoint
 
