@@ -32,6 +32,7 @@ from pnvlad_service.data.sources.rosbag_write import (
     write_drive_bag,
 )
 from pnvlad_service.errors import InputError, MissingDependencyError
+from tests.data.helpers import ListDrive, tree_bytes
 from tests.data.sources.test_pose_streams import yaw_pose
 
 FRAMES = 40
@@ -43,14 +44,6 @@ KITTI_POINT = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", 
 
 # (ROS version, ROS 2 storage, bag name)
 FORMATS = [(1, "sqlite3", "drive.bag"), (2, "sqlite3", "drive_db3"), (2, "mcap", "drive_mcap")]
-
-
-def tree_bytes(run: Path) -> dict[str, bytes]:
-    return {
-        str(p.relative_to(run)): p.read_bytes()
-        for p in sorted(run.rglob("*"))
-        if p.is_file() and not p.name.startswith(".")
-    }
 
 
 def make_sequence(root: Path, real_scans: Path, frames: int = FRAMES) -> Path:
@@ -609,19 +602,6 @@ def test_header_parse_matches_the_deserialiser(small_bag: Path) -> None:
 
 # --------------------------------------------------------------------------------------------
 # A drive written as a bag
-
-
-class ListDrive:
-    def __init__(self, scans, poses, stamps) -> None:
-        self.name = "memory"
-        self.scans, self.poses = scans, poses
-        self.timestamps = np.asarray(stamps, dtype=np.int64)
-
-    def __len__(self) -> int:
-        return len(self.scans)
-
-    def scan(self, i: int) -> np.ndarray:
-        return self.scans[i]
 
 
 @pytest.mark.parametrize(("ros", "storage"), [(1, "sqlite3"), (2, "mcap")])
