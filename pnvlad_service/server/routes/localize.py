@@ -18,7 +18,8 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, Response
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.localizer import Localizer, PreparedCloud, milliseconds
+from pnvlad_service.localization.answers import milliseconds
+from pnvlad_service.localization.localizer import Localizer, PreparedCloud
 from pnvlad_service.server import problems, schemas
 from pnvlad_service.server.bodies import JSON, NPY, OCTET, read_batch, read_query
 from pnvlad_service.server.contract import Contract
