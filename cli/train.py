@@ -24,9 +24,11 @@ _CONFIG = typer.Option(
     "--config",
     "-c",
     help="YAML/TOML config file, or a shipped preset name: 'paper' (default), 'compact', "
-    "'cpu' (compact PN_VLAD + in-batch mining, augmentation, cosine schedule), or 'bev' (the "
+    "'cpu' (compact PN_VLAD + in-batch mining, augmentation, cosine schedule), 'bev' (the "
     "best recall on a CPU budget: cpu's training of a bird's-eye-view CNN + NetVLAD, "
-    "bev-netvlad; not the paper's network).",
+    "bev-netvlad; not the paper's network), or 'bev_scan' / 'cpu_scan' (those two for single "
+    "scans: trained on the keyframe maps, splits_keyframes.json, each cloud turned to its own "
+    "dominant direction).",
     rich_help_panel=_RUN,
 )
 _OUT = typer.Option(

@@ -45,8 +45,9 @@ def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def tiny_maps(tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """Two bundles of the tiny city's runs but the first, built with one random model: ``map``
-    with geometry (verification), ``plain`` without; ``query_run`` is the run left out."""
+    """Bundles of the tiny city's runs but the first, built with one random model (``ckpt``):
+    ``map`` with geometry (verification), ``plain`` without, ``keys`` of the keyframe maps
+    (single scans); ``query_run`` is the run left out."""
     from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.index.build import build_bundle
     from tests.index.helpers import make_checkpoint
@@ -57,10 +58,13 @@ def tiny_maps(tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     ckpt = make_checkpoint(base / "ckpt")
     build_bundle(base / "map.index", ckpt, tiny, runs=runs[1:], progress=False)
     build_bundle(base / "plain.index", ckpt, tiny, runs=runs[1:], progress=False, geometry="off")
+    build_bundle(base / "keys.index", ckpt, tiny, runs=runs[1:], progress=False, layout="keyframe")
     return {
         "base": base,
         "tree": tree,
         "query_run": runs[0],
+        "ckpt": ckpt,
         "map": base / "map.index",
         "plain": base / "plain.index",
+        "keys": base / "keys.index",
     }

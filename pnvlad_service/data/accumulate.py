@@ -164,11 +164,13 @@ class ScanCache:
 
 @dataclass
 class _Held:
-    """One scan a :class:`WindowAccumulator` holds: travelled distance, pose, points."""
+    """One scan a :class:`WindowAccumulator` holds: travelled distance, pose, points, and
+    whether it was kept for its spacing (``spaced``) or only as the newest scan."""
 
     distance: float
     pose: np.ndarray
     points: np.ndarray
+    spaced: bool = True
 
 
 @dataclass
@@ -179,10 +181,11 @@ class WindowAccumulator:
     the last ``window_m`` of travel laid together as ``pnvlad data prepare`` lays a submap's
     (:func:`accumulate`), about the newest scan: in the world's axes (``frame="enu"``: with
     poses in UTM, the axes of the map's submaps) or in the newest scan's own axes
-    (``frame="sensor"``: for odometry, whose frame is nobody's map). Scans less than
-    ``min_spacing_m`` from the last one kept replace it (a robot standing still holds one
-    scan, its newest); each keeps at most ``max_points_per_scan`` points within ``max_range_m``
-    (prepare's options, default none).
+    (``frame="sensor"``: for odometry, whose frame is nobody's map). A scan less than
+    ``min_spacing_m`` from the last one kept for its spacing is held only as the newest, until
+    the next scan replaces it (as :func:`spaced_scans` keeps scans offline: a robot creeping or
+    standing still holds its spaced scans and its newest); each keeps at most
+    ``max_points_per_scan`` points within ``max_range_m`` (prepare's options, default none).
     """
 
     window_m: float = 20.0
@@ -199,6 +202,12 @@ class WindowAccumulator:
             raise InputError(
                 f"must be a positive number of metres, got {self.window_m}", "window_m"
             )
+        if not (math.isfinite(self.min_spacing_m) and self.min_spacing_m >= 0):
+            raise InputError(f"must be >= 0 metres, got {self.min_spacing_m}", "min_spacing_m")
+        if self.max_points_per_scan is not None and self.max_points_per_scan < 1:
+            raise InputError(f"must be >= 1, got {self.max_points_per_scan}", "max_points_per_scan")
+        if self.max_range_m is not None and not self.max_range_m > 0:
+            raise InputError(f"must be > 0 metres, got {self.max_range_m}", "max_range_m")
         if self.frame not in ("enu", "sensor"):
             raise InputError(f"must be enu or sensor, got {self.frame!r}", "frame")
 
@@ -207,18 +216,21 @@ class WindowAccumulator:
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (4, 4) or not np.isfinite(pose).all():
             raise InputError(f"a pose must be a finite [4, 4] matrix, got {pose.shape}", "pose")
-        pts = sensor_points(points, self.max_range_m)
+        pts = np.asarray(points)
+        if pts.ndim != 2 or pts.shape[1] < 3:
+            raise InputError(f"expected points [N, 3+], got {pts.shape}", "points")
+        pts = sensor_points(pts, self.max_range_m)
         pts = scan_subset(pts, self.max_points_per_scan, (self.seed, self._count))
         self._count += 1
-        distance = 0.0
+        distance, spaced = 0.0, True
+        if self._held and not self._held[-1].spaced:
+            self._held.pop()  # the newest-only scan gives way to the next
         if self._held:
-            last = self._held[-1]
+            last = self._held[-1]  # the last scan kept for its spacing
             step = float(np.hypot(*(pose[:2, 3] - last.pose[:2, 3])))
             distance = last.distance + step
-            if step < self.min_spacing_m:
-                self._held.pop()  # standing still: the newest scan stands for the place
-                distance = last.distance
-        self._held.append(_Held(distance, pose, pts))
+            spaced = step >= self.min_spacing_m
+        self._held.append(_Held(distance, pose, pts, spaced))
         while self._held[-1].distance - self._held[0].distance > self.window_m:
             self._held.popleft()
 

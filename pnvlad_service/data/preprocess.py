@@ -34,7 +34,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from pnvlad_service.data.ground import fit_ground_plane, ground_surface, rotation_to_z
-from pnvlad_service.data.voxel import adaptive_voxel_downsample, column_mean, resample_to
+from pnvlad_service.data.voxel import (
+    adaptive_voxel_downsample,
+    column_mean,
+    resample_to,
+    voxel_average,
+)
 from pnvlad_service.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -98,6 +103,13 @@ class GConfig(BaseModel):
     )
     ransac_iterations: int = Field(200, ge=1, description="RANSAC plane hypotheses.")
     voxel_iterations: int = Field(30, ge=1, description="Most leaf sizes tried.")
+    prevoxel: float | None = Field(
+        None,
+        gt=0,
+        description="Average the cropped points in voxels of this size (m) before ground "
+        "removal: a dense single scan (120,000 points) then costs G a fraction of the time, "
+        "and the output moves by a fraction of the final voxel (about 1 m).",
+    )
     normalize: bool = Field(True, description="Centre, scale and clip to [-1, 1].")
     mean_distance: float = Field(
         0.5, gt=0, description="Mean distance from the centroid after scaling (units of [-1,1])."
@@ -142,13 +154,20 @@ class GConfig(BaseModel):
 #: How far from the sensor a single scan is kept (metres): the crop of keyframe maps and of
 #: single-scan queries, so that a query meets a map entry of its own kind.
 SCAN_MAX_RANGE_M = 50.0
+#: The voxel a single scan is averaged in before G's ground removal (metres): a 120,000-point
+#: scan goes on with about a quarter of its points (``GConfig.prevoxel``).
+SCAN_PREVOXEL_M = 0.2
 
 
 def scan_config(base: GConfig | None = None, max_range: float = SCAN_MAX_RANGE_M) -> GConfig:
     """G for one scan in its sensor frame (keyframes, single-scan queries): ``base`` (default:
-    the default settings) with points farther than ``max_range`` metres from the sensor dropped."""
+    the default settings) with points farther than ``max_range`` metres from the sensor dropped
+    and the rest averaged in :data:`SCAN_PREVOXEL_M` voxels (unless ``base`` sets its own)."""
     base = base or GConfig()
-    return base.model_copy(update={"max_range": float(max_range)})
+    prevoxel = SCAN_PREVOXEL_M if base.prevoxel is None else base.prevoxel
+    return GConfig.model_validate(
+        {**base.model_dump(), "max_range": float(max_range), "prevoxel": prevoxel}
+    )
 
 
 @dataclass(frozen=True)
@@ -344,6 +363,8 @@ def apply_g(points: np.ndarray, config: GConfig | None = None, *, seed: int = 0)
     if cfg.min_range is not None or cfg.max_range is not None or cfg.box is not None:
         pts = crop(pts, min_range=cfg.min_range, max_range=cfg.max_range, box=cfg.box)
     n_cropped = pts.shape[0]
+    if cfg.prevoxel is not None and n_cropped > cfg.target_points:
+        pts = voxel_average(pts, cfg.prevoxel)
     if n_cropped < cfg.min_points:
         raise InputError(
             f"{n_cropped} points left after cropping {n_input}; at least {cfg.min_points} needed",

@@ -86,7 +86,8 @@ def write_scan(path: str | Path, points: np.ndarray) -> None:
     if pts.ndim != 2 or pts.shape[1] < 3 or len(pts) == 0:
         raise InputError(f"expected points [N, 3] or [N, 4], got {pts.shape}", path)
     out = np.zeros((len(pts), 4), dtype="<f4")
-    out[:, : min(4, pts.shape[1])] = pts[:, :4]
+    with np.errstate(over="ignore", invalid="ignore"):  # too large for float32: refused below
+        out[:, : min(4, pts.shape[1])] = pts[:, :4]
     if not np.isfinite(out).all():
         raise InputError("a scan to write holds NaN or infinite values", path)
     with atomic_open(path, "wb") as fh:
@@ -140,7 +141,7 @@ def read_raw_scans(run_dir: str | Path) -> list[RawScan]:
             raise InputError(f"line {lineno}: a value is not finite", path)
         scan = run_dir / RAW_FOLDER / f"{stamp}.bin"
         if not scan.is_file():
-            raise InputError(f"line {lineno}: no scan file {scan.name}", scan.parent)
+            raise InputError(f"line {lineno}: no scan file {RAW_FOLDER}/{scan.name}", path)
         out.append(
             RawScan(scan, stamp, pose_matrix(values), None if true is None else pose_matrix(true))
         )

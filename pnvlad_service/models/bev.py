@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.heading import canonical_heading
 from pnvlad_service.models.netvlad import NetVLAD
 
 
@@ -77,6 +78,8 @@ class BEVNetVLAD(nn.Module):
         each L2-normalised when ``cfg.point_l2_norm`` (as the paper normalises point features)."""
         if points.ndim != 3 or points.shape[-1] != 3:
             raise ValueError(f"expected points [B, N, 3], got {list(points.shape)}")
+        if self.cfg.canonical_heading:
+            points = canonical_heading(points)
         f = self.cnn(bev_image(points, self.cfg)).float().flatten(2).transpose(1, 2)
         return F.normalize(f, dim=2) if self.cfg.point_l2_norm else f
 

@@ -54,6 +54,12 @@ class ModelConfig(BaseModel):
         description="Append local shape features of each point's k nearest neighbours to its "
         "coordinates (models/local_shape.py, after LPD-Net); 0: coordinates only, as the paper.",
     )
+    canonical_heading: bool = Field(
+        False,
+        description="Turn each cloud so that its dominant direction lies along x before the "
+        "network (models/heading.py): for single scans, whose heading on the map is unknown; "
+        "trained with train.augment.quarter_turns.",
+    )
 
     # Per-point trunk: shared layers (1x1 convolutions, i.e. matrix products over points).
     stem_widths: tuple[int, ...] = Field(
@@ -295,12 +301,14 @@ BEV_FIELDS = tuple(name for name in ModelConfig.model_fields if name.startswith(
 
 def config_sha256(cfg: ModelConfig) -> str:
     """SHA-256 (hex) of the configuration's canonical JSON (sorted keys, no spaces). Fields
-    added since the first release are left out at their neutral value (``local_k`` 0, the
+    added since the first release are left out at their neutral value (``local_k`` 0,
+    ``canonical_heading`` false, the
     ``bev_*`` fields of a PointNet model), so a model's hash does not change with the release
     that reads it."""
     doc = cfg.model_dump(mode="json")
-    if not doc["local_k"]:
-        del doc["local_k"]
+    for name in ("local_k", "canonical_heading"):
+        if not doc[name]:
+            del doc[name]
     if cfg.arch != "bev-netvlad":
         for name in BEV_FIELDS:
             del doc[name]

@@ -330,9 +330,13 @@ class Encoder:
             # Crowded, the head (and bev-netvlad's whole module) goes to a cloud worker too: on
             # all threads, its parallel regions each wait at a barrier for the thread that has
             # no core (docs/SERVICE.md, "How a request runs").
-            if self._module is not None:
+            if self._module is not None:  # bev-netvlad turns its clouds itself
                 fn, args = self._module_forward, (x, q)
             else:
+                if self.cfg.canonical_heading:
+                    from pnvlad_service.models.heading import canonical_heading
+
+                    x = self._all_threads(canonical_heading, x)
                 fn, args = self._head, (self._clouds(x, q, alone), q)
             pool = None if alone or self.device.type != "cpu" else self._worker_pool()
             if pool is None:

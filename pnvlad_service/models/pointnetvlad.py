@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.heading import canonical_heading
 from pnvlad_service.models.local_shape import split_inputs
 from pnvlad_service.models.netvlad import ContextGating, NetVLAD
 from pnvlad_service.models.training_path import (
@@ -168,6 +169,8 @@ class PointNetVLAD(nn.Module):
         return h.reshape(b, n, -1)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
+        if self.cfg.canonical_heading:
+            points = canonical_heading(points)
         if not self.fast_path:
             return self.reference_forward(points)
         return fast_forward(self, points)

@@ -33,6 +33,12 @@ class AugmentSection(BaseModel):
     yaw_deg: float = Field(
         0.0, ge=0, le=180, description="Largest turn about the vertical (uniform in +-yaw)."
     )
+    quarter_turns: bool = Field(
+        False,
+        description="Also turn each cloud by a random multiple of 90 degrees: for clouds whose "
+        "heading is known only up to a quarter turn (single scans canonicalised by their "
+        "dominant direction, models/heading.py), so the model does not tell the four apart.",
+    )
     shift: float = Field(0.0, ge=0, description="Largest shift in x and y (normalised units).")
     scale: float = Field(0.0, ge=0, lt=1, description="Largest relative scaling (1 +- scale).")
     jitter: float = Field(0.0, ge=0, description="Std of per-point noise, clipped at 3 std.")
@@ -49,7 +55,7 @@ class AugmentSection(BaseModel):
         return any(
             v > 0
             for v in (self.yaw_deg, self.shift, self.scale, self.jitter, self.dropout, self.erase_p)
-        )
+        ) or self.quarter_turns
 
 
 def _refill(x: torch.Tensor, keep: torch.Tensor, g: torch.Generator) -> torch.Tensor:
@@ -97,8 +103,11 @@ def augment(x: torch.Tensor, cfg: AugmentSection, seed: int) -> torch.Tensor:
         inside = ((x[:, :, :2] - centre[:, None, :2]).abs() <= half[:, None]).all(dim=2)
         erase = uniform(0.0, 1.0, b, 1) < cfg.erase_p
         x = _refill(x, ~(inside & erase), g)
-    if cfg.yaw_deg > 0:
+    if cfg.yaw_deg > 0 or cfg.quarter_turns:
         yaw = uniform(-math.radians(cfg.yaw_deg), math.radians(cfg.yaw_deg), b)
+        if cfg.quarter_turns:
+            quarters = torch.randint(0, 4, (b,), generator=g, device=dev).to(dt)
+            yaw = yaw + quarters * (math.pi / 2)
         c, s = torch.cos(yaw), torch.sin(yaw)
         xy = torch.stack([c * x[..., 0].T - s * x[..., 1].T, s * x[..., 0].T + c * x[..., 1].T])
         x = torch.cat([xy.permute(2, 1, 0), x[..., 2:]], dim=2)

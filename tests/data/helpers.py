@@ -24,7 +24,11 @@ def make_kitti_sequence(
     step: float = STEP_M,
     forward: list[float] | None = None,
 ) -> Path:
-    """A KITTI-style sequence: the two real scans alternating, camera moving along z.
+    """A KITTI-style sequence: two real scans alternating, camera moving along z.
+
+    The scans are kitti00_000000.bin and kitti00_000005.bin, real HDL-64E scans of unknown
+    frames (not frames 0 and 5 of KITTI 00, whatever their names say): the poses here are made
+    up, and the tests that use this need real clouds, not their true poses.
 
     ``forward``: the camera's z position of each frame (default ``step * i``).
     """

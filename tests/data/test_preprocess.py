@@ -301,6 +301,8 @@ def test_g_config_from_file_errors_name_the_file(tmp_path: Path) -> None:
 
 # --- real scans ------------------------------------------------------------------------------
 
+# What G does to a real scan, no pose needed: the two KITTI files are real HDL-64E scans of
+# unknown frames (not frames 0 and 5 of sequence 00; the data README).
 REAL = [
     ("kitti00_000000.bin", "kitti", 1.0),
     ("kitti00_000005.bin", "kitti", 1.0),
@@ -406,3 +408,24 @@ def test_wide_crown_over_unseen_ground_is_not_ground() -> None:
     mask, _ = ground_mask(pts, rng=np.random.default_rng(0))
     assert mask[: len(floor)].all()
     assert not mask[len(floor) :].any()
+
+
+def test_prevoxel_keeps_g_close_to_the_full_cloud_in_a_fraction_of_the_points() -> None:
+    """G with ``prevoxel`` averages the cropped points in small voxels first: the submap's
+    points move by a fraction of G's own voxel, its scale hardly at all."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(4)
+    ground = np.c_[rng.uniform(-40, 40, (60_000, 2)), rng.normal(0.0, 0.02, 60_000)]
+    walls = np.c_[
+        rng.uniform(-40, 40, 40_000),
+        np.where(rng.random(40_000) < 0.5, -12.0, 12.0) + rng.normal(0, 0.05, 40_000),
+        rng.uniform(0.2, 8.0, 40_000),
+    ]
+    cloud = np.concatenate([ground, walls])
+    full = apply_g(cloud, GConfig(max_range=50.0))
+    fast = apply_g(cloud, GConfig(max_range=50.0, prevoxel=0.2))
+    a, b = full.centre + full.scale * full.points, fast.centre + fast.scale * fast.points
+    assert np.median(cKDTree(a).query(b)[0]) < 0.5 * full.leaf_size
+    assert abs(fast.scale / full.scale - 1) < 0.02
+    assert fast.n_nonground < full.n_nonground  # what G worked on after the average

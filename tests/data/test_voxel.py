@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pnvlad_service.data.voxel import (
     column_max,
@@ -64,3 +66,21 @@ def test_resample_to_drops_in_order_and_duplicates_existing_points() -> None:
     assert more.shape == (25, 3)
     assert more[:10].tolist() == pts.tolist()
     assert all(tuple(r) in rows for r in more[10:].tolist())
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(1, 3000),
+    spread=st.floats(0.5, 300.0),
+    leaf=st.floats(0.01, 5.0),
+)
+def test_voxel_count_on_a_bitmap_equals_the_count_of_distinct_keys(
+    seed: int, n: int, spread: float, leaf: float
+) -> None:
+    """Small grids are counted on a bitmap, large ones by sorting: either way the number of
+    distinct voxels, counted here with a set of integer triples."""
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(0.0, spread, (n, 3)) * [1.0, 1.0, 0.1]
+    cells = np.floor((pts - pts.min(axis=0)) / leaf).astype(np.int64)
+    assert voxel_count(pts, leaf) == len({tuple(c) for c in cells.tolist()})

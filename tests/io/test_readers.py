@@ -276,6 +276,8 @@ def test_missing_io_package_names_the_extra(
 
 # --- real scans ------------------------------------------------------------------------------
 
+# Point counts and sensor ranges, no pose needed: the two KITTI files are real HDL-64E scans of
+# unknown frames (not frames 0 and 5 of sequence 00; the data README).
 REAL = [
     ("kitti00_000000.bin", "kitti", 124_668),
     ("kitti00_000005.bin", "kitti", 123_924),

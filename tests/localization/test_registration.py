@@ -1,6 +1,6 @@
 """Tests of pnvlad_service.localization.registration: each truth is known independently of the
 code under test (a transform we applied, the simulator's true poses, a plain nearest-neighbour
-loop, an independent point-to-plane ICP written here in numpy)."""
+loop, KITTI's recorded poses, an independent point-to-plane ICP written here in numpy)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from pnvlad_service.errors import MissingDependencyError
 from pnvlad_service.localization import registration as reg
+from tests.kitti00 import relative_pose
 from tests.localization import submap_pairs as sp
 
 pytest.importorskip("small_gicp")
@@ -175,11 +176,13 @@ def test_prepared_query_reused_against_several_candidates(drives) -> None:
     assert other.fitness < again.fitness
 
 
-# --- KITTI 00, frames 0 and 5 --------------------------------------------------------------
+# --- real KITTI scans ----------------------------------------------------------------------
 
 
-def kitti(folder: Path, i: int) -> np.ndarray:
-    raw = np.fromfile(folder / f"kitti00_{i:06d}.bin", dtype="<f4").reshape(-1, 4)
+def kitti(folder: Path, name: str) -> np.ndarray:
+    """The real scan ``folder/name`` (KITTI .bin: float32 x, y, z, reflectance): float64
+    [N, 3], sensor frame, metres."""
+    raw = np.fromfile(folder / name, dtype="<f4").reshape(-1, 4)
     return raw[:, :3].astype(np.float64)
 
 
@@ -212,44 +215,63 @@ def point_to_plane(source: np.ndarray, target: np.ndarray, iterations: int = 60)
     return m
 
 
-def kitti_truth(folder: Path) -> np.ndarray:
-    """Velodyne frame 5 -> velodyne frame 0 from the poses file (camera 0) and KITTI 00's
-    velodyne-to-camera calibration."""
-    tr = np.array(
-        [
-            [4.276802385584e-04, -9.999672484946e-01, -8.084491683471e-03, -1.198459927713e-02],
-            [-7.210626507497e-03, 8.081198471645e-03, -9.999413164504e-01, -5.403984729748e-02],
-            [9.999738645903e-01, 4.859485810390e-04, -7.206933692422e-03, -2.921968648686e-01],
-            [0.0, 0.0, 0.0, 1.0],
-        ]
+@pytest.mark.real_scans
+@pytest.mark.parametrize(
+    "source, target, max_m, max_deg",
+    [
+        # Consecutive frames, 0.47 m apart: the recorded poses agree with a plain GICP within
+        # 0.01 m and 0.02 degrees (data README), so ours must come as close as that allows.
+        (95, 94, 0.05, 0.1),
+        # The revisit, about 3 m and 7.5 minutes apart: KITTI's recorded poses are good to
+        # about 0.25 m and 0.45 degrees there (data README), hence twice that.
+        (4501, 52, 0.5, 1.0),
+    ],
+)
+def test_kitti_frames_registered_to_their_recorded_relative_pose(
+    real_scans: Path, source: int, target: int, max_m: float, max_deg: float
+) -> None:
+    """KITTI 00 frame ``source`` registered onto frame ``target`` from no initial guess (the
+    yaw search) lands on ``inv(P_target) · P_source``, the relative pose of the ground-truth
+    file kitti00_poses.txt composed with the velodyne calibration (tests/kitti00.py)."""
+    truth = relative_pose(real_scans, target, source)
+    result = reg.register(
+        kitti(real_scans, f"kitti00_{source:06d}.bin"),
+        kitti(real_scans, f"kitti00_{target:06d}.bin"),
     )
-    rows = np.loadtxt(folder / "kitti00_poses_0-5.txt").reshape(-1, 3, 4)
-    cam = np.tile(np.eye(4), (len(rows), 1, 1))
-    cam[:, :3, :] = rows
-    return np.linalg.inv(cam[0] @ tr) @ cam[5] @ tr
+    dt, dr = errors(result.transform, truth)
+    print(
+        f"KITTI 00 {source}->{target}: recorded t = {np.round(truth[:3, 3], 3)} m, ours "
+        f"t = {np.round(result.transform[:3, 3], 3)} m; off by {dt:.3f} m {dr:.3f} deg, "
+        f"fitness {result.fitness:.3f}"
+    )
+    assert result.converged and result.init == "yaw search", result
+    assert dt < max_m and dr < max_deg, (dt, dr)
+    assert result.fitness > 0.5
 
 
+@pytest.mark.real_scans
 def test_kitti_pair_agrees_with_independent_icp(real_scans: Path) -> None:
-    """Frame 5 of KITTI 00 registered against frame 0.
+    """kitti00_000005.bin registered onto kitti00_000000.bin, checked against an independent
+    method.
 
-    The issue asked for the recorded relative pose within 0.2 m and 0.5 degrees. The scans do
-    not agree with that pose: small_gicp (GICP, VGICP), kiss-icp, open3d (point-to-plane,
-    GICP) and the numpy point-to-plane below all land at 3.58-3.62 m forward and 1.12-1.17
-    degrees of yaw, where the poses file says 4.29 m and 0.59 degrees (also started from the
-    recorded pose, with or without ground, de-skewed or not, with kiss-icp's KITTI vertical
-    angle correction; docs/VERIFY.md). So this asserts what is cross-checked - our answer
-    within 0.1 m and 0.2 degrees of an independent method's - and only prints the comparison
-    with the recorded pose.
+    The two files are real HDL-64E scans of a KITTI drive, five frames apart, of unknown frames:
+    they are not frames 0 and 5 of sequence 00 (the data README), and no recorded pose describes
+    them (kitti00_poses_0-5.txt is sequence 00's, not theirs). So the truth here is an
+    independent registration: our answer within 0.1 m and 0.2 degrees of the numpy
+    point-to-plane ICP above, about 3.6 m forward as every method measured (small_gicp GICP and
+    VGICP, kiss-icp, open3d point-to-plane and GICP and the ICP here all land at 3.58-3.62 m and
+    1.12-1.17 degrees of yaw; docs/VERIFY.md). The recorded poses are checked against by
+    test_kitti_frames_registered_to_their_recorded_relative_pose, on frames that have them.
     """
-    source, target = kitti(real_scans, 5), kitti(real_scans, 0)
+    source = kitti(real_scans, "kitti00_000005.bin")
+    target = kitti(real_scans, "kitti00_000000.bin")
     ours = reg.register(source, target)
     independent = point_to_plane(source, target)
     dt, dr = errors(ours.transform, independent)
-    gt_t, gt_r = errors(ours.transform, kitti_truth(real_scans))
     print(
-        f"KITTI 00 5->0: ours t = {np.round(ours.transform[:3, 3], 3)} m, independent "
-        f"t = {np.round(independent[:3, 3], 3)} m; ours vs independent {dt:.3f} m {dr:.3f} deg; "
-        f"ours vs the poses file {gt_t:.3f} m {gt_r:.3f} deg (not asserted, see docstring)"
+        f"kitti00_000005 -> kitti00_000000: ours t = {np.round(ours.transform[:3, 3], 3)} m, "
+        f"independent t = {np.round(independent[:3, 3], 3)} m; ours vs independent {dt:.3f} m "
+        f"{dr:.3f} deg"
     )
     assert dt < 0.1 and dr < 0.2
     assert 3.4 < ours.transform[0, 3] < 3.8  # forward, as every method measured

@@ -51,7 +51,7 @@ def fake_service(points: np.ndarray) -> dict:
            "easting": 620_003.0, "distance": 0.25 * i, "submap_id": "x", "kind": "keyframe",
            "score": 0.4}  # fmt: skip
     verified = i % 4 == 0
-    pose = {"northing": north + 0.5 - (0.0 if i != 4 else 0.0), "easting": 620_000.0,
+    pose = {"northing": north + 0.5, "easting": 620_000.0,
             "yaw_deg": 2.0, "height": 1.0}  # fmt: skip
     return {
         "matches": [top, {**top, "rank": 2}],

@@ -242,6 +242,8 @@ def test_top1_agreement() -> None:
 
 @pytest.mark.real_scans
 def test_real_scan_descriptor_is_order_independent(real_scans: Path) -> None:
+    """A real KITTI HDL-64E scan (of unknown frame: any real scan does) embeds to the same unit
+    descriptor whatever the order of its points."""
     pts = np.fromfile(real_scans / "kitti00_000000.bin", dtype=np.float32).reshape(-1, 4)[:, :3]
     rng = np.random.default_rng(0)
     sub = pts[rng.choice(len(pts), 4096, replace=False)].astype(np.float64)

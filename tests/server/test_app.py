@@ -484,6 +484,7 @@ def test_raw_scan_with_preprocess_equals_local_filter_g(client, local, real_scan
     preprocess = pytest.importorskip("pnvlad_service.data.preprocess")
     from pnvlad_service.io.readers import read_points
 
+    # A real KITTI scan of unknown frame (any real scan does: the check is the server's G).
     raw = read_points(real_scans / "kitti00_000000.bin", "kitti")
     r = client.post(
         "/localize?top_n=4&preprocess=true",

@@ -40,6 +40,27 @@ def test_yaw_turns_each_cloud_rigidly_about_z_within_the_bound() -> None:
         np.testing.assert_allclose(a, rot, atol=1e-4)
 
 
+def test_quarter_turns_turn_each_cloud_by_a_multiple_of_90_degrees() -> None:
+    x = _clouds(b=32)
+    cfg = AugmentSection(quarter_turns=True)
+    assert cfg.active
+    y = augment(x, cfg, 3)
+    turns = set()
+    for b in range(x.shape[0]):
+        a, *_ = np.linalg.lstsq(x[b, :, :2].numpy(), y[b, :, :2].numpy(), rcond=None)
+        angle = math.degrees(math.atan2(a[0, 1], a[0, 0])) % 360.0
+        k = round(angle / 90.0) % 4
+        assert abs(angle - 90.0 * round(angle / 90.0)) < 1e-3  # a whole quarter, nothing between
+        turns.add(k)
+    assert turns == {0, 1, 2, 3}  # all four drawn in 32 clouds
+    # With yaw_deg the quarter turn comes on top of the small turn: within 5 degrees of one.
+    y = augment(x, AugmentSection(quarter_turns=True, yaw_deg=5.0), 4)
+    for b in range(x.shape[0]):
+        a, *_ = np.linalg.lstsq(x[b, :, :2].numpy(), y[b, :, :2].numpy(), rcond=None)
+        angle = math.degrees(math.atan2(a[0, 1], a[0, 0]))
+        assert abs(angle - 90.0 * round(angle / 90.0)) <= 5.0 + 1e-3
+
+
 def test_dropout_and_erasing_keep_p_points_all_taken_from_the_cloud() -> None:
     x = _clouds(p=500)
     y = augment(x, AugmentSection(dropout=0.5, erase_p=1.0, erase_size=0.3), 3)

@@ -102,7 +102,10 @@ def kitti_poses_to_world(
     else:
         tr = np.asarray(velo_to_cam, dtype=np.float64)
     tr_inv = np.linalg.inv(tr)
-    local = tr_inv @ p @ tr  # Velodyne i -> Velodyne frame of scan 0
+    velo = tr_inv @ p @ tr  # Velodyne i -> Velodyne frame of the poses file's identity
+    # Re-based on the first scan, so that it sits at the origin facing ``yaw_deg`` even when the
+    # poses file does not start at the identity (a sequence cut from a longer one).
+    local = np.linalg.inv(velo[0]) @ velo
     return place_in_utm(local, origin_ne, yaw_deg)
 
 

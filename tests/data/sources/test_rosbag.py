@@ -1,11 +1,13 @@
 """data.sources.rosbag: ROS bags (written here with rosbags' own writers) as drives.
 
-The main check writes the scans and poses of a KITTI-style sequence (the real KITTI scans,
-thinned) into ROS 1 and ROS 2 bags, as Odometry and as /tf, and runs both through
-``prepare_drive``: same timestamps, poses and scans, byte-identical submaps and CSVs. The rest
-covers cloud layouts (organised with NaN returns, float64, extra fields, big-endian), pose
-sources, and every bad input; the decoder and the interpolation alone are tested in
-test_pointcloud2.py and test_pose_streams.py.
+The main check writes the scans and poses of a KITTI-style sequence (two real KITTI scans of
+unknown frames, thinned, on made-up poses) into ROS 1 and ROS 2 bags, as Odometry and as /tf,
+and runs both through ``prepare_drive``: same timestamps, poses and scans, byte-identical
+submaps and CSVs. KITTI 00's recorded poses of frames 90-95, with the scans of frames 94 and
+95, check real rotations through odometry and /tf chains. The rest covers cloud layouts
+(organised with NaN returns, float64, extra fields, big-endian), pose sources, and every bad
+input; the decoder and the interpolation alone are tested in test_pointcloud2.py and
+test_pose_streams.py.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from pnvlad_service.data.sources.rosbag_write import (
 from pnvlad_service.errors import InputError, MissingDependencyError
 from tests.data.helpers import ListDrive, tree_bytes
 from tests.data.sources.test_pose_streams import yaw_pose
+from tests.kitti00 import TR, camera_pose, relative_pose
 
 FRAMES = 40
 STEP_M = 1.5
@@ -47,7 +50,11 @@ FORMATS = [(1, "sqlite3", "drive.bag"), (2, "sqlite3", "drive_db3"), (2, "mcap",
 
 
 def make_sequence(root: Path, real_scans: Path, frames: int = FRAMES) -> Path:
-    """A KITTI-style sequence of the two real scans (every 6th point), alternating, 1.5 m apart."""
+    """A KITTI-style sequence of two real scans (every 6th point), alternating, 1.5 m apart.
+
+    kitti00_000000.bin and kitti00_000005.bin are real HDL-64E scans of unknown frames (not
+    frames 0 and 5 of KITTI 00): the poses here are made up, and the tests that use this only
+    need real clouds to carry through bags and prepare unchanged."""
     seq = root / "seq"
     (seq / "velodyne").mkdir(parents=True)
     scans = [
@@ -170,17 +177,22 @@ def test_bag_prepares_byte_identical_submaps(
         assert ours[key] == theirs[key], key  # submaps and CSV rows, byte for byte
 
 
+@pytest.mark.real_scans
 def test_real_kitti_rotations_as_odometry_and_as_a_tf_chain(
     real_scans: Path, tmp_path: Path
 ) -> None:
-    """The six real KITTI poses (turning slightly), clouds at frames 0 and 5 only."""
-    cam = np.loadtxt(real_scans / "kitti00_poses_0-5.txt").reshape(-1, 3, 4)
+    """Six real KITTI 00 poses, frames 90-95 (turning 4 degrees), with sequence 00's
+    calibration; the clouds of frames 94 and 95 (the real scans of those frames) at theirs.
+    Read back as odometry, as a /tf chain through a base_link and as a base_link odometry, the
+    drive's poses are the recorded ones, and the move between its two scans is the data
+    README's inv(P_94) P_95 (tests/kitti00.py)."""
+    cam = np.stack([camera_pose(real_scans, i)[:3] for i in range(90, 96)])
     from scipy.spatial.transform import Rotation
 
-    velo = kitti_poses_to_world(cam)  # velodyne -> local world, z up
+    velo = kitti_poses_to_world(cam, TR)  # velodyne -> local world, z up
     # KITTI prints 7 digits, so its matrices are rotations to 1e-7 only; a quaternion is exact.
     velo[:, :3, :3] = Rotation.from_matrix(velo[:, :3, :3]).as_matrix()
-    scans = [np.fromfile(real_scans / f"kitti00_00000{i}.bin", KITTI_POINT) for i in (0, 5)]
+    scans = [np.fromfile(real_scans / f"kitti00_0000{i}.bin", KITTI_POINT) for i in (94, 95)]
     # A base_link 0.8 m behind and 1.7 m below the lidar, pitched by 2 degrees.
     extrinsic = np.eye(4)
     c, s = math.cos(math.radians(2.0)), math.sin(math.radians(2.0))
@@ -192,18 +204,21 @@ def test_real_kitti_rotations_as_odometry_and_as_a_tf_chain(
         t = bag.types
         bag.write("/tf_static", tf_message(t, [("base_link", "velodyne", extrinsic, stamp[0])]), 0)
         for k in range(6):
-            if k in (0, 5):
-                cloud = pointcloud2(t, scans[k // 5], stamp[k], "velodyne")
+            if k in (4, 5):
+                cloud = pointcloud2(t, scans[k - 4], stamp[k], "velodyne")
                 bag.write("/points", cloud, stamp[k])
             bag.write("/odom", odometry(t, velo[k], stamp[k], "odom", "velodyne"), stamp[k])
             base = velo[k] @ np.linalg.inv(extrinsic)  # odom <- base_link
             bag.write("/tf", tf_message(t, [("odom", "base_link", base, stamp[k])]), stamp[k])
             bag.write("/base_odom", odometry(t, base, stamp[k], "odom", "base_link"), stamp[k])
-    expected = velo[[0, 5]]
+    expected = velo[[4, 5]]
+    truth = relative_pose(real_scans, 94, 95)  # scan 95 -> scan 94, numpy alone
     for pose in ({"pose_topic": "/odom"}, {"tf_frame": "odom"}, {"pose_topic": "/base_odom"}):
         with RosbagDrive(path, "/points", **pose) as drive:
             np.testing.assert_allclose(drive.poses, expected, atol=1e-9)
-            assert drive.timestamps.tolist() == [EPOCH_US, EPOCH_US + 500_000]
+            step = np.linalg.inv(drive.poses[0]) @ drive.poses[1]
+            np.testing.assert_allclose(step, truth, atol=1e-6)  # 1e-7 rotations: 1e-6 m
+            assert drive.timestamps.tolist() == [EPOCH_US + 400_000, EPOCH_US + 500_000]
             np.testing.assert_array_equal(drive.scan(1), scans[1][["x", "y", "z"]].tolist())
     with RosbagDrive(path, "/points", pose_topic="/base_odom") as drive:
         assert "/tf_static base_link <- velodyne" in drive.pose_source

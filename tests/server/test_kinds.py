@@ -1,0 +1,98 @@
+"""Query and map kinds against a real `pnvlad serve` on 127.0.0.1: a map of keyframes (single
+scans) answers raw scans and says so in every match, refuses accumulated windows naming
+``kind``; a kind that disagrees with ``preprocess`` is refused naming the field that is wrong."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from pnvlad_service.data.scans import read_raw_scans
+from pnvlad_service.io.readers import read_points
+from tests.index.helpers import free_port
+from tests.server.test_app import start_server, stop_server
+
+PROBLEM = "application/problem+json"
+
+
+@pytest.fixture(scope="module")
+def keys_server(tiny_maps: dict) -> str:
+    port = free_port()
+    proc = start_server(tiny_maps["keys"], port)
+    yield f"http://127.0.0.1:{port}"
+    stop_server(proc)
+
+
+def _scan(tiny_maps: dict) -> np.ndarray:
+    tree = tiny_maps["tree"]
+    scan = read_raw_scans(tree.root / "business" / tiny_maps["query_run"])[3]
+    return np.ascontiguousarray(read_points(scan.path, "kitti"), dtype="<f4")
+
+
+def test_a_keyframe_map_answers_a_raw_scan(keys_server: str, tiny_maps: dict) -> None:
+    body = _scan(tiny_maps).tobytes()
+    ctype = {"content-type": "application/octet-stream"}
+    for params in ({"kind": "scan"}, {"preprocess": "true"}):  # kind alone implies raw
+        r = httpx.post(f"{keys_server}/localize", params=params, content=body, headers=ctype)
+        assert r.status_code == 200, r.text
+        doc = r.json()
+        assert doc["query_kind"] == "scan" and doc["map_kind"] == "keyframe"
+        assert doc["matches"] and all(m["kind"] == "keyframe" for m in doc["matches"])
+        tree = tiny_maps["tree"]
+        for m in doc["matches"]:  # each one a keyframe of its run
+            stamps = tree.locations("business", m["run"], "keyframe").timestamp.tolist()
+            assert m["timestamp"] in stamps
+    info = httpx.get(f"{keys_server}/info").json()
+    assert info["manifest"]["map"] == {"kind": "keyframe", "layout": "keyframe"}
+    assert info["manifest"]["preprocess"]["max_range"] == 50.0
+
+
+@pytest.mark.parametrize(
+    ("params", "json_body", "field"),
+    [
+        ({"kind": "window"}, None, "kind"),  # a window against single scans
+        ({"kind": "scan", "preprocess": "false"}, None, "preprocess"),
+        ({"kind": "submap", "preprocess": "true"}, None, "preprocess"),
+        ({"kind": "everything"}, None, "kind"),
+        ({}, {"kind": "scan"}, "preprocess"),  # JSON: raw points say preprocess: true
+        ({}, {"kind": "window", "preprocess": True}, "kind"),
+        ({}, {"kind": 3, "preprocess": True}, "kind"),
+    ],
+)
+def test_kinds_the_map_cannot_take_are_refused(
+    keys_server: str, tiny_maps: dict, params: dict, json_body: dict | None, field: str
+) -> None:
+    pts = _scan(tiny_maps)
+    if json_body is None:
+        r = httpx.post(
+            f"{keys_server}/localize",
+            params=params,
+            content=pts.tobytes(),
+            headers={"content-type": "application/octet-stream"},
+        )
+    else:
+        doc = {"points": pts[:5000].astype(float).tolist(), **json_body}
+        r = httpx.post(f"{keys_server}/localize", json=doc)
+    assert r.status_code == 422, r.text
+    assert r.headers["content-type"].startswith(PROBLEM)
+    assert r.json()["field"] == field, r.text
+
+
+def test_a_submap_map_takes_a_window(tiny_maps: dict, tmp_path: Path) -> None:
+    """An accumulated window (raw metres) goes to a map of 20 m submaps, and the answer says
+    what met."""
+    from pnvlad_service.localization.localizer import Localizer
+
+    with Localizer.load(tiny_maps["map"], tiny_maps["ckpt"]) as loc:
+        answer = loc.localize(_scan(tiny_maps), kind="window", top_n=3).to_json()
+        assert answer["query_kind"] == "window" and answer["map_kind"] == "submap"
+        assert [m["kind"] for m in answer["matches"]] == ["submap"] * 3
+    with Localizer.load(tiny_maps["keys"], tiny_maps["ckpt"]) as loc:
+        from pnvlad_service.errors import InputError
+
+        with pytest.raises(InputError) as err:
+            loc.localize(_scan(tiny_maps), kind="window")
+        assert err.value.source == "kind" and "keyframe" in err.value.detail
