@@ -25,6 +25,7 @@ from entry import run
 
 from pnvlad_service.data import preprocess as g
 from pnvlad_service.data import voxel
+from pnvlad_service.data.ground import fit_ground_plane, ground_surface, rotation_to_z
 from pnvlad_service.io.readers import read_points
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,8 +63,8 @@ def _bench_scan(
     pts = raw.astype(np.float64)
     res = g.apply_g(raw, cfg)
     rng = np.random.default_rng(0)
-    normal, offset = g.fit_ground_plane(pts, rng=np.random.default_rng(0))
-    rot = g.rotation_to_z(normal)
+    normal, offset = fit_ground_plane(pts, rng=np.random.default_rng(0))
+    rot = rotation_to_z(normal)
     xy = np.stack([pts @ rot[0], pts @ rot[1]], axis=1)
     height = pts @ normal + offset
     nonground = g.remove_ground(pts, cfg, rng=np.random.default_rng(0))
@@ -71,8 +72,8 @@ def _bench_scan(
     voxels = voxel.voxel_average(nonground, leaf) if len(nonground) > cfg.target_points else None
     steps: list[tuple[str, Callable[[], object]]] = [
         ("read", lambda: read_points(path, reader)),
-        ("ground: RANSAC plane", lambda: g.fit_ground_plane(pts, rng=rng)),
-        ("ground: height map", lambda: g.ground_surface(xy, height)),
+        ("ground: RANSAC plane", lambda: fit_ground_plane(pts, rng=rng)),
+        ("ground: height map", lambda: ground_surface(xy, height)),
         ("ground: whole step", lambda: g.ground_mask(pts, cfg, rng=rng)),
         ("voxel: leaf search", lambda: voxel.find_leaf_size(nonground, cfg.target_points)),
     ]

@@ -30,7 +30,7 @@ from entry import run
 from pnvlad_service.extras import require
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))  # tests.data.test_rosbag's bag builders
+sys.path.insert(0, str(REPO))  # tests.data.sources.test_rosbag's bag builders
 
 FORMATS = [
     ("ROS 1 .bag", 1, "sqlite3", "drive.bag"),
@@ -57,10 +57,10 @@ def main() -> None:
     args = parser.parse_args()
     require("rosbags", "rosbags", "rosbag", "Writing and reading ROS bags")
 
-    from pnvlad_service.data.drives import KittiSequence
     from pnvlad_service.data.prepare import prepare_drive
-    from pnvlad_service.data.rosbag import RosbagDrive
-    from tests.data.test_rosbag import EPOCH_US, KITTI_POINT, STEP_M, bag_of_sequence
+    from pnvlad_service.data.sources.kitti import KittiSequence
+    from pnvlad_service.data.sources.rosbag import RosbagDrive
+    from tests.data.sources.test_rosbag import EPOCH_US, KITTI_POINT, STEP_M, bag_of_sequence
 
     work = Path(tempfile.mkdtemp(dir=args.work))
     try:

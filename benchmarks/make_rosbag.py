@@ -65,7 +65,7 @@ def main() -> None:
     args = parser.parse_args()
     require("rosbags", "rosbags", "rosbag", "Writing ROS bags")  # before minutes of simulation
 
-    from pnvlad_service.data.rosbag_write import write_drive_bag
+    from pnvlad_service.data.sources.rosbag_write import write_drive_bag
     from pnvlad_service.synth.generate import get_preset, simulated_drive
 
     spec = get_preset(args.preset)

@@ -34,8 +34,9 @@ from entry import run
 
 from pnvlad_service.data.dataset import load_eval_runs
 from pnvlad_service.data.tree import BenchmarkTree
+from pnvlad_service.evaluation.rerank import _Store
+from pnvlad_service.evaluation.rerank_figures import pose_error
 from pnvlad_service.localization import registration as reg
-from pnvlad_service.localization.rerank_eval import _Store, pose_error
 
 VARIANTS = {
     "default": {},

@@ -47,7 +47,7 @@ def replay_run(root: Path, model: Path, out: Path, area: str, name: str, every: 
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
-    from pnvlad_service.data.rosbag_write import write_drive_bag
+    from pnvlad_service.data.sources.rosbag_write import write_drive_bag
     from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.index.build import build_bundle
     from pnvlad_service.synth.generate import simulated_drive

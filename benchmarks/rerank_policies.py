@@ -5,7 +5,7 @@ gap between recall@1 after re-ranking and recall@K before).
         [--policy shipped --policy all --policy stop0.35 --policy k6 ...]
 
 Embeds TREE's evaluation runs once with MODEL (as ``pnvlad eval --num-points 4096``), then runs
-``rerank_eval.rerank_report`` for each policy with the same threshold (give the one
+``evaluation.rerank.rerank_report`` for each policy with the same threshold (give the one
 ``pnvlad eval --rerank 10`` chose on the training layout), and prints per policy: recall@1
 before and after, recall@K before and the gap, recall@1% after, the metric success and median
 errors, ``verified`` precision by place and pose with its coverage, candidates registered a
@@ -32,7 +32,7 @@ from entry import run
 from pnvlad_service.data.dataset import load_eval_runs
 from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.evaluation.evaluate import embed_runs, model_encoder
-from pnvlad_service.localization.rerank_eval import _reversed_runs, rerank_report
+from pnvlad_service.evaluation.rerank import _reversed_runs, rerank_report
 from pnvlad_service.localization.verify import VerifyConfig
 
 

@@ -2,7 +2,7 @@
 
 A thin layer over :func:`pnvlad_service.data.prepare.prepare_drive`: the options are declared
 below (so the command's signature stays one screen), checked and turned into a drive from
-:mod:`pnvlad_service.data.drives`; library imports happen inside the command so that
+:mod:`pnvlad_service.data.sources`; library imports happen inside the command so that
 `pnvlad --help` stays fast.
 """
 
@@ -17,7 +17,7 @@ from pnvlad_cli import rosbag as bag_options
 from pnvlad_cli.common import progress_option, user_errors
 
 if TYPE_CHECKING:
-    from pnvlad_service.data.drives import Drive
+    from pnvlad_service.data.drive import Drive
     from pnvlad_service.data.prepare import PrepareResult
 
 _INPUT = "Input drive"
@@ -255,7 +255,8 @@ def _open_drive(
 ) -> Drive:
     """The drive of ``--kitti``, of ``--scans`` with ``--poses`` or of ``--rosbag`` (its
     options in ``rosbag``), its options checked."""
-    from pnvlad_service.data.drives import CsvDrive, KittiSequence
+    from pnvlad_service.data.sources.csv_drive import CsvDrive
+    from pnvlad_service.data.sources.kitti import KittiSequence
     from pnvlad_service.errors import InputError
 
     bag = rosbag.pop("rosbag")

@@ -6,6 +6,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -192,65 +193,37 @@ def evaluate(
         # the embedding is as fast either way (docs/VERIFY.md). A value the user set is kept.
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     with user_errors(), contextlib.ExitStack() as stack:
-        from pnvlad_service.errors import InputError
         from pnvlad_service.evaluation import evaluate as ev
 
         others = [(p.stem, ev.read_report(p)) for p in (plot or [])]
         if model is None and not baseline:
-            if not others:
-                raise InputError("give --model (-m), --baseline or --plot REPORT", "--model")
-            if figures is None:
-                raise InputError("--plot needs --figures, the folder for the PNGs", "--figures")
-            typer.echo(f"wrote {ev.plot_recall_curves(others, figures / 'recall_at_n.png')}")
+            _plot_only(others, figures)
             return
-        if model is not None and baseline:
-            raise InputError("give --model or --baseline, not both", "--baseline")
-        if num_points is not None and num_points < 1:
-            raise InputError(f"must be >= 1, got {num_points}", "--num-points")
-        from pnvlad_service.data.dataset import load_eval_runs
-
-        if rerank is not None and not 1 <= rerank <= 100:
-            raise InputError(f"must be 1..100, got {rerank}", "--rerank")
-        if rerank is not None and root is None:
-            raise InputError("re-ranking reads the tree's frame sidecars: give --root", "--root")
-        if off_map_share is not None and not 0.0 <= off_map_share < 1.0:
-            raise InputError(f"must be in [0, 1), got {off_map_share}", "--off-map-share")
-        if rerank is None and verify_threshold is not None:
-            raise InputError("applies with --rerank only", "--verify-threshold")
-        if save_threshold and (rerank is None or model is None or verify_threshold is not None):
-            raise InputError(
-                "needs --model and --rerank K, and a threshold chosen here (no --verify-threshold)",
-                "--save-threshold",
-            )
-        if dtype not in ("float32", "bfloat16"):
-            raise InputError(f"must be float32 or bfloat16, got {dtype!r}", "--dtype")
-        if baseline and dtype != "float32":
-            raise InputError("the baseline has no encoder to run in bfloat16", "--dtype")
-        if queries not in ("submaps", "scans", "windows"):
-            raise InputError(f"must be submaps, scans or windows, got {queries!r}", "--queries")
-        if queries != "submaps" and (root is None or pickles is not None):
-            raise InputError(f"{queries} queries are read from the tree: give --root", "--queries")
+        _check_options(
+            model=model,
+            baseline=baseline,
+            root=root,
+            pickles=pickles,
+            queries=queries,
+            num_points=num_points,
+            rerank=rerank,
+            verify_threshold=verify_threshold,
+            off_map_share=off_map_share,
+            save_threshold=save_threshold,
+            dtype=dtype,
+        )
         enc = ev.baseline_encoder() if baseline else ev.model_encoder(model, device, dtype)
         points = enc.num_points if num_points is None else num_points
-        scan_set = None
-        if queries != "submaps":
-            from pnvlad_service.data.dataset import load_splits_any
-            from pnvlad_service.evaluation import scan_queries
-
-            scan_set = scan_queries.scan_query_set(root, load_splits_any(root, splits), sets)
-            tmp = Path(stack.enter_context(tempfile.TemporaryDirectory()))
-            if queries == "windows":
-                from pnvlad_service.synth.windows import window_queries
-
-                scan_set = window_queries(
-                    scan_set, root, tmp / "windows", poses=window_poses, window_m=window_m,
-                    progress=progress,
-                )  # fmt: skip
-            runs = scan_queries.preprocess_queries(scan_set, tmp / "g", progress=progress)
-        else:
-            runs = load_eval_runs(root, splits, pickles, sets)
-        if len(runs) < 2:
-            raise InputError(f"need at least 2 runs to evaluate, got {len(runs)}", "evaluation set")
+        scan_set, runs = _query_runs(
+            queries,
+            root,
+            splits,
+            pickles,
+            sets,
+            stack.enter_context,
+            progress,
+            (window_poses, window_m),
+        )
         n_unique, db_desc, q_desc = ev.embed_runs(enc.embed, runs, points, workers, progress)
         rep = ev.evaluate_embedded(
             runs,
@@ -262,12 +235,15 @@ def evaluate(
             n_unique=n_unique,
         )
         if scan_set is not None:
+            from pnvlad_service.evaluation import scan_queries
+
             rep.update(scan_queries.scan_report(scan_set, runs, db_desc, q_desc, points))
         if rerank is not None:
             from pnvlad_service.data.dataset import load_splits_any
-            from pnvlad_service.localization import rerank_eval, rerank_report
+            from pnvlad_service.evaluation import scan_queries
+            from pnvlad_service.evaluation.rerank import evaluate_rerank
 
-            rep["rerank"] = rerank_eval.evaluate_rerank(
+            rep["rerank"] = evaluate_rerank(
                 enc.embed,
                 points,
                 runs,
@@ -285,23 +261,133 @@ def evaluate(
                 else scan_queries.query_frames(scan_set, runs),
             )
         if save_threshold:
-            from pnvlad_service.localization import calibration as cal
+            _save_threshold(rep, enc.info, rerank)
+        _show(enc.label, rep, out, figures, others)
 
-            # The directory and weights the encoder evaluated (not hashed again here).
-            record = cal.Calibration.from_report(
-                rep["rerank"]["calibration"], enc.info["weights_sha256"], rerank
+
+def _plot_only(others: list, figures: Path | None) -> None:
+    """``--plot`` without a model: the reports' recall@N curves drawn into ``--figures``."""
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.evaluation import evaluate as ev
+
+    if not others:
+        raise InputError("give --model (-m), --baseline or --plot REPORT", "--model")
+    if figures is None:
+        raise InputError("--plot needs --figures, the folder for the PNGs", "--figures")
+    typer.echo(f"wrote {ev.plot_recall_curves(others, figures / 'recall_at_n.png')}")
+
+
+def _check_options(
+    *,
+    model: Path | None,
+    baseline: bool,
+    root: Path | None,
+    pickles: Path | None,
+    queries: str,
+    num_points: int | None,
+    rerank: int | None,
+    verify_threshold: float | None,
+    off_map_share: float | None,
+    save_threshold: bool,
+    dtype: str,
+) -> None:
+    """Every option checked against the others before a model is loaded: an ``InputError``
+    naming the option at fault."""
+    from pnvlad_service.errors import InputError
+
+    if model is not None and baseline:
+        raise InputError("give --model or --baseline, not both", "--baseline")
+    if num_points is not None and num_points < 1:
+        raise InputError(f"must be >= 1, got {num_points}", "--num-points")
+    if rerank is not None and not 1 <= rerank <= 100:
+        raise InputError(f"must be 1..100, got {rerank}", "--rerank")
+    if rerank is not None and root is None:
+        raise InputError("re-ranking reads the tree's frame sidecars: give --root", "--root")
+    if off_map_share is not None and not 0.0 <= off_map_share < 1.0:
+        raise InputError(f"must be in [0, 1), got {off_map_share}", "--off-map-share")
+    if rerank is None and verify_threshold is not None:
+        raise InputError("applies with --rerank only", "--verify-threshold")
+    if save_threshold and (rerank is None or model is None or verify_threshold is not None):
+        raise InputError(
+            "needs --model and --rerank K, and a threshold chosen here (no --verify-threshold)",
+            "--save-threshold",
+        )
+    if dtype not in ("float32", "bfloat16"):
+        raise InputError(f"must be float32 or bfloat16, got {dtype!r}", "--dtype")
+    if baseline and dtype != "float32":
+        raise InputError("the baseline has no encoder to run in bfloat16", "--dtype")
+    if queries not in ("submaps", "scans", "windows"):
+        raise InputError(f"must be submaps, scans or windows, got {queries!r}", "--queries")
+    if queries != "submaps" and (root is None or pickles is not None):
+        raise InputError(f"{queries} queries are read from the tree: give --root", "--queries")
+
+
+def _query_runs(
+    queries: str,
+    root: Path | None,
+    splits: Path | None,
+    pickles: Path | None,
+    sets: list[str] | None,
+    enter: Any,
+    progress: bool,
+    window: tuple[str, float] = ("recorded", 20.0),
+) -> tuple[Any, list]:
+    """(the scan query set or ``None``, the evaluation runs): with ``--queries scans`` the raw
+    scans, with ``windows`` the windows of scans before them (``window``: their poses and
+    metres), run through G into a temporary folder (``enter`` keeps it for the command's
+    life), else the tree's or the pickles' submaps. At least two runs."""
+    from pnvlad_service.data.dataset import load_eval_runs, load_splits_any
+    from pnvlad_service.errors import InputError
+
+    scan_set = None
+    if queries != "submaps":
+        from pnvlad_service.evaluation import scan_queries
+
+        scan_set = scan_queries.scan_query_set(root, load_splits_any(root, splits), sets)
+        tmp = Path(enter(tempfile.TemporaryDirectory()))
+        if queries == "windows":
+            from pnvlad_service.synth.windows import window_queries
+
+            poses, metres = window
+            scan_set = window_queries(
+                scan_set, root, tmp / "windows", poses=poses, window_m=metres, progress=progress
             )
-            where = cal.write_calibration(enc.info["path"], record)
-            typer.echo(f"verification threshold {record.threshold:.2f} written to {where}")
-        if out is not None:
-            ev.write_report(rep, out)
-        for line in ev.summary_lines(enc.label, rep):
+        runs = scan_queries.preprocess_queries(scan_set, tmp / "g", progress=progress)
+    else:
+        runs = load_eval_runs(root, splits, pickles, sets)
+    if len(runs) < 2:
+        raise InputError(f"need at least 2 runs to evaluate, got {len(runs)}", "evaluation set")
+    return scan_set, runs
+
+
+def _save_threshold(rep: dict[str, Any], info: dict[str, Any], rerank: int) -> None:
+    """``--save-threshold``: the threshold chosen here written beside the model's weights."""
+    from pnvlad_service.localization import calibration as cal
+
+    # The directory and weights the encoder evaluated (not hashed again here).
+    record = cal.Calibration.from_report(
+        rep["rerank"]["calibration"], info["weights_sha256"], rerank
+    )
+    where = cal.write_calibration(info["path"], record)
+    typer.echo(f"verification threshold {record.threshold:.2f} written to {where}")
+
+
+def _show(
+    label: str, rep: dict[str, Any], out: Path | None, figures: Path | None, others: list
+) -> None:
+    """The report written to ``--out``, its summary printed, its figures drawn."""
+    from pnvlad_service.evaluation import evaluate as ev
+    from pnvlad_service.evaluation import rerank_report
+
+    if out is not None:
+        ev.write_report(rep, out)
+    for line in ev.summary_lines(label, rep):
+        typer.echo(line)
+    if "rerank" in rep:
+        for line in rerank_report.summary_lines(rep["rerank"]):
             typer.echo(line)
-        if rerank is not None:
-            for line in rerank_report.summary_lines(rep["rerank"]):
-                typer.echo(line)
-        if figures is not None:
-            ev.write_figures(enc.label, rep, figures, others)
-            if rerank is not None:
-                rerank_report.write_figures(rep["rerank"], figures)
-            typer.echo(f"figures in {figures}")
+    if figures is not None:
+        ev.write_figures(label, rep, figures, others)
+        if "rerank" in rep:
+            rerank_report.write_figures(rep["rerank"], figures)
+        typer.echo(f"figures in {figures}")

@@ -126,7 +126,7 @@ def replay_rosbag(
     progress: bool = True,
 ) -> None:
     """The whole replay: open the bag, ask, write OUT.csv and OUT.png, print the summary."""
-    from pnvlad_service.data.rosbag import RosbagClouds
+    from pnvlad_service.data.sources.rosbag import RosbagClouds
     from pnvlad_service.errors import InputError
     from pnvlad_service.localization.replay import (
         plot_replay,

@@ -1,7 +1,7 @@
 """The ROS bag options shared by `pnvlad data prepare --rosbag` and `pnvlad localize --rosbag`.
 
 Options are declared once here (so ``--cloud-topic`` means the same in both commands) with the
-helpers that turn them into a :class:`pnvlad_service.data.rosbag.RosbagDrive`, print a bag's
+helpers that turn them into a :class:`pnvlad_service.data.sources.rosbag.RosbagDrive`, print a bag's
 topics (``--list``) and report what the drive dropped. Library imports happen inside the
 functions so that `pnvlad --help` stays fast.
 """
@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import typer
 
 if TYPE_CHECKING:
-    from pnvlad_service.data.rosbag import RosbagDrive
+    from pnvlad_service.data.sources.rosbag import RosbagDrive
 
 PANEL = "ROS bag"
 
@@ -84,7 +84,7 @@ def open_drive(
     max_pose_gap: float | None = None,
 ) -> RosbagDrive:
     """The drive of ``--rosbag`` with its topics; InputError naming the missing option."""
-    from pnvlad_service.data.rosbag import RosbagDrive
+    from pnvlad_service.data.sources.rosbag import RosbagDrive
     from pnvlad_service.errors import InputError
 
     if cloud_topic is None:
@@ -111,7 +111,7 @@ def open_drive(
 
 def print_topics(rosbag: Path) -> None:
     """``--list``: the bag's topics, types and counts, and which options each suits."""
-    from pnvlad_service.data.rosbag import CLOUD_TYPE, POSE_TYPES, TF_TYPE, list_topics
+    from pnvlad_service.data.sources.rosbag import CLOUD_TYPE, POSE_TYPES, TF_TYPE, list_topics
 
     topics = list_topics(rosbag)
     width = max([len(t.name) for t in topics] + [5])

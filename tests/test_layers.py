@@ -14,10 +14,10 @@ ALLOWED: dict[str, set[str]] = {
     "data": {"io"},
     "synth": {"io", "data"},
     "models": set(),
-    "evaluation": {"io", "data", "models"},
-    "training": {"io", "data", "models", "evaluation"},
     "index": {"io", "data", "models"},
-    "localization": {"io", "data", "models", "evaluation", "index"},
+    "localization": {"io", "data", "models", "index"},
+    "evaluation": {"io", "data", "models", "localization"},
+    "training": {"io", "data", "models", "evaluation"},
     "server": {"io", "localization"},
 }
 SHARED = {"errors", "fileio", "extras", "progress", "configs"}

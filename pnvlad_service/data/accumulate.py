@@ -2,12 +2,14 @@
 from the last stretch of a drive.
 
 ``pnvlad data prepare`` and ``pnvlad synth`` cut submaps with :func:`accumulate` (through
-:mod:`.prepare`); a robot with poses (a bag's pose topic, /tf, or LiDAR odometry,
-:mod:`.odometry`) asks with the last ``window_m`` of its drive, gathered scan by scan by a
-:class:`WindowAccumulator` through the very same steps: scans spaced along the trajectory
-(:func:`spaced_scans`), each cut to a seeded subset (:func:`scan_subset`), moved into one
-local frame (:func:`accumulate`). Poses are float64 [4, 4] sensor-to-world, world x = easting,
-y = northing, z = up (or any odometry frame: only relative poses matter to the cloud).
+:mod:`.prepare`, which reads each scan once through a :class:`ScanCache`); a robot with poses
+(a bag's pose topic, /tf, or LiDAR odometry, :mod:`.sources.odometry`) asks with the last
+``window_m`` of its drive, gathered scan by scan by a :class:`WindowAccumulator` through the
+very same steps: each scan's finite points within range (:func:`sensor_points`), scans spaced
+along the trajectory (:func:`spaced_scans`), each cut to a seeded subset (:func:`scan_subset`),
+moved into one local frame (:func:`accumulate`). Poses are float64 [4, 4] sensor-to-world,
+world x = easting, y = northing, z = up (or any odometry frame: only relative poses matter to
+the cloud).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from typing import Literal
 
 import numpy as np
 
-from pnvlad_service.data.drives import snap_m
+from pnvlad_service.data.drive import Drive, snap_m
 from pnvlad_service.errors import InputError
 
 
@@ -48,6 +50,14 @@ def spaced_scans(travelled: np.ndarray, min_spacing_m: float) -> np.ndarray:
             keep[i] = True
             last = value
     return keep
+
+
+def used_scans(travelled: np.ndarray, min_spacing_m: float, scan_step: int = 1) -> np.ndarray:
+    """bool [T]: the scans a prepare call accumulates: :func:`spaced_scans`, of which only every
+    ``scan_step``-th scan of the drive."""
+    use = spaced_scans(travelled, min_spacing_m)
+    use[np.arange(len(use)) % scan_step != 0] = False
+    return use
 
 
 def accumulate(
@@ -89,6 +99,67 @@ def scan_subset(points: np.ndarray, max_points: int | None, seed: Sequence[int])
         return points
     rng = np.random.default_rng(list(seed))
     return points[np.sort(rng.choice(len(points), max_points, replace=False))]
+
+
+def sensor_points(points: np.ndarray, max_range_m: float | None) -> np.ndarray:
+    """A scan's x, y, z as float64 [N, 3] (sensor frame, metres, C order): rows with a NaN or
+    infinite coordinate dropped, and points farther than ``max_range_m`` from the sensor."""
+    pts = np.asarray(points)[:, :3]
+    finite = np.isfinite(pts)
+    if not finite.all():
+        pts = pts[finite.all(axis=1)]
+    if max_range_m is not None:
+        sq = np.einsum("ij,ij->i", pts, pts, dtype=np.float64)
+        pts = pts[sq <= max_range_m**2]
+    return np.ascontiguousarray(pts, dtype=np.float64)
+
+
+class ScanCache:
+    """Scans of the sliding window, in the sensor frame, read once each.
+
+    Holds float64 [N, 3] arrays keyed by scan index, whole (keyframes and raw scans take them
+    so); :meth:`get` gives the seeded ``max_points_per_scan`` subset that windows accumulate.
+    :meth:`evict_before` drops the scans that the windows have passed, so memory is bounded by
+    one window, not the drive.
+    """
+
+    def __init__(
+        self,
+        drive: Drive,
+        *,
+        seed: int,
+        max_points_per_scan: int | None,
+        max_range_m: float | None,
+    ) -> None:
+        self.drive = drive
+        self.seed = seed
+        self.max_points = max_points_per_scan
+        self.max_range = max_range_m
+        self.scans: dict[int, np.ndarray] = {}
+        self.reads = 0
+
+    def full(self, i: int) -> np.ndarray:
+        """Scan ``i`` whole (finite points within ``max_range_m``)."""
+        if i not in self.scans:
+            self.scans[i] = self._load(i)
+        return self.scans[i]
+
+    def get(self, i: int) -> np.ndarray:
+        """Scan ``i`` as windows accumulate it: at most ``max_points_per_scan`` points, a
+        subset seeded by the scan index (the same whichever window asks)."""
+        return scan_subset(self.full(i), self.max_points, (self.seed, i))
+
+    def _load(self, i: int) -> np.ndarray:
+        name = getattr(self.drive, "name", "drive")
+        pts = np.asarray(self.drive.scan(i))
+        self.reads += 1
+        if pts.ndim != 2 or pts.shape[1] < 3:
+            raise InputError(f"scan {i}: expected points [N, 3], got shape {pts.shape}", name)
+        return sensor_points(pts, self.max_range)
+
+    def evict_before(self, first: int) -> None:
+        for i in [i for i in self.scans if i < first]:
+            del self.scans[i]
 
 
 @dataclass
@@ -148,10 +219,7 @@ class WindowAccumulator:
         pts = np.asarray(points)
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise InputError(f"expected points [N, 3+], got {pts.shape}", "points")
-        pts = pts[:, :3]
-        pts = pts[np.isfinite(pts).all(axis=1)].astype(np.float64)
-        if self.max_range_m is not None:
-            pts = pts[np.einsum("ij,ij->i", pts, pts) <= self.max_range_m**2]
+        pts = sensor_points(pts, self.max_range_m)
         pts = scan_subset(pts, self.max_points_per_scan, (self.seed, self._count))
         self._count += 1
         distance, spaced = 0.0, True

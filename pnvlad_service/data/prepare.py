@@ -1,8 +1,8 @@
 """A recorded drive -> one benchmark run: submaps cut along the trajectory, filtered by G.
 
 A *drive* is a sequence of LiDAR scans with their poses (the
-:class:`~pnvlad_service.data.drives.Drive` protocol; the sources are in
-:mod:`pnvlad_service.data.drives`). This module accumulates the scans of a stretch of
+:class:`~pnvlad_service.data.drive.Drive` protocol; the sources are in
+:mod:`pnvlad_service.data.sources`). This module accumulates the scans of a stretch of
 trajectory in the world frame, cuts a submap every ``stride`` metres of travelled distance, runs
 the filter G (:mod:`pnvlad_service.data.preprocess`) on each and writes the benchmark's files
 (see docs/PREPARE.md and BENCHMARK_FORMAT.md)::
@@ -18,13 +18,16 @@ the filter G (:mod:`pnvlad_service.data.preprocess`) on each and writes the benc
 
 Conventions (docs/ARCHITECTURE.md): world frame x = easting, y = northing, z = up, UTM metres;
 timestamps are integer microseconds. Translations are snapped to a 2**-26 m (15 nm) grid
-(:func:`~pnvlad_service.data.drives.snap_m`) so that adding a UTM origin and subtracting the
+(:func:`~pnvlad_service.data.drive.snap_m`) so that adding a UTM origin and subtracting the
 submap centre are exact in float64: the same drive placed at northing 0 or 5.7e6 gives
 byte-identical submaps.
 
 :func:`prepare_drive` runs the steps in order: check the drive and options, plan each kind's
 cuts and the windows they share, claim the output folders, make and write every window's
-submap, then write the locations CSVs.
+submap, then write the locations CSVs. The pieces it runs live beside it: where submaps are cut
+(:mod:`.cuts`), scans read once and laid together (:mod:`.accumulate`), the folders claimed and
+their frame rows journalled (:mod:`.run_folder`), the true poses of synth's drives
+(:mod:`.truth`, which also rewrites an older run's: ``refresh_truth``).
 """
 
 from __future__ import annotations
@@ -33,117 +36,25 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
-from pnvlad_service.data.accumulate import (
-    accumulate,
-    scan_subset,
-    spaced_scans,
-    travelled_distance,
-)
-from pnvlad_service.data.cuts import Cut
-from pnvlad_service.data.drives import Drive, check_drive, snap_m
-from pnvlad_service.data.frames import (
-    SubmapFrame,
-    frames_path,
-    journal_line,
-    read_frames_csv,
-    read_journal,
-    write_frames_csv,
-)
+from pnvlad_service.data.accumulate import ScanCache, accumulate, travelled_distance, used_scans
+from pnvlad_service.data.cuts import Cut, Kind, Layout, resolve_geometry, submap_cuts
+from pnvlad_service.data.drive import Drive, check_drive, snap_m
+from pnvlad_service.data.frames import SubmapFrame, frames_path, journal_line, write_frames_csv
 from pnvlad_service.data.preprocess import GConfig, GResult, apply_g, scan_config
-from pnvlad_service.data.run_folder import claim_folders
+from pnvlad_service.data.run_folder import claim_folders, journal_path, recorded_frames
 from pnvlad_service.data.scans import RAW_CSV, RAW_FOLDER, write_raw_scans_csv, write_scan
-from pnvlad_service.data.tree import LAYOUTS, write_locations_csv
+from pnvlad_service.data.tree import write_locations_csv
 from pnvlad_service.data.truth import drive_true_poses, true_columns
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import write_submap
 
 log = logging.getLogger(__name__)
-
-Layout = Literal["oxford", "inhouse"]
-Kind = Literal["train", "test", "keyframe"]
-
-
-@dataclass(frozen=True)
-class Geometry:
-    """Default geometry of one benchmark layout for one kind of submap.
-
-    ``stride_m``: distance travelled between submaps; ``window_m``: stretch of trajectory
-    accumulated (0: the centre scan alone, a keyframe); ``box_m``: side of the square crop
-    around the submap (``None``: no crop).
-    Folder and CSV names come from :data:`pnvlad_service.data.tree.LAYOUTS`.
-    """
-
-    stride_m: float
-    window_m: float
-    box_m: float | None
-
-
-#: Metres driven between two keyframes of a keyframe map.
-KEYFRAME_STRIDE_M = 5.0
-
-#: (layout, kind) -> default geometry, as BENCHMARK_FORMAT.md describes the two layouts;
-#: keyframes (ours) are single scans, one every ``KEYFRAME_STRIDE_M``, in either layout.
-GEOMETRY: dict[tuple[str, str], Geometry] = {
-    ("oxford", "train"): Geometry(stride_m=10.0, window_m=20.0, box_m=None),
-    ("oxford", "test"): Geometry(stride_m=20.0, window_m=20.0, box_m=None),
-    ("inhouse", "train"): Geometry(stride_m=10.0, window_m=25.0, box_m=25.0),
-    ("inhouse", "test"): Geometry(stride_m=25.0, window_m=25.0, box_m=25.0),
-    ("oxford", "keyframe"): Geometry(stride_m=KEYFRAME_STRIDE_M, window_m=0.0, box_m=None),
-    ("inhouse", "keyframe"): Geometry(stride_m=KEYFRAME_STRIDE_M, window_m=0.0, box_m=None),
-}
-
-
-# --------------------------------------------------------------------------------------------
-# Cutting a trajectory into submaps
-
-
-
-
-def submap_cuts(travelled: np.ndarray, window_m: float, stride_m: float) -> list[Cut]:
-    """Where to cut submaps: a window of ``window_m`` every ``stride_m`` metres travelled.
-
-    Window ``k`` is centred at distance ``window_m / 2 + k * stride_m`` and holds the scans whose
-    travelled distance lies within ``window_m / 2`` of it (inclusive); only whole windows are cut
-    (centre + window_m / 2 <= total distance). A cut whose centre scan is the same as the previous
-    cut's (a gap in the scans longer than the stride) is dropped. ``window_m`` 0 cuts keyframes:
-    the scan nearest each ``k * stride_m`` alone (``first`` = ``last`` = ``scan``).
-    """
-    if not (window_m >= 0 and stride_m > 0):
-        raise InputError("window must be >= 0 and stride > 0 (metres)", "window_m/stride_m")
-    d = np.asarray(travelled, dtype=np.float64)
-    if d.ndim != 1 or len(d) == 0 or np.any(np.diff(d) < 0):
-        raise InputError("travelled distances must be a non-decreasing [T] array", "travelled")
-    half = window_m / 2.0
-    total = float(d[-1])
-    cuts: list[Cut] = []
-    k = 0
-    while True:
-        s = half + k * stride_m
-        k += 1
-        if s + half > total:
-            break
-        j = int(np.searchsorted(d, s, side="left"))  # first scan with d >= s
-        if j == len(d) or (j > 0 and s - d[j - 1] <= d[j] - s):
-            j = int(np.searchsorted(d, d[j - 1], side="left"))  # nearer below: its first scan
-        first = int(np.searchsorted(d, s - half, side="left"))
-        last = int(np.searchsorted(d, s + half, side="right")) - 1
-        if window_m == 0:
-            first = last = j
-        if cuts and cuts[-1].scan == j:
-            log.warning("no scan near %.1f m of travel (gap in the drive); submap skipped", s)
-            continue
-        cuts.append(Cut(distance_m=s, scan=j, first=first, last=last))
-    return cuts
-
-
-# --------------------------------------------------------------------------------------------
-# Preparing a run
 
 
 @dataclass
@@ -172,61 +83,6 @@ class PrepareResult:
         """Submaps written per second of wall time (0 when nothing was written)."""
         n = sum(r.written for r in self.layouts)
         return n / self.seconds if self.seconds > 0 else 0.0
-
-
-class _ScanCache:
-    """Scans of the sliding window, in the sensor frame, read once each.
-
-    Holds float64 [N, 3] arrays keyed by scan index, whole (keyframes and raw scans take them
-    so); :meth:`get` gives the seeded ``max_points_per_scan`` subset that windows accumulate.
-    :meth:`evict_before` drops the scans that the windows have passed, so memory is bounded by
-    one window, not the drive.
-    """
-
-    def __init__(
-        self,
-        drive: Drive,
-        *,
-        seed: int,
-        max_points_per_scan: int | None,
-        max_range_m: float | None,
-    ) -> None:
-        self.drive = drive
-        self.seed = seed
-        self.max_points = max_points_per_scan
-        self.max_range = max_range_m
-        self.scans: dict[int, np.ndarray] = {}
-        self.reads = 0
-
-    def full(self, i: int) -> np.ndarray:
-        """Scan ``i`` whole (finite points within ``max_range_m``)."""
-        if i not in self.scans:
-            self.scans[i] = self._load(i)
-        return self.scans[i]
-
-    def get(self, i: int) -> np.ndarray:
-        """Scan ``i`` as windows accumulate it: at most ``max_points_per_scan`` points, a
-        subset seeded by the scan index (the same whichever window asks)."""
-        return scan_subset(self.full(i), self.max_points, (self.seed, i))
-
-    def _load(self, i: int) -> np.ndarray:
-        name = getattr(self.drive, "name", "drive")
-        pts = np.asarray(self.drive.scan(i))
-        self.reads += 1
-        if pts.ndim != 2 or pts.shape[1] < 3:
-            raise InputError(f"scan {i}: expected points [N, 3], got shape {pts.shape}", name)
-        pts = pts[:, :3]
-        finite = np.isfinite(pts)
-        if not finite.all():
-            pts = pts[finite.all(axis=1)]
-        if self.max_range is not None:
-            sq = np.einsum("ij,ij->i", pts, pts, dtype=np.float64)
-            pts = pts[sq <= self.max_range**2]
-        return np.ascontiguousarray(pts, dtype=np.float64)
-
-    def evict_before(self, first: int) -> None:
-        for i in [i for i in self.scans if i < first]:
-            del self.scans[i]
 
 
 @dataclass(frozen=True)
@@ -300,34 +156,6 @@ def _check_options(
     )
 
 
-def _resolve(
-    layout: str,
-    kind: str,
-    window_m: float | None,
-    box_m: float | None,
-    stride_m: float | None,
-) -> tuple[str, str, float, float | None, float]:
-    """(folder, csv name, window, box, stride) for one layout and kind, defaults filled in."""
-    if layout not in LAYOUTS or (layout, kind) not in GEOMETRY:
-        raise InputError(
-            f"unknown layout/kind {layout!r}/{kind!r} (layouts: {', '.join(LAYOUTS)}; kinds: "
-            "train, test)",
-            "layout",
-        )
-    geo = GEOMETRY[(layout, kind)]
-    window = geo.window_m if window_m is None else float(window_m)
-    box = geo.box_m if box_m is None else (None if box_m <= 0 else float(box_m))
-    stride = geo.stride_m if stride_m is None else float(stride_m)
-    if not (math.isfinite(window) and (window > 0 or (kind == "keyframe" and window == 0))):
-        raise InputError(f"must be a positive number of metres, got {window}", "window_m")
-    if not (math.isfinite(stride) and stride > 0):
-        raise InputError(f"must be a positive number of metres, got {stride}", "stride_m")
-    if box is not None and not math.isfinite(box):
-        raise InputError(f"must be a finite number of metres, got {box}", "box_m")
-    names = LAYOUTS[layout]
-    return names.folder(kind), names.csv(kind), window, box, stride
-
-
 def _plan(
     out: Path,
     layout: str,
@@ -351,7 +179,7 @@ def _plan(
     resolved = []
     for kind in dict.fromkeys(kinds):
         own = (None, None) if kind == "keyframe" else (window_m, box_m)
-        resolved.append((kind, *_resolve(layout, kind, *own, strides_m.get(kind))))
+        resolved.append((kind, *resolve_geometry(layout, kind, *own, strides_m.get(kind))))
     if raw_scans and "test" not in kinds:
         raise InputError("raw scans are kept at the test submaps: ask for the test kind", "kinds")
     plans: list[_KindPlan] = []
@@ -401,7 +229,7 @@ def _manifest(
 
 def _window_submap(
     window: _Window,
-    cache: _ScanCache,
+    cache: ScanCache,
     poses: np.ndarray,
     stamps: np.ndarray,
     use: np.ndarray,
@@ -450,73 +278,12 @@ def _frame(
     return SubmapFrame(stamp, origin, g.centre, g.scale, "enu", true_pos, true_yaw)
 
 
-def refresh_truth(
-    run_dir: str | Path,
-    poses: np.ndarray,
-    true: np.ndarray,
-    stamps: np.ndarray,
-    *,
-    layout: Layout = "oxford",
-    min_scan_spacing_m: float = 0.05,
-    scan_step: int = 1,
-) -> int:
-    """Rewrite the true-pose columns of a prepared run's frame sidecars (every kind of
-    ``layout`` that has one) with :func:`..truth.frame_truth`, from the drive's recorded ``poses``,
-    ``true`` poses and ``stamps``, cut as :func:`prepare_drive` cut it (same ``layout`` and
-    scan options); the rest of each row is kept. Returns the rows rewritten. A row that the
-    drive does not reproduce (no cut at its timestamp, or another origin) is refused, naming
-    the sidecar, and nothing is written."""
-    run_dir = Path(run_dir)
-    travelled = travelled_distance(poses)
-    use = spaced_scans(travelled, min_scan_spacing_m)
-    use[np.arange(len(use)) % scan_step != 0] = False
-    updates = []
-    for kind in ("train", "test", "keyframe"):
-        _, csv_name, window, _, stride = _resolve(layout, kind, None, None, None)
-        sidecar = frames_path(run_dir / csv_name)
-        if not sidecar.is_file():
-            continue
-        cuts = {int(stamps[c.scan]): c for c in submap_cuts(travelled, window, stride)}
-        rows = []
-        for f in read_frames_csv(sidecar):
-            cut = cuts.get(f.timestamp)
-            origin = None if cut is None else snap_m(poses[cut.scan, :3, 3])
-            if cut is None or not np.allclose(origin, f.origin, atol=1e-6):
-                raise InputError(
-                    f"the row of timestamp {f.timestamp} is not a submap of this drive (made "
-                    "by another version or other options?)",
-                    sidecar,
-                )
-            pos, yaw = true_columns(poses, true, cut, origin, use)
-            rows.append(replace(f, true_position=pos, true_yaw_deg=yaw))
-        updates.append((sidecar, rows))
-    for sidecar, rows in updates:  # only once every sidecar of the run checked out
-        write_frames_csv(sidecar, rows)
-    return sum(len(r) for _, r in updates)
-
-
-def _journal_path(res: LayoutResult) -> Path:
-    """Frame rows written so far, one JSON line each, so that a resumed run keeps them; the
-    name starts with ``.prepare-`` like the folder's manifest."""
-    return res.csv.with_name(f".prepare-{res.folder.name}.frames.jsonl")
-
-
 def _known_frames(plans: list[_KindPlan]) -> dict[tuple[str, int], SubmapFrame]:
-    """(kind, timestamp) -> the frame rows an earlier run recorded: its sidecar, then the
-    journal of an interrupted run (for ``resume``)."""
+    """(kind, timestamp) -> the frame rows an earlier run recorded (for ``resume``)."""
     known: dict[tuple[str, int], SubmapFrame] = {}
     for plan in plans:
         res = plan.result
-        side = frames_path(res.csv)
-        rows: list[SubmapFrame] = []
-        if side.is_file():
-            try:
-                rows = read_frames_csv(side)
-            except InputError as exc:
-                log.warning("ignoring the old frame sidecar: %s", exc)
-        if _journal_path(res).is_file():
-            rows += read_journal(_journal_path(res))
-        known.update(((res.kind, f.timestamp), f) for f in rows)
+        known.update(((res.kind, f.timestamp), f) for f in recorded_frames(res.csv, res.folder))
     return known
 
 
@@ -532,7 +299,7 @@ class _Made:
 
 def _make_submaps(
     windows: list[_Window],
-    cache: _ScanCache,
+    cache: ScanCache,
     drive: tuple[np.ndarray, np.ndarray, np.ndarray | None],
     use: np.ndarray,
     opts: _Options,
@@ -552,7 +319,7 @@ def _make_submaps(
     journals = {}
     for res in {id(r): r for w in windows for r, _ in w.targets}.values():
         # Rewritten with what is known, so that a crash now loses none of it either.
-        journals[res.kind] = _journal_path(res).open("w", encoding="utf-8")
+        journals[res.kind] = journal_path(res.csv, res.folder).open("w", encoding="utf-8")
         journals[res.kind].writelines(
             journal_line(f) for (k, _), f in known.items() if k == res.kind
         )
@@ -569,7 +336,7 @@ def _make_submaps(
 
 def _make_window(
     window: _Window,
-    cache: _ScanCache,
+    cache: ScanCache,
     drive: tuple[np.ndarray, np.ndarray, np.ndarray | None],
     use: np.ndarray,
     opts: _Options,
@@ -634,7 +401,7 @@ def _write_locations(
         ]
         write_frames_csv(frames_path(res.csv), [made.frames[(res.kind, c.scan)] for c in cuts])
         write_locations_csv(res.csv, rows)
-        _journal_path(res).unlink(missing_ok=True)
+        journal_path(res.csv, res.folder).unlink(missing_ok=True)
         log.info(
             "%s: %d submaps (%d written, %d already there, %d failed) -> %s",
             res.folder,
@@ -714,8 +481,7 @@ def prepare_drive(
         min_scan_spacing_m=min_scan_spacing_m,
     )
     travelled = travelled_distance(poses)
-    use = spaced_scans(travelled, min_scan_spacing_m)
-    use[np.arange(len(use)) % scan_step != 0] = False
+    use = used_scans(travelled, min_scan_spacing_m, scan_step)
     plans, windows = _plan(
         out, layout, kinds, window_m, box_m, strides_m or {}, travelled, stamps, opts, raw_scans
     )
@@ -727,7 +493,7 @@ def prepare_drive(
         manifests.append({**manifests[0], "kind": "raw_scans", "g_config": None})
     known = _known_frames(plans) if resume else {}  # before claiming: that drops old sidecars
     claim_folders(targets, manifests, out, resume=resume, overwrite=overwrite)
-    cache = _ScanCache(
+    cache = ScanCache(
         drive, seed=seed, max_points_per_scan=max_points_per_scan, max_range_m=max_range_m
     )
     recorded = (poses, stamps, drive_true_poses(drive, len(stamps)))

@@ -1,7 +1,9 @@
 """The folders a prepare call writes: claimed before the first submap, resumable after a crash.
 
 Each layout folder of a run (``pointcloud_20m_10overlap/`` ...) has its parameters recorded in
-``<run>/.prepare-<folder>.json``. Claiming a folder either refuses (it already holds submaps
+``<run>/.prepare-<folder>.json`` and its frame rows journalled in
+``<run>/.prepare-<folder>.frames.jsonl`` as they are written (:func:`recorded_frames` reads
+them back for a resumed run). Claiming a folder either refuses (it already holds submaps
 and neither resume nor overwrite is asked for; resume with other parameters), or makes it
 ready: the old submaps removed (overwrite), the locations CSV removed (it is rewritten last, so
 a CSV on disk always describes a finished run) and the parameters recorded.
@@ -15,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pnvlad_service.data.frames import frames_path
+from pnvlad_service.data.frames import SubmapFrame, frames_path, read_frames_csv, read_journal
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_write_text
 
@@ -25,6 +27,28 @@ log = logging.getLogger(__name__)
 def manifest_path(out: Path, folder: Path) -> Path:
     """Where the parameters of ``folder`` (a layout folder of run ``out``) are recorded."""
     return out / f".prepare-{folder.name}.json"
+
+
+def journal_path(csv: Path, folder: Path) -> Path:
+    """Where the frame rows of ``folder`` (whose locations CSV is ``csv``) are journalled as
+    they are written, one JSON line each, so that a resumed run keeps them; the name starts
+    with ``.prepare-`` like the folder's manifest."""
+    return csv.with_name(f".prepare-{folder.name}.frames.jsonl")
+
+
+def recorded_frames(csv: Path, folder: Path) -> list[SubmapFrame]:
+    """The frame rows an earlier prepare call recorded for ``folder``: its finished sidecar
+    (ignored with a warning when it cannot be read), then the journal of an interrupted run."""
+    side = frames_path(csv)
+    rows: list[SubmapFrame] = []
+    if side.is_file():
+        try:
+            rows = read_frames_csv(side)
+        except InputError as exc:
+            log.warning("ignoring the old frame sidecar: %s", exc)
+    if journal_path(csv, folder).is_file():
+        rows += read_journal(journal_path(csv, folder))
+    return rows
 
 
 def claim_folders(

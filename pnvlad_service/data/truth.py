@@ -4,22 +4,23 @@ A submap is accumulated from a window of scans, each placed with its *recorded* 
 simulated GNSS/INS error); the frame sidecar's true-pose columns say which rigid motion lays
 that cloud onto where its scans truly were (:func:`frame_truth`). ``pnvlad synth`` records it
 (through :func:`..prepare.prepare_drive`) and ``pnvlad synth --refresh-truth`` rewrites it
-(:func:`..prepare.refresh_truth`); verification measures its pose errors against it
+(:func:`refresh_truth`); verification measures its pose errors against it
 (docs/VERIFY.md "Measured against the truth").
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
+from pnvlad_service.data.accumulate import travelled_distance, used_scans
+from pnvlad_service.data.cuts import Cut, Layout, resolve_geometry, submap_cuts
+from pnvlad_service.data.drive import Drive, snap_m
+from pnvlad_service.data.frames import frames_path, read_frames_csv, write_frames_csv
 from pnvlad_service.errors import InputError
-
-if TYPE_CHECKING:
-    from pnvlad_service.data.cuts import Cut
-    from pnvlad_service.data.drives import Drive
 
 
 def drive_true_poses(drive: Drive, n: int) -> np.ndarray | None:
@@ -86,3 +87,47 @@ def true_columns(
     """The sidecar's true position [3] and yaw (degrees) of :func:`frame_truth`."""
     t = frame_truth(poses, true, cut, origin, use)
     return t[:3, 3].copy(), math.degrees(math.atan2(t[1, 0], t[0, 0]))
+
+
+def refresh_truth(
+    run_dir: str | Path,
+    poses: np.ndarray,
+    true: np.ndarray,
+    stamps: np.ndarray,
+    *,
+    layout: Layout = "oxford",
+    min_scan_spacing_m: float = 0.05,
+    scan_step: int = 1,
+) -> int:
+    """Rewrite the true-pose columns of a prepared run's frame sidecars (every kind of ``layout``
+    that has one) with :func:`frame_truth`, from the drive's recorded ``poses``, ``true`` poses and
+    ``stamps``, cut as :func:`~.prepare.prepare_drive` cut it (same ``layout`` and scan options);
+    the rest of each row is kept. Returns the rows rewritten. A row that the drive does not
+    reproduce (no cut at its timestamp, or another origin) is refused, naming the sidecar, and
+    nothing is written."""
+    run_dir = Path(run_dir)
+    travelled = travelled_distance(poses)
+    use = used_scans(travelled, min_scan_spacing_m, scan_step)
+    updates = []
+    for kind in ("train", "test", "keyframe"):
+        _, csv_name, window, _, stride = resolve_geometry(layout, kind, None, None, None)
+        sidecar = frames_path(run_dir / csv_name)
+        if not sidecar.is_file():
+            continue
+        cuts = {int(stamps[c.scan]): c for c in submap_cuts(travelled, window, stride)}
+        rows = []
+        for f in read_frames_csv(sidecar):
+            cut = cuts.get(f.timestamp)
+            origin = None if cut is None else snap_m(poses[cut.scan, :3, 3])
+            if cut is None or not np.allclose(origin, f.origin, atol=1e-6):
+                raise InputError(
+                    f"the row of timestamp {f.timestamp} is not a submap of this drive (made "
+                    "by another version or other options?)",
+                    sidecar,
+                )
+            pos, yaw = true_columns(poses, true, cut, origin, use)
+            rows.append(replace(f, true_position=pos, true_yaw_deg=yaw))
+        updates.append((sidecar, rows))
+    for sidecar, rows in updates:  # only once every sidecar of the run checked out
+        write_frames_csv(sidecar, rows)
+    return sum(len(r) for _, r in updates)

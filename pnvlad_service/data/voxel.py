@@ -23,6 +23,11 @@ def column_max(a: np.ndarray) -> np.ndarray:
     return np.array([a[:, k].max() for k in range(a.shape[1])])
 
 
+def column_mean(a: np.ndarray) -> np.ndarray:
+    """Column means of [N, K] as float [K], column by column (see :func:`column_min`)."""
+    return np.array([a[:, k].mean() for k in range(a.shape[1])])
+
+
 def _voxel_keys(points: np.ndarray, leaf: float, shifted: np.ndarray | None = None) -> np.ndarray:
     """int64 [N] voxel index of each point; ``shifted`` = points - min(points) if known."""
     if shifted is None:

@@ -215,7 +215,7 @@ def query_frames(qs: ScanQuerySet, runs: list[EvalRun]) -> dict[str, SubmapFrame
     """Each preprocessed query's frame record (absolute path -> :class:`SubmapFrame`), as
     re-ranking reads a submap's: metres = G's centre + scale x points, in the sensor frame;
     its true pose the scan's true sensor pose (``None`` where the run has none)."""
-    from pnvlad_service.data.drives import snap_m
+    from pnvlad_service.data.drive import snap_m
 
     out = {}
     for run, scans in zip(runs, qs.scans, strict=True):

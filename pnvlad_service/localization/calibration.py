@@ -1,10 +1,10 @@
 """The verification threshold chosen for a model, kept beside its weights.
 
 ``pnvlad eval --rerank K --save-threshold`` chooses the threshold on the training layout
-(:func:`..rerank_eval.calibrate`) and writes it to ``MODEL/verification.json``; a
-:class:`~..localizer.Localizer` (``pnvlad serve``, ``pnvlad localize --index``) loading that
-model takes it unless a threshold is given. The threshold belongs to the model, not to a map:
-the descriptors decide which candidates are registered and so the confidences it is chosen on.
+(:func:`pnvlad_service.evaluation.rerank.calibrate`) and writes it to ``MODEL/verification.json``; a
+:class:`~..localizer.Localizer` (``pnvlad serve``, ``pnvlad localize --index``) loading that model
+takes it unless a threshold is given. The threshold belongs to the model, not to a map: the
+descriptors decide which candidates are registered and so the confidences it is chosen on.
 
 The record names the sha256 of the weights it was chosen with; a record of other weights (the
 directory's model was replaced) is ignored with a warning, never applied.

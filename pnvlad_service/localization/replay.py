@@ -1,8 +1,8 @@
 """Replaying a drive against the localisation service: one query every Nth scan, a CSV and a map.
 
-:func:`replay` sends scans of a drive (a :class:`pnvlad_service.data.rosbag.RosbagClouds` or any
-object with ``timestamps`` and ``scan(i)``; with ``poses`` too, each answer gets its error) to
-an ``ask`` function (a raw scan -> the service's JSON answer: ``LocalizeClient.localize`` with
+:func:`replay` sends scans of a drive (a :class:`~pnvlad_service.data.sources.rosbag.RosbagClouds`
+or any object with ``timestamps`` and ``scan(i)``; with ``poses`` too, each answer gets its error)
+to an ``ask`` function (a raw scan -> the service's JSON answer: ``LocalizeClient.localize`` with
 ``preprocess=True``, or a local ``Localizer``) and returns one :class:`ReplayRow` a query.
 :func:`write_replay_csv` writes them, :func:`summarise` gives the summary line's figures and
 :func:`plot_replay` the PNG (extra ``plot``): the map's submap positions in grey, the drive's

@@ -2,7 +2,7 @@
 
 The routes write the answers themselves (``Answer.to_json``); these models document them.
 ``Timings``, ``ModelOut`` and ``IndexOut`` are made from the localiser's dataclasses
-(:mod:`pnvlad_service.localization.localizer`), so the answer and its schema have one list of
+(:mod:`pnvlad_service.localization.answers`), so the answer and its schema have one list of
 fields. The request models live in :mod:`pnvlad_service.server.contract`, where they validate.
 """
 
@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field, create_model
 
-from pnvlad_service.localization import localizer
+from pnvlad_service.localization import answers
 
 
 def _json_model(dc: type, name: str, doc: str | None = None, **defaults: Any) -> type[BaseModel]:
@@ -85,9 +85,9 @@ class VerificationOut(BaseModel):
 
 
 #: ``Timings.to_json``: milliseconds per stage.
-Timings = _json_model(localizer.Timings, "Timings", "Milliseconds spent per stage.")
-ModelOut = _json_model(localizer.ModelInfo, "ModelOut", arch=None)
-IndexOut = _json_model(localizer.IndexInfo, "IndexOut")
+Timings = _json_model(answers.Timings, "Timings", "Milliseconds spent per stage.")
+ModelOut = _json_model(answers.ModelInfo, "ModelOut", arch=None)
+IndexOut = _json_model(answers.IndexInfo, "IndexOut")
 
 
 _QUERY_KIND = Field(

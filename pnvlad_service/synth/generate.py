@@ -465,7 +465,7 @@ def refresh_truth(
     re-simulating each run's poses (no scan is cast: seconds, not the generation's minutes).
     For trees made before the truth became the window's (``data.truth.frame_truth``); the
     submaps, CSVs and splits are left as they are. Returns the rows rewritten."""
-    from pnvlad_service.data.prepare import refresh_truth as refresh_run
+    from pnvlad_service.data.truth import refresh_truth as refresh_run
     from pnvlad_service.progress import tqdm
 
     out = Path(out)

@@ -110,7 +110,7 @@ def render_submap(
 ) -> Path:
     """A place at each stage: one raw scan (rings, occlusion shadows), the accumulated 20 m
     window before G (ground included), and the 4096-point submap after G (top and side)."""
-    from pnvlad_service.data.prepare import accumulate
+    from pnvlad_service.data.accumulate import accumulate
     from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.io.readers import read_points
     from pnvlad_service.synth.generate import SynthPreset, simulated_drive

@@ -13,7 +13,7 @@ A run is the vehicle driving the area's route once. What differs between runs, e
 - season: tree crowns scaled (grow or shrink) and their foliage density changed;
 - roadworks: cones and barriers added in a few places, and a few street objects removed there.
 
-:class:`SimulatedDrive` implements :class:`pnvlad_service.data.drives.Drive`, so submaps are cut by
+:class:`SimulatedDrive` implements :class:`pnvlad_service.data.drive.Drive`, so submaps are cut by
 the same ``prepare_drive`` path a user's recorded drive takes. World frame: x = easting,
 y = northing, z = up, UTM metres; scans are in the sensor frame (x forward, y left, z up).
 """
@@ -367,7 +367,7 @@ class RunScene:
 
 
 class SimulatedDrive:
-    """One run of the vehicle along ``route``: a :class:`pnvlad_service.data.drives.Drive`.
+    """One run of the vehicle along ``route``: a :class:`pnvlad_service.data.drive.Drive`.
 
     ``timestamps`` int64 [T] µs from ``start_us``; ``poses`` float64 [T, 4, 4] sensor→UTM world
     *with* the run's GNSS/INS error; :meth:`scan` ray-casts the LiDAR from the *true* pose

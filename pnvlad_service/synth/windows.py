@@ -142,7 +142,7 @@ def _laid_poses(
     """The poses the window's scans are laid with: recorded, or from odometry over them."""
     if poses == "recorded":
         return [drive.poses[j] for j in range(first, last + 1)]
-    from pnvlad_service.data.odometry import LidarOdometry
+    from pnvlad_service.data.sources.odometry import LidarOdometry
 
     odometry = LidarOdometry(max_range=drive.lidar.max_range)
     return [odometry.update(pts) for pts in clouds]

@@ -52,10 +52,20 @@ class AugmentSection(BaseModel):
 
     @property
     def active(self) -> bool:
-        return any(
-            v > 0
-            for v in (self.yaw_deg, self.shift, self.scale, self.jitter, self.dropout, self.erase_p)
-        ) or self.quarter_turns
+        return (
+            any(
+                v > 0
+                for v in (
+                    self.yaw_deg,
+                    self.shift,
+                    self.scale,
+                    self.jitter,
+                    self.dropout,
+                    self.erase_p,
+                )
+            )
+            or self.quarter_turns
+        )
 
 
 def _refill(x: torch.Tensor, keep: torch.Tensor, g: torch.Generator) -> torch.Tensor:

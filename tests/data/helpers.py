@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pnvlad_service.data.drives import Drive
+from pnvlad_service.data.drive import Drive
 
 FRAMES = 40  # scans in the synthetic KITTI sequence
 STEP_M = 1.5  # metres between consecutive scans (camera z, i.e. forward)
@@ -66,6 +66,40 @@ class CountingDrive:
             raise RuntimeError(f"simulated crash reading scan {i}")
         self.reads.append(i)
         return self.inner.scan(i)
+
+
+def plain_cuts(d: list[float], window: float, stride: float) -> list[tuple[int, list[int]]]:
+    """Reference cutting: (centre scan, window scans) by plain loops over travelled distance."""
+    out: list[tuple[int, list[int]]] = []
+    half = window / 2
+    k = 0
+    while half + k * stride + half <= d[-1]:
+        s = half + k * stride
+        k += 1
+        best = 0
+        for i in range(len(d)):
+            if abs(d[i] - s) < abs(d[best] - s):
+                best = i
+        if out and out[-1][0] == best:
+            continue
+        out.append((best, [i for i in range(len(d)) if s - half <= d[i] <= s + half]))
+    return out
+
+
+class ListDrive:
+    """An in-memory drive (as the synthetic city builds one): scans and poses in lists."""
+
+    def __init__(self, scans: list[np.ndarray], poses: np.ndarray, stamps: list[int]) -> None:
+        self.name = "memory"
+        self.scans = scans
+        self.poses = poses
+        self.timestamps = np.asarray(stamps, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.scans)
+
+    def scan(self, i: int) -> np.ndarray:
+        return self.scans[i]
 
 
 def read_csv_rows(path: Path) -> list[tuple[int, float, float]]:

@@ -1,8 +1,8 @@
 """Tests of pnvlad_service.data.prepare (drives -> submaps) and `pnvlad data prepare`.
 
 Drives are built in tmp_path from the real KITTI scans (symlinked, never copied into the repo)
-with poses along a straight line, so several submaps are cut; expectations are computed
-independently (a plain loop over travelled distance).
+with poses along a straight line, so several submaps are cut (where they are cut:
+test_cuts.py).
 """
 
 from __future__ import annotations
@@ -13,11 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
-from pnvlad_service.data.drives import CsvDrive, Drive, KittiSequence
-from pnvlad_service.data.prepare import prepare_drive, submap_cuts, travelled_distance
+from pnvlad_service.data.prepare import prepare_drive
+from pnvlad_service.data.sources.csv_drive import CsvDrive
+from pnvlad_service.data.sources.kitti import KittiSequence
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_BYTES
 from tests.data.helpers import (
@@ -25,66 +24,13 @@ from tests.data.helpers import (
     FRAMES,
     STEP_M,
     CountingDrive,
+    ListDrive,
     make_kitti_sequence,
+    plain_cuts,
     read_csv_rows,
     tree_bytes,
     write_street,
 )
-
-
-def plain_cuts(d: list[float], window: float, stride: float) -> list[tuple[int, list[int]]]:
-    """Reference cutting: (centre scan, window scans) by plain loops over travelled distance."""
-    out: list[tuple[int, list[int]]] = []
-    half = window / 2
-    k = 0
-    while half + k * stride + half <= d[-1]:
-        s = half + k * stride
-        k += 1
-        best = 0
-        for i in range(len(d)):
-            if abs(d[i] - s) < abs(d[best] - s):
-                best = i
-        if out and out[-1][0] == best:
-            continue
-        out.append((best, [i for i in range(len(d)) if s - half <= d[i] <= s + half]))
-    return out
-
-
-# --------------------------------------------------------------------------------------------
-# Cutting
-
-
-def test_travelled_distance_is_horizontal_and_cumulative() -> None:
-    poses = np.tile(np.eye(4), (4, 1, 1))
-    poses[:, :3, 3] = [[0, 0, 0], [3, 4, 10], [3, 4, 10], [3, 10, -5]]
-    assert travelled_distance(poses).tolist() == [0.0, 5.0, 5.0, 11.0]
-
-
-@settings(max_examples=150, deadline=None)
-@given(
-    steps=st.lists(st.sampled_from([0.0, 0.25, 0.5, 1.0, 1.5, 3.0, 12.5]), min_size=1, max_size=80),
-    window=st.sampled_from([5.0, 10.0, 20.0, 25.0]),
-    stride=st.sampled_from([2.5, 10.0, 20.0, 25.0]),
-)
-def test_cuts_match_a_plain_loop(steps: list[float], window: float, stride: float) -> None:
-    d = [0.0]
-    for s in steps:
-        d.append(d[-1] + s)
-    cuts = submap_cuts(np.array(d), window, stride)
-    expected = plain_cuts(d, window, stride)
-    assert [c.scan for c in cuts] == [e[0] for e in expected]
-    assert [list(range(c.first, c.last + 1)) for c in cuts] == [e[1] for e in expected]
-
-
-def test_cuts_on_a_regular_drive() -> None:
-    d = np.arange(FRAMES) * STEP_M  # 0 .. 58.5 m
-    train = submap_cuts(d, 20.0, 10.0)
-    test = submap_cuts(d, 20.0, 20.0)
-    # Centres at 10, 20, 30, 40 m (50 m + 10 m > 58.5 m); nearest scans 10.5, 19.5, 30, 40.5.
-    assert [c.scan for c in train] == [7, 13, 20, 27]
-    assert [c.scan for c in test] == [7, 20]
-    assert (train[0].first, train[0].last) == (0, 13)
-
 
 # --------------------------------------------------------------------------------------------
 # Preparing runs
@@ -267,61 +213,6 @@ def test_inhouse_layout_crops_to_the_box(reference_run, tmp_path: Path) -> None:
     ]
     # 58.5 m of travel, 25 m windows: train centres 12.5, 22.5, 32.5, 42.5; test 12.5, 37.5.
     assert [r.submaps for r in result.layouts] == [4, 2]
-
-
-def test_accumulate_subtracts_the_centre_before_float32_precision_matters() -> None:
-    from pnvlad_service.data.prepare import accumulate
-
-    poses = np.tile(np.eye(4), (2, 1, 1))
-    poses[0, :3, 3] = [620_000.0, 5_735_000.0, 0.0]
-    poses[1, :3, 3] = [620_000.0 + 0.001, 5_735_000.0 + 0.002, 0.0]
-    scans = [np.array([[1.0, 2.0, 3.0]]), np.array([[0.0, 0.0, 0.0]])]
-    local = accumulate(poses, scans, [0, 1], poses[0, :3, 3])
-    # Millimetres survive next to 5.7e6 m (float32 UTM would be off by up to 0.25 m); the only
-    # loss is the 15 nm snapping grid.
-    np.testing.assert_allclose(local, [[1.0, 2.0, 3.0], [0.001, 0.002, 0.0]], atol=1e-7)
-    boxed = accumulate(poses, scans, [0, 1], poses[0, :3, 3], box_m=2.0)
-    np.testing.assert_allclose(boxed, [[0.001, 0.002, 0.0]], atol=1e-7)
-
-
-class ListDrive:
-    """An in-memory drive (as the synthetic city builds one): scans and poses in lists."""
-
-    def __init__(self, scans: list[np.ndarray], poses: np.ndarray, stamps: list[int]) -> None:
-        self.name = "memory"
-        self.scans = scans
-        self.poses = poses
-        self.timestamps = np.asarray(stamps, dtype=np.int64)
-
-    def __len__(self) -> int:
-        return len(self.scans)
-
-    def scan(self, i: int) -> np.ndarray:
-        return self.scans[i]
-
-
-def test_scan_cache_drops_bad_points_and_caps_range_and_count() -> None:
-    from pnvlad_service.data.prepare import _ScanCache
-
-    pts = np.array(
-        [[1.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [0.0, 3.0, 4.0], [0.0, 6.0, 8.0], [np.inf, 0, 0]],
-        dtype=np.float32,
-    )
-    drive = ListDrive([pts], np.eye(4)[None], [0])
-    assert isinstance(drive, Drive)
-    got = _ScanCache(drive, seed=0, max_points_per_scan=None, max_range_m=5.0).get(0)
-    assert got.dtype == np.float64
-    np.testing.assert_array_equal(got, [[1.0, 0.0, 0.0], [0.0, 3.0, 4.0]])
-    big = np.random.default_rng(0).normal(size=(1000, 3))
-    drive = ListDrive([big], np.eye(4)[None], [0])
-    first = _ScanCache(drive, seed=3, max_points_per_scan=100, max_range_m=None).get(0)
-    again = _ScanCache(drive, seed=3, max_points_per_scan=100, max_range_m=None).get(0)
-    other = _ScanCache(drive, seed=4, max_points_per_scan=100, max_range_m=None).get(0)
-    assert first.shape == (100, 3) and np.array_equal(first, again)
-    assert not np.array_equal(first, other)
-    # A subset of the scan's rows, in their original order.
-    rows = [int(np.nonzero((big == r).all(axis=1))[0][0]) for r in first]
-    assert rows == sorted(rows)
 
 
 def test_in_memory_drive_in_utm(tmp_path: Path) -> None:

@@ -25,7 +25,7 @@ from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
 from tests.index.helpers import make_checkpoint
-from tests.kitti00 import TR, TR_LINE, pose_line, velodyne_pose
+from tests.kitti00 import TR_LINE, pose_line, velodyne_pose
 
 pytest.importorskip("small_gicp")
 

@@ -17,13 +17,8 @@ import pytest
 from pnvlad_service.errors import InputError, NotReadyError
 from pnvlad_service.index import build as ix
 from pnvlad_service.index.bundle import IndexBundle
-from pnvlad_service.localization.localizer import (
-    Answer,
-    Batching,
-    Localizer,
-    Match,
-    checked_model,
-)
+from pnvlad_service.localization.answers import Answer
+from pnvlad_service.localization.localizer import Batching, Localizer, Match, checked_model
 from tests.index.helpers import PER_RUN, make_checkpoint, read_cloud
 
 

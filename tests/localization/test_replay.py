@@ -157,7 +157,7 @@ class FirstScans:
 def city(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The tiny synthetic city, a (random) model's bundle of it, and run 0 as a ROS bag."""
     pytest.importorskip("rosbags")
-    from pnvlad_service.data.rosbag_write import write_drive_bag
+    from pnvlad_service.data.sources.rosbag_write import write_drive_bag
     from pnvlad_service.index import build as ix
     from pnvlad_service.synth.generate import generate, get_preset, simulated_drive
     from tests.index.helpers import make_checkpoint

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.evaluation.rerank_figures import pose_error
 from pnvlad_service.io.submap import read_submap
 from pnvlad_service.localization.localizer import Localizer
-from pnvlad_service.localization.rerank_eval import pose_error
 from pnvlad_service.localization.verify import VerifyConfig, bundle_candidates
 
 

@@ -51,7 +51,8 @@ def test_the_true_pose_best_lays_the_windows_scans_where_they_were_cast(tiny: Pa
     the recorded (noisy) poses in the local frame, onto where the simulator cast them: found
     here by least squares over the scans' points (Kabsch), independently of frame_truth's
     grid of points. It fits them better than the centre scan's true pose alone does."""
-    from pnvlad_service.data.prepare import submap_cuts, travelled_distance
+    from pnvlad_service.data.accumulate import travelled_distance
+    from pnvlad_service.data.cuts import submap_cuts
 
     tree = BenchmarkTree(tiny)
     run = tree.runs("business")[0]

@@ -90,7 +90,14 @@ def test_shipped_configs_load() -> None:
     bev = TrainConfig.preset("bev")
     assert bev.model == ModelConfig.bev() and bev.data == cpu.data
     assert bev.train == cpu.train.model_copy(update={"margin1": 1.0, "margin2": 0.5})
-    with pytest.raises(InputError, match="bev, compact, cpu, paper"):
+    # bev_scan / cpu_scan: those recipes for single scans, each cloud turned to its own
+    # dominant direction and trained with quarter turns on top of up to 5 degrees.
+    for name, base in (("bev_scan", bev), ("cpu_scan", cpu)):
+        scan = TrainConfig.preset(name)
+        assert scan.model == base.model.model_copy(update={"canonical_heading": True})
+        augment = base.train.augment.model_copy(update={"quarter_turns": True, "yaw_deg": 5.0})
+        assert scan.train == base.train.model_copy(update={"augment": augment})
+    with pytest.raises(InputError, match="bev, bev_scan, compact, cpu, cpu_scan, paper"):
         TrainConfig.preset("gpu")
 
 

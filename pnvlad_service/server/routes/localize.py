@@ -11,14 +11,15 @@ from __future__ import annotations
 
 import asyncio
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, Response
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.localizer import Localizer, PreparedCloud, milliseconds
+from pnvlad_service.localization.answers import milliseconds
+from pnvlad_service.localization.localizer import Localizer, PreparedCloud
 from pnvlad_service.server import problems, schemas
 from pnvlad_service.server.bodies import JSON, NPY, OCTET, read_batch, read_query
 from pnvlad_service.server.contract import Contract
@@ -160,39 +161,62 @@ def _post(r: APIRouter, path: str, summary: str, answer: type, content: dict[str
     )
 
 
+class _Params(NamedTuple):
+    """The query parameters of binary bodies, as FastAPI declares them (their descriptions are
+    the OpenAPI document's)."""
+
+    top_n: Any
+    preprocess: Any
+    verify: Any
+    scale: Any
+    kind: Any
+    dtype: Any
+
+
+def _params(contract: Contract) -> _Params:
+    """The routes' query parameters, bounded by ``contract``'s limits."""
+    return _Params(
+        top_n=Query(
+            None,
+            ge=1,
+            le=contract.limits.max_top_n,
+            description="Matches to return (binary bodies).",
+        ),
+        preprocess=Query(None, description="Raw scan: run the filter G first (binary bodies)."),
+        verify=Query(
+            None,
+            description="Register the top candidates and re-rank them (binary bodies; default: "
+            "when the index carries geometry).",
+        ),
+        scale=Query(
+            None,
+            gt=0,
+            le=contract.limits.max_scale,
+            description="Metres per unit of a preprocessed cloud, for a metric pose (binary "
+            "bodies).",
+        ),
+        kind=Query(
+            None,
+            pattern="^(submap|scan|window)$",
+            description="What the cloud is (binary bodies): 'submap' (4096 preprocessed points), "
+            "'scan' (one raw scan, sensor frame, metres) or 'window' (raw scans accumulated over "
+            "the last stretch of a drive, in the newest scan's frame); scan and window are raw "
+            "(the filter G runs first). Default: 'scan' with preprocess=true, else 'submap'. A "
+            "map of keyframes refuses windows (422).",
+        ),
+        dtype=Query(
+            None,
+            pattern="^(float32|float64)$",
+            description="Element type of an application/octet-stream body (default float32; "
+            "or the header X-Points-Dtype).",
+        ),
+    )
+
+
 def router(contract: Contract) -> APIRouter:
     """The two routes, their query parameters and request schemas from ``contract``."""
     r = APIRouter(tags=["localize"])
-    query_top_n = Query(
-        None, ge=1, le=contract.limits.max_top_n, description="Matches to return (binary bodies)."
-    )
-    query_pre = Query(None, description="Raw scan: run the filter G first (binary bodies).")
-    query_verify = Query(
-        None,
-        description="Register the top candidates and re-rank them (binary bodies; default: "
-        "when the index carries geometry).",
-    )
-    query_scale = Query(
-        None,
-        gt=0,
-        le=contract.limits.max_scale,
-        description="Metres per unit of a preprocessed cloud, for a metric pose (binary bodies).",
-    )
-    query_kind = Query(
-        None,
-        pattern="^(submap|scan|window)$",
-        description="What the cloud is (binary bodies): 'submap' (4096 preprocessed points), "
-        "'scan' (one raw scan, sensor frame, metres) or 'window' (raw scans accumulated over the "
-        "last stretch of a drive, in the newest scan's frame); scan and window are raw (the "
-        "filter G runs first). Default: 'scan' with preprocess=true, else 'submap'. A map of "
-        "keyframes refuses windows (422).",
-    )
-    query_dtype = Query(
-        None,
-        pattern="^(float32|float64)$",
-        description="Element type of an application/octet-stream body (default float32; "
-        "or the header X-Points-Dtype).",
-    )
+    q = _params(contract)
 
     @_post(
         r,
@@ -207,12 +231,12 @@ def router(contract: Contract) -> APIRouter:
     )
     async def localize(
         request: Request,
-        top_n: int | None = query_top_n,
-        preprocess: bool | None = query_pre,
-        dtype: str | None = query_dtype,
-        verify: bool | None = query_verify,
-        scale: float | None = query_scale,
-        kind: str | None = query_kind,
+        top_n: int | None = q.top_n,
+        preprocess: bool | None = q.preprocess,
+        dtype: str | None = q.dtype,
+        verify: bool | None = q.verify,
+        scale: float | None = q.scale,
+        kind: str | None = q.kind,
         loc: Localizer = Depends(get_localizer),
         metrics: Metrics = Depends(get_metrics),
     ) -> Response:
@@ -238,9 +262,9 @@ def router(contract: Contract) -> APIRouter:
     )
     async def localize_batch(
         request: Request,
-        top_n: int | None = query_top_n,
-        preprocess: bool | None = query_pre,
-        verify: bool | None = query_verify,
+        top_n: int | None = q.top_n,
+        preprocess: bool | None = q.preprocess,
+        verify: bool | None = q.verify,
         loc: Localizer = Depends(get_localizer),
         metrics: Metrics = Depends(get_metrics),
     ) -> Response:

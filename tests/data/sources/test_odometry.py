@@ -1,5 +1,5 @@
-"""data.odometry: KISS-ICP on real KITTI scans against the sequence's recorded poses, and the
-errors a caller can meet (too few points, the extra not installed).
+"""data.sources.odometry: KISS-ICP on real KITTI scans against the sequence's recorded poses,
+and the errors a caller can meet (too few points, the extra not installed).
 
 The expected motion is KITTI 00's ground truth, composed with numpy alone (tests/kitti00.py:
 P_i = C_i · Tr, scan j in scan i's frame = inv(P_i) · P_j).
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pnvlad_service.data.odometry import LidarOdometry
+from pnvlad_service.data.sources.odometry import LidarOdometry
 from pnvlad_service.errors import InputError
 from tests.conftest import REPO
 from tests.kitti00 import relative_pose
@@ -93,7 +93,7 @@ def test_without_kiss_icp_the_error_names_the_extra() -> None:
     # A fresh interpreter in which `import kiss_icp` fails (a None entry in sys.modules).
     code = (
         "import sys; sys.modules['kiss_icp'] = None\n"
-        "from pnvlad_service.data.odometry import LidarOdometry\n"
+        "from pnvlad_service.data.sources.odometry import LidarOdometry\n"
         "from pnvlad_service.errors import MissingDependencyError\n"
         "try:\n"
         "    LidarOdometry()\n"

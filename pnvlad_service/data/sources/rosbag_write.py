@@ -1,6 +1,6 @@
 """Writing ROS bags: a drive's scans and poses as PointCloud2 and Odometry (or /tf) messages.
 
-The other side of :mod:`pnvlad_service.data.rosbag`, for users without a bag of their own (a
+The other side of :mod:`pnvlad_service.data.sources.rosbag`, for users without a bag of their own (a
 synthetic run written as a bag, benchmarks/make_rosbag.py) and for the tests, which write small
 bags with ``rosbags``' own writers (extra ``rosbag``):
 
@@ -18,7 +18,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from pnvlad_service.data.pointcloud2 import POINTFIELD_TYPES
+from pnvlad_service.data.sources.pointcloud2 import POINTFIELD_TYPES
 from pnvlad_service.errors import InputError, MissingDependencyError
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"

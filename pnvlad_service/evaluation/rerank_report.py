@@ -1,6 +1,7 @@
 """The report of ``pnvlad eval --rerank K`` for people: its console lines and its figures
 (``verified_pr.png``, ``pose_errors.png``). The figures themselves are computed in
-:mod:`.rerank_eval`; this module only presents a finished ``rerank`` section."""
+:mod:`.rerank` and :mod:`.rerank_figures`; this module only presents a finished ``rerank``
+section."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from pnvlad_service.localization.rerank_eval import SUCCESS_DEG, SUCCESS_M
+from pnvlad_service.evaluation.rerank_figures import SUCCESS_DEG, SUCCESS_M
 
 
 def summary_lines(rep: dict[str, Any]) -> list[str]:

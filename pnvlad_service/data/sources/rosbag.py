@@ -1,7 +1,7 @@
 """A recorded ROS bag as a drive: PointCloud2 scans with their poses, read lazily.
 
 :class:`RosbagDrive` has the face of every other drive (the ``Drive`` protocol of
-:mod:`pnvlad_service.data.drives`): ``timestamps`` int64 [T] µs, ``poses`` float64 [T, 4, 4]
+:mod:`pnvlad_service.data.drive`): ``timestamps`` int64 [T] µs, ``poses`` float64 [T, 4, 4]
 sensor-to-world (x east, y north, z up, UTM metres) and ``scan(i)`` [N, 3] sensor frame, so the
 bag is cut into submaps by the same code path as a KITTI sequence or a CSV drive.
 
@@ -24,13 +24,13 @@ bag is cut into submaps by the same code path as a KITTI sequence or a CSV drive
 - Placement: the fixed frame (the odometry's ``odom``, the ``--tf`` frame) is taken as a local
   metric frame with z up; ``origin_ne`` (northing, easting) puts its origin in UTM and
   ``yaw_deg`` turns its x axis counter-clockwise from east, exactly as a KITTI sequence is
-  placed (:func:`pnvlad_service.data.drives.kitti_poses_to_world`; translations snapped to the
-  same grid, so a bag and a KITTI sequence of the same scans and poses give the same bytes).
+  placed (:func:`.kitti.kitti_poses_to_world`; translations snapped to the same grid, so a bag
+  and a KITTI sequence of the same scans and poses give the same bytes).
 
-Clouds are decoded by :mod:`pnvlad_service.data.pointcloud2`, poses interpolated and /tf chained
-by :mod:`pnvlad_service.data.pose_streams`. Scans are read lazily: opening the drive indexes the
-cloud topic (each message's bag time and header stamp, parsed from the first bytes of the
-message without decoding the cloud) and reads the pose stream; :meth:`RosbagDrive.scan` decodes
+Clouds are decoded by :mod:`.pointcloud2`, poses interpolated and /tf chained by
+:mod:`.pose_streams`. Scans are read lazily: opening the drive indexes the cloud topic (each
+message's bag time and header stamp, parsed from the first bytes of the message without
+decoding the cloud) and reads the pose stream; :meth:`RosbagDrive.scan` decodes
 one cloud. Reads in time order stream through the bag (what the submap cutter does); a jump back
 or far ahead reopens the stream at the message's bag time. Every problem with the bag (not a
 bag, truncated, a missing topic or one of another type, a cloud without x/y/z, poses that do not
@@ -41,7 +41,6 @@ whose message names the topic.
 from __future__ import annotations
 
 import logging
-import math
 import struct
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass
@@ -50,9 +49,9 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
-from pnvlad_service.data.drives import snap_m, yaw_matrix
-from pnvlad_service.data.pointcloud2 import CloudError, decode_pointcloud2, header_stamp
-from pnvlad_service.data.pose_streams import (
+from pnvlad_service.data.drive import place_in_utm
+from pnvlad_service.data.sources.pointcloud2 import CloudError, decode_pointcloud2, header_stamp
+from pnvlad_service.data.sources.pose_streams import (
     POSE_AFTER,
     POSE_BEFORE,
     POSE_GAP,
@@ -442,12 +441,7 @@ class RosbagDrive(RosbagClouds):
         except BaseException:
             self.close()
             raise
-        place = np.eye(4)
-        place[:3, :3] = yaw_matrix(math.radians(yaw_deg))
-        world = place @ local
-        origin = snap_m(np.array([origin_ne[1], origin_ne[0], 0.0]))
-        world[:, :3, 3] = snap_m(world[:, :3, 3]) + origin
-        self.poses = world
+        self.poses = place_in_utm(local, origin_ne, yaw_deg)
 
     # -- poses ----------------------------------------------------------------------------
 

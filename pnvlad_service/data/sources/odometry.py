@@ -2,7 +2,7 @@
 
 A robot without a pose stream can still ask with more than its newest scan: KISS-ICP (Vizzo
 et al., RA-L 2023; PyPI ``kiss-icp``, extra ``odometry``) registers each scan to a local map of
-the ones before, and :class:`~.accumulate.WindowAccumulator` lays the last stretch together
+the ones before, and :class:`~..accumulate.WindowAccumulator` lays the last stretch together
 with those poses. The poses are in the odometry's own frame (the first scan's), so accumulated
 clouds are asked about in the newest scan's axes; their drift over a window is what
 ``benchmarks/odometry_drift.py`` measures.

@@ -1,12 +1,13 @@
-"""Tests of pnvlad_service.data.rosbag: ROS bags (written here with rosbags' own writers) as drives.
+"""data.sources.rosbag: ROS bags (written here with rosbags' own writers) as drives.
 
 The main check writes the scans and poses of a KITTI-style sequence (two real KITTI scans of
 unknown frames, thinned, on made-up poses) into ROS 1 and ROS 2 bags, as Odometry and as /tf,
 and runs both through ``prepare_drive``: same timestamps, poses and scans, byte-identical
 submaps and CSVs. KITTI 00's recorded poses of frames 90-95, with the scans of frames 94 and
 95, check real rotations through odometry and /tf chains. The rest covers cloud layouts
-(organised with NaN returns, float64, extra fields, big-endian), pose sources and their
-interpolation against hand-worked values, and every bad input.
+(organised with NaN returns, float64, extra fields, big-endian), pose sources, and every bad
+input; the decoder and the interpolation alone are tested in test_pointcloud2.py and
+test_pose_streams.py.
 """
 
 from __future__ import annotations
@@ -22,18 +23,10 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from pnvlad_service.data.drives import KittiSequence, kitti_poses_to_world
-from pnvlad_service.data.pointcloud2 import decode_pointcloud2
-from pnvlad_service.data.pose_streams import (
-    POSE_AFTER,
-    POSE_BEFORE,
-    POSE_GAP,
-    POSE_OK,
-    interpolate_poses,
-)
 from pnvlad_service.data.prepare import prepare_drive
-from pnvlad_service.data.rosbag import BagTopic, RosbagClouds, RosbagDrive, list_topics
-from pnvlad_service.data.rosbag_write import (
+from pnvlad_service.data.sources.kitti import KittiSequence, kitti_poses_to_world
+from pnvlad_service.data.sources.rosbag import BagTopic, RosbagClouds, RosbagDrive, list_topics
+from pnvlad_service.data.sources.rosbag_write import (
     BagWriter,
     odometry,
     pointcloud2,
@@ -41,6 +34,8 @@ from pnvlad_service.data.rosbag_write import (
     write_drive_bag,
 )
 from pnvlad_service.errors import InputError, MissingDependencyError
+from tests.data.helpers import ListDrive, tree_bytes
+from tests.data.sources.test_pose_streams import yaw_pose
 from tests.kitti00 import TR, camera_pose, relative_pose
 
 FRAMES = 40
@@ -52,14 +47,6 @@ KITTI_POINT = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", 
 
 # (ROS version, ROS 2 storage, bag name)
 FORMATS = [(1, "sqlite3", "drive.bag"), (2, "sqlite3", "drive_db3"), (2, "mcap", "drive_mcap")]
-
-
-def tree_bytes(run: Path) -> dict[str, bytes]:
-    return {
-        str(p.relative_to(run)): p.read_bytes()
-        for p in sorted(run.rglob("*"))
-        if p.is_file() and not p.name.startswith(".")
-    }
 
 
 def make_sequence(root: Path, real_scans: Path, frames: int = FRAMES) -> Path:
@@ -148,7 +135,7 @@ def test_bag_is_the_same_drive_as_the_kitti_sequence(
 def test_scans_are_decoded_only_when_asked_for(
     sequence: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import pnvlad_service.data.rosbag as rosbag
+    import pnvlad_service.data.sources.rosbag as rosbag
 
     decoded: list[int] = []
     real = rosbag.decode_pointcloud2
@@ -317,64 +304,8 @@ def test_cloud_with_extra_fields_in_any_order_and_byte_order(tmp_path: Path, ord
     np.testing.assert_array_equal(got, np.stack([arr["x"], arr["y"], arr["z"]], axis=1))
 
 
-def test_decode_refuses_clouds_whose_sizes_do_not_fit() -> None:
-    from types import SimpleNamespace as NS
-
-    from pnvlad_service.data.pointcloud2 import CloudError
-
-    fields = [NS(name=n, offset=4 * k, datatype=7, count=1) for k, n in enumerate("xyz")]
-    ok = NS(
-        height=1,
-        width=2,
-        fields=fields,
-        is_bigendian=False,
-        point_step=12,
-        row_step=24,
-        data=np.zeros(24, np.uint8),
-    )
-    assert decode_pointcloud2(ok).shape == (2, 3)
-    with pytest.raises(CloudError, match="need 24 bytes of data, the message has 20"):
-        decode_pointcloud2(NS(**{**ok.__dict__, "data": np.zeros(20, np.uint8)}))
-    with pytest.raises(CloudError, match="does not fit a point of 10 bytes"):
-        decode_pointcloud2(NS(**{**ok.__dict__, "point_step": 10, "row_step": 20}))
-    empty = NS(**{**ok.__dict__, "width": 0, "row_step": 0, "data": np.zeros(0, np.uint8)})
-    assert decode_pointcloud2(empty).shape == (0, 3)
-
-
 # --------------------------------------------------------------------------------------------
 # Poses
-
-
-def yaw_pose(yaw_deg: float, xyz: tuple[float, float, float]) -> np.ndarray:
-    from pnvlad_service.data.drives import yaw_matrix
-
-    m = np.eye(4)
-    m[:3, :3] = yaw_matrix(math.radians(yaw_deg))
-    m[:3, 3] = xyz
-    return m
-
-
-def test_interpolation_against_a_hand_worked_case() -> None:
-    # t = 0 s: at the origin facing east; t = 1 s: at (10, 2, 0.4) facing north.
-    q = np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)]])
-    p = np.array([[0.0, 0.0, 0.0], [10.0, 2.0, 0.4]])
-    t = np.array([0, 1_000_000_000], dtype=np.int64)
-    query = np.array([250_000_000, 0, 1_000_000_000, -1, 1_000_000_001], dtype=np.int64)
-    poses, status = interpolate_poses(t, p, q, query)
-    assert status.tolist() == [POSE_OK, POSE_OK, POSE_OK, POSE_BEFORE, POSE_AFTER]
-    # A quarter of the way: a quarter of the translation, a quarter of the 90-degree turn.
-    np.testing.assert_allclose(poses[0], yaw_pose(22.5, (2.5, 0.5, 0.1)), atol=1e-12)
-    np.testing.assert_array_equal(poses[1], np.eye(4))  # at a sample: that sample, exactly
-    np.testing.assert_allclose(poses[2], yaw_pose(90.0, (10.0, 2.0, 0.4)), atol=1e-15)
-    np.testing.assert_array_equal(poses[3:], np.stack([np.eye(4)] * 2))
-    # Slerp, not a linear blend of matrices: the rotation stays a rotation at every fraction.
-    fine = np.linspace(0, 1_000_000_000, 11).astype(np.int64)
-    poses, _ = interpolate_poses(t, p, q, fine)
-    yaws = np.degrees(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
-    np.testing.assert_allclose(yaws, np.linspace(0.0, 90.0, 11), atol=1e-9)
-    # A gap longer than allowed.
-    _, status = interpolate_poses(t, p, q, query, max_gap_ns=500_000_000)
-    assert status.tolist() == [POSE_GAP, POSE_OK, POSE_OK, POSE_BEFORE, POSE_AFTER]
 
 
 def test_scans_outside_the_pose_stream_are_dropped_and_counted(tmp_path: Path) -> None:
@@ -420,7 +351,7 @@ def test_scans_outside_the_pose_stream_are_dropped_and_counted(tmp_path: Path) -
 
 
 def posestamped(types, pose: np.ndarray, ns: int, covariance: bool = False):
-    from pnvlad_service.data.rosbag_write import _header, _pose_parts
+    from pnvlad_service.data.sources.rosbag_write import _header, _pose_parts
 
     position, orientation = _pose_parts(types, pose)
     msg = types["geometry_msgs/msg/Pose"](position=position, orientation=orientation)
@@ -672,7 +603,7 @@ def test_missing_rosbags_names_the_extra(monkeypatch: pytest.MonkeyPatch, small_
 def test_header_parse_matches_the_deserialiser(small_bag: Path) -> None:
     from rosbags.highlevel import AnyReader
 
-    from pnvlad_service.data.pointcloud2 import header_stamp
+    from pnvlad_service.data.sources.pointcloud2 import header_stamp
 
     with AnyReader([small_bag]) as reader:
         conn = next(c for c in reader.connections if c.topic == "/points")
@@ -686,19 +617,6 @@ def test_header_parse_matches_the_deserialiser(small_bag: Path) -> None:
 
 # --------------------------------------------------------------------------------------------
 # A drive written as a bag
-
-
-class ListDrive:
-    def __init__(self, scans, poses, stamps) -> None:
-        self.name = "memory"
-        self.scans, self.poses = scans, poses
-        self.timestamps = np.asarray(stamps, dtype=np.int64)
-
-    def __len__(self) -> int:
-        return len(self.scans)
-
-    def scan(self, i: int) -> np.ndarray:
-        return self.scans[i]
 
 
 @pytest.mark.parametrize(("ros", "storage"), [(1, "sqlite3"), (2, "mcap")])
