@@ -59,7 +59,11 @@ def model_encoder(
     """A model directory or the training run that made it (``store.resolve_model_dir``),
     through the batch-norm-folded ``models.inference.Encoder`` in ``dtype`` (float32, or
     bfloat16 where the CPU has it natively); labelled with the model directory and its
-    architecture."""
+    architecture. A model that turns clouds to their own heading embeds its databases at the
+    headings a map is embedded at (:func:`~pnvlad_service.models.config.map_turns`), as
+    ``pnvlad index build`` does."""
+    from pnvlad_service.models.config import map_turns
+    from pnvlad_service.models.embedding import turned_embedder
     from pnvlad_service.models.inference import Encoder
     from pnvlad_service.models.store import resolve_model_dir
 
@@ -72,8 +76,10 @@ def model_encoder(
         "arch": enc.cfg.arch,
         "dim": enc.dim,
         "dtype": enc.dtype,
+        "map_turns": map_turns(enc.cfg),
     }
-    return EvalEncoder(enc.embed, enc.cfg.num_points, info, f"{directory} ({enc.cfg.arch})")
+    embed = turned_embedder(enc.embed, map_turns(enc.cfg))
+    return EvalEncoder(embed, enc.cfg.num_points, info, f"{directory} ({enc.cfg.arch})")
 
 
 def baseline_encoder() -> EvalEncoder:
@@ -108,13 +114,33 @@ def embed_paths(
 
 
 def exact_search(db: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
-    """int64 [Q, min(k, N)]: exact L2 nearest database rows of each query, nearest first."""
+    """int64 [Q, min(k, N)]: exact L2 nearest database rows of each query, nearest first.
+
+    ``db`` float32 [N, T * D] holds T descriptors a row where its map was embedded at T
+    headings (:func:`~pnvlad_service.models.embedding.turned_embedder`; ``queries`` [Q, D]):
+    a row's distance is then its nearest heading's."""
     import faiss
 
-    index = faiss.IndexFlatL2(db.shape[1])
-    index.add(np.ascontiguousarray(db, dtype=np.float32))
-    _, idx = index.search(np.ascontiguousarray(queries, dtype=np.float32), min(k, len(db)))
-    return idx.astype(np.int64)
+    turns = db.shape[1] // queries.shape[1]
+    flat = np.ascontiguousarray(db, dtype=np.float32).reshape(len(db) * turns, -1)
+    index = faiss.IndexFlatL2(flat.shape[1])
+    index.add(flat)
+    k = min(k, len(db))
+    _, idx = index.search(np.ascontiguousarray(queries, dtype=np.float32), k * turns)
+    if turns == 1:
+        return idx.astype(np.int64)
+    return first_rows(idx // turns, k)
+
+
+def first_rows(rows: np.ndarray, k: int) -> np.ndarray:
+    """int64 [Q, k]: each row's first ``k`` distinct values of ``rows`` int [Q, M] (a map's
+    entries met at several headings, nearest first), -1 where fewer."""
+    out = np.full((len(rows), k), -1, dtype=np.int64)
+    for q, row in enumerate(rows):
+        seen = dict.fromkeys(int(r) for r in row if r >= 0)
+        firsts = list(seen)[:k]
+        out[q, : len(firsts)] = firsts
+    return out
 
 
 def _pairs_report(
@@ -313,7 +339,9 @@ def embed_runs(
     shape_k: int = 0,
 ) -> tuple[int, list[np.ndarray], list[np.ndarray]]:
     """Embed every unique submap of the runs once (a query is also in its run's database):
-    (unique submaps, each run's database descriptors, each run's query descriptors)."""
+    (unique submaps, each run's database descriptors, each run's query descriptors). An
+    ``embed`` with ``turns`` (:func:`~pnvlad_service.models.embedding.turned_embedder`) gives
+    database rows of every heading and queries as they are."""
     unique: dict[str, int] = {}
     for r in runs:
         for p in [*r.db_paths, *r.query_paths]:
@@ -323,8 +351,9 @@ def embed_runs(
     desc = embed_paths(
         embed, paths, num_points, workers=workers, progress=progress, shape_k=shape_k
     )
+    width = desc.shape[1] // getattr(embed, "turns", 1)
     db_desc = [desc[[unique[str(p)] for p in r.db_paths]] for r in runs]
-    q_desc = [desc[[unique[str(p)] for p in r.query_paths]] for r in runs]
+    q_desc = [desc[[unique[str(p)] for p in r.query_paths], :width] for r in runs]
     return len(paths), db_desc, q_desc
 
 

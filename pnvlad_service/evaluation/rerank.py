@@ -330,7 +330,8 @@ def calibrate(
     outcomes, _ = rerank_pairs(runs, db_desc, q_desc, frames, config, progress=progress)
     off: list[QueryOutcome] = []
     if off_map_runs and off_map_share > 0.0:
-        off_db, off_q = _descriptors_of(off_map_runs, runs, db_desc, embed_runs)
+        turns = getattr(embed_runs, "turns", 1)
+        off_db, off_q = _descriptors_of(off_map_runs, runs, db_desc, embed_runs, turns)
         off, _ = rerank_pairs(
             off_map_runs, off_db, off_q, frames, config, progress=progress, off_map_m=OFF_MAP_M
         )
@@ -364,10 +365,12 @@ def _descriptors_of(
     runs: list[EvalRun],
     db_desc: list[np.ndarray],
     embed_runs: Callable[[list[EvalRun]], tuple[list[np.ndarray], list[np.ndarray]]],
+    turns: int = 1,
 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """The database and query descriptors of ``wanted``, taken from ``runs``' database
     descriptors where every submap of ``wanted`` is among them (the off-map queries are the
-    calibration's own training layout), else embedded."""
+    calibration's own training layout), else embedded. ``turns``: database rows hold that many
+    headings' descriptors, a query only the first."""
     rows = {
         str(p): d[k] for r, d in zip(runs, db_desc, strict=True) for k, p in enumerate(r.db_paths)
     }
@@ -378,7 +381,8 @@ def _descriptors_of(
     def stack(ps: list[Path]) -> np.ndarray:
         return np.stack([rows[str(p)] for p in ps]) if ps else empty
 
-    return [stack(r.db_paths) for r in wanted], [stack(r.query_paths) for r in wanted]
+    width = db_desc[0].shape[1] // turns
+    return [stack(r.db_paths) for r in wanted], [stack(r.query_paths)[:, :width] for r in wanted]
 
 
 def evaluate_rerank(
@@ -427,6 +431,8 @@ def evaluate_rerank(
         def embed_cal(rs: list[EvalRun]) -> tuple[list[np.ndarray], list[np.ndarray]]:
             _, db, q = embed_runs(embed, rs, num_points, workers, progress)
             return db, q
+
+        embed_cal.turns = getattr(embed, "turns", 1)  # type: ignore[attr-defined]
 
         calibration = calibrate(
             embed_cal,

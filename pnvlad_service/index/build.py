@@ -39,7 +39,8 @@ from pnvlad_service.index.keys import (
 )
 from pnvlad_service.index.manifest import Manifest, MapRecord, ModelRecord
 from pnvlad_service.io.readers import read_points
-from pnvlad_service.models.embedding import Embedder, embed_in_chunks
+from pnvlad_service.models.config import map_turns
+from pnvlad_service.models.embedding import Embedder, embed_in_chunks, turned_embedder
 from pnvlad_service.models.store import ModelIdentity, model_identity, resolve_model_dir
 
 if TYPE_CHECKING:
@@ -105,9 +106,12 @@ def embed_submaps(
     records: Sequence[Submap],
     batch_size: int = 32,
     progress: bool = True,
+    turns: int = 1,
 ) -> np.ndarray:
-    """Descriptors of ``records`` in order: float32 [len(records), encoder.dim], embedded
-    ``batch_size`` submaps (read from ``root / record.path``) at a time."""
+    """Descriptors of ``records`` in order: float32 [len(records) * turns, encoder.dim],
+    embedded ``batch_size`` submaps (read from ``root / record.path``) at a time; with
+    ``turns`` each record's descriptors at that many headings a quarter turn apart follow each
+    other (:func:`~pnvlad_service.models.embedding.turned_embedder`)."""
     root = Path(root)
     if not records:
         return np.empty((0, encoder.dim), dtype=np.float32)
@@ -116,9 +120,11 @@ def embed_submaps(
         clouds = [read_points(root / r.path, "benchmark") for r in records[start:stop]]
         return np.stack(clouds).astype(np.float32)
 
-    return embed_in_chunks(
-        encoder.embed, len(records), load, chunk=batch_size, progress=progress, desc="embedding"
+    embed = turned_embedder(encoder.embed, turns)
+    desc = embed_in_chunks(
+        embed, len(records), load, chunk=batch_size, progress=progress, desc="embedding"
     )
+    return desc.reshape(len(records) * turns, -1)
 
 
 def load_encoder(
@@ -194,20 +200,26 @@ def _embed_sharded(
     progress: bool,
     rank: int,
     world: int,
+    turns: int = 1,
 ) -> np.ndarray | None:
     """Rank ``rank`` embeds its contiguous shard; rank 0 gets all descriptors in order
-    (float32 [len(records), dim]), the other ranks ``None``."""
+    (float32 [len(records) * turns, dim]), the other ranks ``None``."""
     if world == 1:
-        return embed_submaps(encoder, root, records, batch_size, progress)
+        return embed_submaps(encoder, root, records, batch_size, progress, turns)
     import torch
     import torch.distributed as dist
 
     n = len(records)
     bounds = [n * r // world for r in range(world + 1)]
     mine = embed_submaps(
-        encoder, root, records[bounds[rank] : bounds[rank + 1]], batch_size, progress and rank == 0
+        encoder,
+        root,
+        records[bounds[rank] : bounds[rank + 1]],
+        batch_size,
+        progress and rank == 0,
+        turns,
     )
-    width = max(bounds[r + 1] - bounds[r] for r in range(world))
+    width = max(bounds[r + 1] - bounds[r] for r in range(world)) * turns
     padded = torch.zeros((width, encoder.dim), dtype=torch.float32)
     padded[: len(mine)] = torch.from_numpy(mine)
     gathered = [torch.zeros_like(padded) for _ in range(world)] if rank == 0 else None
@@ -216,7 +228,7 @@ def _embed_sharded(
         return None
     assert gathered is not None
     return np.concatenate(
-        [gathered[r][: bounds[r + 1] - bounds[r]].numpy() for r in range(world)]
+        [gathered[r][: (bounds[r + 1] - bounds[r]) * turns].numpy() for r in range(world)]
     ).astype(np.float32)
 
 
@@ -276,10 +288,11 @@ def build_bundle(
     frames = _frames_for(root, records, geometry)
     identity = model_identity(model)
     record = ModelRecord.from_identity(identity)
+    turns = map_turns(identity.config)
     enc = encoder if encoder is not None else load_encoder(model, identity=identity)
     with _maybe_distributed() as (rank, world):
         t0 = time.perf_counter()
-        desc = _embed_sharded(enc, root, records, batch_size, progress, rank, world)
+        desc = _embed_sharded(enc, root, records, batch_size, progress, rank, world, turns)
         t_embed = time.perf_counter() - t0
         if desc is None:
             return BuildReport(None, len(records), index_key, t_embed, 0.0, 0.0, None)
@@ -304,10 +317,10 @@ def build_bundle(
             overwrite=overwrite,
             build={"processes": world, "embed_seconds": round(t_embed, 3)},
             geometry=None if frames is None else geometry_writer(root, records, frames),
-            map_record=MapRecord(LAYOUT_KINDS[layout], layout),
+            map_record=MapRecord(LAYOUT_KINDS[layout], layout, turns),
         )
-    rate = len(desc) / t_embed if t_embed > 0 else float("inf")
-    return BuildReport(out, len(desc), index_key, t_embed, t_index, rate, recall, manifest)
+    rate = len(records) / t_embed if t_embed > 0 else float("inf")
+    return BuildReport(out, len(records), index_key, t_embed, t_index, rate, recall, manifest)
 
 
 def _frames_for(
@@ -423,7 +436,7 @@ def add_to_bundle(
         log.warning("dropping the bundle's geometry (--geometry off)")
     enc = encoder if encoder is not None else load_encoder(model, identity=identity)
     t0 = time.perf_counter()
-    desc = embed_submaps(enc, root, records, batch_size, progress)
+    desc = embed_submaps(enc, root, records, batch_size, progress, bundle.turns)
     t_embed = time.perf_counter() - t0
     t1 = time.perf_counter()
     bundle.index.add(np.ascontiguousarray(desc, dtype=np.float32))

@@ -188,9 +188,14 @@ class IndexBundle:
         return self.manifest.dim
 
     @property
+    def turns(self) -> int:
+        """Vectors an entry has in the index (its headings; see ``MapRecord.turns``)."""
+        return self.manifest.map_record.turns
+
+    @property
     def count(self) -> int:
-        """Vectors in the index."""
-        return int(self.index.ntotal)
+        """Entries (submaps or keyframes) in the map: the index's vectors over ``turns``."""
+        return int(self.index.ntotal) // self.turns
 
     @property
     def key(self) -> str:
@@ -230,10 +235,11 @@ class IndexBundle:
         index = faiss.read_index(str(path / INDEX_FILE))
         apply_search_params(index, manifest.search_params)
         metadata = Metadata.load(path / METADATA_FILE)
-        if index.ntotal != len(metadata) or index.ntotal != manifest.count:
+        turns = manifest.map_record.turns
+        if index.ntotal != len(metadata) * turns or len(metadata) != manifest.count:
             raise InputError(
-                f"index has {index.ntotal} vectors, metadata {len(metadata)} rows, "
-                f"manifest says {manifest.count}",
+                f"index has {index.ntotal} vectors ({turns} an entry), metadata "
+                f"{len(metadata)} rows, manifest says {manifest.count}",
                 source=path,
             )
         if index.d != manifest.dim:
@@ -258,15 +264,34 @@ class IndexBundle:
     def search(self, descriptors: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Nearest ``k`` vectors of each row of ``descriptors`` float32 [Q, D].
 
-        Returns Euclidean distances float32 [Q, k'] and ids int64 [Q, k'] with
-        k' = min(k, count); id -1 marks a missing answer (approximate indexes).
+        Returns Euclidean distances float32 [Q, k'] and entry ids int64 [Q, k'] with
+        k' = min(k, count); id -1 marks a missing answer (approximate indexes). An entry
+        embedded at several headings (``turns``) counts once, at its nearest.
         """
         q = np.ascontiguousarray(descriptors, dtype=np.float32)
         if q.ndim != 2 or q.shape[1] != self.dim:
             raise InputError(f"expected descriptors [Q, {self.dim}], got {q.shape}", "descriptors")
         k = max(1, min(int(k), self.count))
-        d2, ids = self.index.search(q, k)
-        return np.sqrt(np.maximum(d2, 0.0)).astype(np.float32), ids
+        turns = self.turns
+        d2, ids = self.index.search(q, min(k * turns, int(self.index.ntotal)))
+        dist = np.sqrt(np.maximum(d2, 0.0)).astype(np.float32)
+        if turns == 1:
+            return dist, ids
+        out_d = np.full((len(q), k), np.inf, dtype=np.float32)
+        out_i = np.full((len(q), k), -1, dtype=np.int64)
+        for r in range(len(q)):
+            seen: set[int] = set()
+            n = 0
+            for dv, iv in zip(dist[r], ids[r], strict=True):
+                entry = int(iv) // turns if iv >= 0 else -1
+                if entry < 0 or entry in seen:
+                    continue
+                seen.add(entry)
+                out_d[r, n], out_i[r, n] = dv, entry
+                n += 1
+                if n == k:
+                    break
+        return out_d, out_i
 
     def matches(self, distances: np.ndarray, ids: np.ndarray) -> list[list[Match]]:
         """Search results [Q, k] as :class:`Match` lists, ranks from 1, missing ids dropped."""
@@ -317,14 +342,17 @@ def write_bundle(
     it is passed and returns their record (:class:`~pnvlad_service.index.geometry.GeometryWriter`).
     """
     faiss = import_faiss()
-    if index.ntotal != len(metadata):
-        raise PnvladError(f"index has {index.ntotal} vectors, metadata {len(metadata)} rows")
+    turns = 1 if map_record is None else map_record.turns
+    if index.ntotal != len(metadata) * turns:
+        raise PnvladError(
+            f"index has {index.ntotal} vectors, metadata {len(metadata)} rows ({turns} an entry)"
+        )
     with atomic_directory(out, overwrite=overwrite) as tmp:
         faiss.write_index(index, str(tmp / INDEX_FILE))
         atomic_write_bytes(tmp / METADATA_FILE, metadata.to_bytes())
         geo = None if geometry is None else geometry(tmp)
-        if geo is not None and geo.count != index.ntotal:
-            raise PnvladError(f"geometry has {geo.count} rows, the index {index.ntotal} vectors")
+        if geo is not None and geo.count != len(metadata):
+            raise PnvladError(f"geometry has {geo.count} rows, the metadata {len(metadata)}")
         manifest = Manifest(
             format=FORMAT,
             version=VERSION,
@@ -332,7 +360,7 @@ def write_bundle(
             metric="l2",
             distance="euclidean",
             index_key=index_key,
-            count=int(index.ntotal),
+            count=len(metadata),
             search_params=search_params or {},
             recall_at_1_vs_exact=recall,
             model=model,

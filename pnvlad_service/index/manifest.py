@@ -187,10 +187,13 @@ class GeometryRecord:
 @dataclass(frozen=True)
 class MapRecord:
     """The manifest's ``map`` entry: ``kind`` of the entries (:data:`MAP_KINDS`), the layout
-    they came from (``train``, ``test`` or ``keyframe``)."""
+    they came from (``train``, ``test`` or ``keyframe``), and ``turns``: the headings a quarter
+    turn apart each entry is embedded at (the index holds ``turns`` vectors an entry, entry
+    ``i``'s at ``i * turns ...``; 4 for a model that turns clouds to their own heading)."""
 
     kind: str = "submap"
     layout: str = "test"
+    turns: int = 1
 
     @classmethod
     def from_json(cls, doc: Any, source: str | Path | None = None) -> MapRecord:
@@ -199,10 +202,13 @@ class MapRecord:
             raise InputError(f"manifest's map entry needs a kind of {list(MAP_KINDS)}", source)
         if not isinstance(doc.get("layout", "test"), str):
             raise InputError("manifest's map layout is not a string", source)
-        return cls(str(doc["kind"]), str(doc.get("layout", "test")))
+        turns = doc.get("turns", 1)
+        if turns not in (1, 2, 4) or isinstance(turns, bool):
+            raise InputError(f"manifest's map turns must be 1, 2 or 4, got {turns!r}", source)
+        return cls(str(doc["kind"]), str(doc.get("layout", "test")), int(turns))
 
     def to_json(self) -> dict[str, Any]:
-        return {"kind": self.kind, "layout": self.layout}
+        return {"kind": self.kind, "layout": self.layout, "turns": self.turns}
 
     def accepts(self, query_kind: str) -> bool:
         """Whether a query of ``query_kind`` (:data:`QUERY_KINDS`) meets its own kind here."""
@@ -213,7 +219,8 @@ class MapRecord:
 class Manifest:
     """``manifest.json`` of a bundle, one field per key (see :data:`KEYS`).
 
-    ``dim`` is the descriptor dimension, ``count`` the number of vectors, ``metric`` ``"l2"``
+    ``dim`` is the descriptor dimension, ``count`` the number of entries (vectors over the
+    map's ``turns``), ``metric`` ``"l2"``
     and ``distance`` ``"euclidean"`` (the distances a search returns); ``search_params`` the
     FAISS search-time parameters applied on load; ``recall_at_1_vs_exact`` recall@1 of an
     approximate key against exact search (``None`` for exact keys); ``indexed`` one entry per

@@ -299,6 +299,18 @@ class ModelConfig(BaseModel):
 BEV_FIELDS = tuple(name for name in ModelConfig.model_fields if name.startswith("bev_"))
 
 
+#: Headings a map entry is embedded at for a model that turns clouds to their own dominant
+#: direction: that direction is known modulo a quarter turn.
+QUARTER_TURNS = 4
+
+
+def map_turns(cfg: ModelConfig | dict) -> int:
+    """How many headings a map is embedded at for this model: :data:`QUARTER_TURNS` when it
+    turns each cloud to its dominant direction (``canonical_heading``), else 1."""
+    heading = cfg.get("canonical_heading") if isinstance(cfg, dict) else cfg.canonical_heading
+    return QUARTER_TURNS if heading else 1
+
+
 def config_sha256(cfg: ModelConfig) -> str:
     """SHA-256 (hex) of the configuration's canonical JSON (sorted keys, no spaces). Fields
     added since the first release are left out at their neutral value (``local_k`` 0,

@@ -58,6 +58,44 @@ def embed_in_chunks(
     return out if out is not None else np.zeros((0, 0), dtype=np.float32)
 
 
+def quarter_turn(points: np.ndarray, k: int) -> np.ndarray:
+    """``points`` float [..., 3+] turned about z by ``k`` quarter turns, exactly (x, y) ->
+    (-y, x) per quarter: no rounding, so turn 0 is the points themselves."""
+    k %= 4
+    if k == 0:
+        return points
+    out = np.array(points, copy=True)
+    x, y = points[..., 0], points[..., 1]
+    out[..., 0], out[..., 1] = {1: (-y, x), 2: (-x, -y), 3: (y, -x)}[k]
+    return out
+
+
+def turned_embedder(embed: EmbedFn, turns: int) -> EmbedFn:
+    """An embed function whose row for each cloud holds its descriptors at ``turns`` headings
+    a quarter turn apart (1, 2 or 4), side by side: float32 [B, turns * D], the first D the
+    cloud as it is. A map is embedded so when its model turns each cloud to its own dominant
+    direction (``ModelConfig.canonical_heading``), which a scan from another heading meets
+    within a quarter turn (:func:`pnvlad_service.models.config.map_turns`). The function
+    carries ``turns`` as an attribute."""
+    if turns not in (1, 2, 4):
+        raise ValueError(f"turns must be 1, 2 or 4, got {turns}")
+    if turns == 1:
+        return embed
+
+    def fn(points: np.ndarray) -> np.ndarray:
+        x = np.asarray(points)
+        step = 4 // turns
+        desc = np.asarray(
+            embed(np.concatenate([quarter_turn(x, k * step) for k in range(turns)])),
+            dtype=np.float32,
+        )
+        b = len(x)
+        return desc.reshape(turns, b, -1).transpose(1, 0, 2).reshape(b, -1)
+
+    fn.turns = turns  # type: ignore[attr-defined]
+    return fn
+
+
 def module_embedder(
     model: torch.nn.Module,
     device: torch.device | str = "cpu",

@@ -443,3 +443,20 @@ def test_cli_eval_dtype(trained: tuple[Path, Path, Path], tmp_path: Path) -> Non
         assert reports[dtype]["encoder"]["dtype"] == dtype
     # 30 submaps a database: a few swapped near-ties move recall@1 by a few per cent at most
     assert abs(reports["bfloat16"]["recall_at_1"] - reports["float32"]["recall_at_1"]) <= 10
+
+
+def test_exact_search_over_a_map_of_turns_counts_each_entry_once() -> None:
+    """Database rows of T headings' descriptors side by side: a row's distance is its nearest
+    heading's, each row once in the ranking (first_rows), as the bundles search."""
+    from pnvlad_service.evaluation.evaluate import exact_search, first_rows
+
+    rng = np.random.default_rng(0)
+    db = rng.normal(size=(6, 4, 8)).astype(np.float32)  # 6 entries x 4 headings x D = 8
+    q = db[[4, 1], [3, 0]] + 1e-4  # entry 4 at its 4th heading, entry 1 at its 1st
+    nn = exact_search(db.reshape(6, 32), q, 6)
+    assert nn[:, 0].tolist() == [4, 1]
+    assert all(sorted(row.tolist()) == list(range(6)) for row in nn)
+    # By brute force: each entry's best heading, then sorted.
+    d = np.linalg.norm(db[None] - q[:, None, None], axis=-1).min(axis=2)
+    np.testing.assert_array_equal(nn, np.argsort(d, axis=1, kind="stable"))
+    assert first_rows(np.array([[3, 3, 1, -1, 2]]), 4).tolist() == [[3, 1, 2, -1]]

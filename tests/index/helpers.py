@@ -60,8 +60,9 @@ def sidecar_frames(csv: Path):
     return out
 
 
-def make_checkpoint(path: Path, seed: int = 0) -> Path:
-    """A small randomly initialised PointNetVLAD (16-d descriptors) saved as a checkpoint."""
+def make_checkpoint(path: Path, seed: int = 0, canonical_heading: bool = False) -> Path:
+    """A small randomly initialised PointNetVLAD (16-d descriptors) saved as a checkpoint;
+    ``canonical_heading``: one that turns clouds to their own heading (maps of 4 headings)."""
     import torch
 
     from pnvlad_service.models.config import ModelConfig
@@ -76,6 +77,7 @@ def make_checkpoint(path: Path, seed: int = 0) -> Path:
         tnet_fc_widths=(16, 8),
         cluster_size=4,
         output_dim=16,
+        canonical_heading=canonical_heading,
     )
     model = build_model(cfg)
     # Non-trivial batch-norm statistics, so folding them is exercised.

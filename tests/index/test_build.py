@@ -287,3 +287,34 @@ def test_a_bev_netvlad_model_builds_a_bundle_that_finds_each_submap(
     assert b.dim == 16 and b.count == len(records)
     assert ids[:, 0].tolist() == list(range(len(records)))
     np.testing.assert_allclose(dist[:, 0], 0, atol=1e-5)
+
+
+def test_a_map_of_a_heading_model_holds_four_turns_an_entry(
+    world: dict[str, Path], tmp_path: Path
+) -> None:
+    """A model that turns clouds to their own heading knows it only modulo a quarter turn: its
+    map holds every entry at the four quarter turns, and a query turned by any of them finds
+    its entry first, at distance 0, once; `index add` keeps the four."""
+    from pnvlad_service.models.embedding import quarter_turn
+    from pnvlad_service.models.inference import Encoder
+
+    ckpt = make_checkpoint(tmp_path / "heading", canonical_heading=True)
+    runs = ib.list_database_submaps(world["tree"])
+    first = sorted({r.run for r in runs})[0]
+    out = ib.build_bundle(tmp_path / "turned.index", ckpt, world["tree"], runs=[first],
+                          progress=False)  # fmt: skip
+    bundle = IndexBundle.load(out.path)
+    n = len([r for r in runs if r.run == first])
+    assert bundle.turns == 4 and bundle.count == n and bundle.index.ntotal == 4 * n
+    assert bundle.manifest.map_record.turns == 4 and out.count == n
+    enc = Encoder.from_checkpoint(ckpt)
+    rec = [r for r in runs if r.run == first][2]
+    cloud = read_submap(world["tree"] / rec.path).astype(np.float32)
+    for k in range(4):
+        d, ids = bundle.search(enc.embed(quarter_turn(cloud, k)[None]), 5)
+        assert ids[0, 0] == 2 and d[0, 0] < 1e-5
+        assert len(set(ids[0].tolist())) == 5  # each entry once, at its nearest turn
+    others = sorted({r.run for r in runs} - {first})
+    ib.add_to_bundle(out.path, ckpt, world["tree"], runs=others, progress=False)
+    grown = IndexBundle.load(out.path)
+    assert grown.count == len(runs) and grown.index.ntotal == 4 * len(runs)

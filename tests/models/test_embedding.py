@@ -63,3 +63,30 @@ def test_module_embedder_uses_eval_mode_and_restores_it() -> None:
     with torch.no_grad():
         in_train_mode = model(x).numpy()
     assert not np.allclose(in_train_mode, want, atol=1e-3)  # the mode matters for this model
+
+
+def test_quarter_turns_are_exact_and_a_turned_embedder_lays_them_side_by_side() -> None:
+    from pnvlad_service.models.embedding import quarter_turn, turned_embedder
+
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(3, 50, 3)).astype(np.float32)
+    assert quarter_turn(pts, 0) is pts
+    one = quarter_turn(pts, 1)
+    np.testing.assert_array_equal(one[..., 0], -pts[..., 1])  # exact: no trigonometry
+    np.testing.assert_array_equal(one[..., 1], pts[..., 0])
+    np.testing.assert_array_equal(one[..., 2], pts[..., 2])
+    np.testing.assert_array_equal(quarter_turn(quarter_turn(pts, 3), 1), pts)
+    np.testing.assert_array_equal(quarter_turn(pts, 2), quarter_turn(one, 1))
+
+    def first_point(x: np.ndarray) -> np.ndarray:  # a "descriptor" that shows the turn
+        return x[:, 0, :].astype(np.float32)
+
+    for turns in (1, 2, 4):
+        fn = turned_embedder(first_point, turns)
+        out = fn(pts)
+        assert out.shape == (3, 3 * turns) and getattr(fn, "turns", 1) == turns
+        for k in range(turns):
+            want = quarter_turn(pts, k * 4 // turns)[:, 0, :]
+            np.testing.assert_array_equal(out[:, 3 * k : 3 * k + 3], want)
+    with pytest.raises(ValueError, match="1, 2 or 4"):
+        turned_embedder(first_point, 3)

@@ -91,11 +91,11 @@ def test_shipped_configs_load() -> None:
     assert bev.model == ModelConfig.bev() and bev.data == cpu.data
     assert bev.train == cpu.train.model_copy(update={"margin1": 1.0, "margin2": 0.5})
     # bev_scan / cpu_scan: those recipes for single scans, each cloud turned to its own
-    # dominant direction and trained with quarter turns on top of up to 5 degrees.
+    # dominant direction, trained with turns of up to 5 degrees.
     for name, base in (("bev_scan", bev), ("cpu_scan", cpu)):
         scan = TrainConfig.preset(name)
         assert scan.model == base.model.model_copy(update={"canonical_heading": True})
-        augment = base.train.augment.model_copy(update={"quarter_turns": True, "yaw_deg": 5.0})
+        augment = base.train.augment.model_copy(update={"yaw_deg": 5.0})
         assert scan.train == base.train.model_copy(update={"augment": augment})
     with pytest.raises(InputError, match="bev, bev_scan, compact, cpu, cpu_scan, paper"):
         TrainConfig.preset("gpu")
