@@ -46,7 +46,7 @@ def test_a_keyframe_map_answers_a_raw_scan(keys_server: str, tiny_maps: dict) ->
             stamps = tree.locations("business", m["run"], "keyframe").timestamp.tolist()
             assert m["timestamp"] in stamps
     info = httpx.get(f"{keys_server}/info").json()
-    assert info["manifest"]["map"] == {"kind": "keyframe", "layout": "keyframe"}
+    assert info["manifest"]["map"] == {"kind": "keyframe", "layout": "keyframe", "turns": 1}
     assert info["manifest"]["preprocess"]["max_range"] == 50.0
 
 
