@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from pnvlad_cli import data_bench, data_prepare, data_preprocess
+from pnvlad_cli import data_bench, data_import, data_prepare, data_preprocess
 
 app = typer.Typer(
     rich_markup_mode="markdown",
@@ -18,4 +18,5 @@ app = typer.Typer(
 
 data_preprocess.register(app)
 data_prepare.register(app)
+data_import.register(app)
 data_bench.register(app)
