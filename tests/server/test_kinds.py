@@ -96,3 +96,30 @@ def test_a_submap_map_takes_a_window(tiny_maps: dict, tmp_path: Path) -> None:
         with pytest.raises(InputError) as err:
             loc.localize(_scan(tiny_maps), kind="window")
         assert err.value.source == "kind" and "keyframe" in err.value.detail
+
+
+@pytest.mark.parametrize(
+    ("name", "cloud", "field", "message"),
+    [
+        ("too few points", np.random.default_rng(0).normal(0, 5, (12, 3)), "points", ""),
+        ("a plane and nothing else",
+         np.c_[np.random.default_rng(1).uniform(-30, 30, (6000, 2)), np.zeros(6000)],
+         "points", "ground removal"),
+        ("NaN", np.r_[np.random.default_rng(2).normal(0, 5, (5000, 3)), [[np.nan, 0, 0]]],
+         "body[5000]", "NaN or infinite"),
+    ],
+)  # fmt: skip
+def test_a_scan_g_cannot_reduce_is_refused_naming_the_field(
+    keys_server: str, name: str, cloud: np.ndarray, field: str, message: str
+) -> None:
+    r = httpx.post(
+        f"{keys_server}/localize",
+        params={"kind": "scan"},
+        content=np.ascontiguousarray(cloud, dtype="<f4").tobytes(),
+        headers={"content-type": "application/octet-stream"},
+    )
+    assert r.status_code == 422, (name, r.text)
+    problem = r.json()
+    assert problem["field"] == field and message in problem["detail"], (name, problem)
+    # The server is unharmed: the next good scan is answered.
+    assert httpx.get(f"{keys_server}/readyz").status_code == 200
