@@ -26,6 +26,7 @@ wide session.
 from __future__ import annotations
 
 import base64
+import io
 import json
 import logging
 import os
@@ -189,6 +190,78 @@ class OnnxRecord:
             )
 
 
+def read_onnx_metadata(path: str | Path) -> dict[str, str]:
+    """The ``metadata_props`` of the ONNX file at ``path`` without loading it: the file's
+    top-level protobuf fields are walked and every one but ``metadata_props`` (field 14 of
+    ``ModelProto``: ``StringStringEntryProto`` key 1, value 2) skipped by its length, so the
+    graph and its weights are never read. :class:`InputError` naming the file when it is not
+    a protobuf message."""
+    path = Path(path)
+    out: dict[str, str] = {}
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            while fh.tell() < size:
+                field, wire = divmod(_read_varint(fh), 8)
+                if wire == 0:
+                    _read_varint(fh)
+                    continue
+                if wire in (1, 5):
+                    fh.seek(8 if wire == 1 else 4, 1)
+                    continue
+                if wire != 2:
+                    raise ValueError(f"wire type {wire}")
+                n = _read_varint(fh)
+                if fh.tell() + n > size:
+                    raise ValueError("truncated")
+                if field != 14:
+                    fh.seek(n, 1)
+                    continue
+                entry = io.BytesIO(fh.read(n))
+                kv: dict[int, bytes] = {}
+                while entry.tell() < n:
+                    f, w = divmod(_read_varint(entry), 8)
+                    if w != 2:
+                        raise ValueError(f"wire type {w} in a metadata entry")
+                    kv[f] = entry.read(_read_varint(entry))
+                out[kv.get(1, b"").decode("utf-8")] = kv.get(2, b"").decode("utf-8")
+    except (ValueError, UnicodeDecodeError, EOFError):
+        raise InputError("not an ONNX file (unreadable protobuf)", path) from None
+    return out
+
+
+def _read_varint(fh: Any) -> int:
+    """One protobuf varint from the binary stream ``fh``."""
+    value = shift = 0
+    while True:
+        b = fh.read(1)
+        if not b:
+            raise EOFError
+        value |= (b[0] & 0x7F) << shift
+        if not b[0] & 0x80:
+            return value
+        shift += 7
+        if shift > 63:
+            raise ValueError("varint too long")
+
+
+def check_onnx_file(directory: str | Path, weights_sha256: str) -> Path:
+    """``model.onnx`` of the model directory ``directory``, checked without loading it: it was
+    exported by pnvlad from this directory's weights (sha256 ``weights_sha256``) and
+    configuration (:meth:`OnnxRecord.check_identity`; ``pnvlad serve`` runs this before it
+    starts). :class:`InputError` naming both files otherwise."""
+    from pnvlad_service.models.store import read_model_json
+
+    directory = Path(directory)
+    path = directory / ONNX_FILE
+    if not path.is_file():
+        raise InputError(f"no {ONNX_FILE} in this model directory", directory)
+    cfg, _ = read_model_json(directory)
+    record = OnnxRecord.from_metadata(read_onnx_metadata(path), path)
+    record.check_identity(path, directory, weights_sha256, cfg)
+    return path
+
+
 def default_threads() -> int:
     """The CPUs this process may run on."""
     try:
@@ -243,15 +316,18 @@ class OnnxEncoder:
         self._embedding = 0
         self._lock = threading.Lock()
         self._pool: ThreadPoolExecutor | None = None
-        data = self.path.read_bytes() if data is None else data
+        record = None
+        if data is None:  # checked before anything is loaded
+            record = OnnxRecord.from_metadata(read_onnx_metadata(self.path), self.path)
+            if directory is not None:
+                record.check_identity(self.path, Path(directory), weights_sha256, cfg)
+            data = self.path.read_bytes()
         self._wide = ort.InferenceSession(
             data, self._options(ort, self.threads), providers=["CPUExecutionProvider"]
         )
-        self.record = OnnxRecord.from_metadata(
+        self.record = record or OnnxRecord.from_metadata(
             self._wide.get_modelmeta().custom_metadata_map, self.path
         )
-        if directory is not None:
-            self.record.check_identity(self.path, Path(directory), weights_sha256, cfg)
         self._narrow = (
             ort.InferenceSession(data, self._options(ort, 1), providers=["CPUExecutionProvider"])
             if self.threads > 1

@@ -80,8 +80,11 @@ def open_encoder(
 
 def describe(encoder: Any) -> str:
     """One line naming the runtime of ``encoder`` and its version (logs, /readyz)."""
-    if getattr(encoder, "runtime", "torch") == "onnx":
+    runtime = getattr(encoder, "runtime", None)
+    if runtime == "onnx":
         return encoder.describe()
-    import torch
+    if runtime == "torch":
+        import torch
 
-    return f"torch {torch.__version__}, {torch.get_num_threads()} threads"
+        return f"torch {torch.__version__}, {torch.get_num_threads()} threads"
+    return type(encoder).__name__
