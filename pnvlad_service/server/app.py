@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import signal
 import threading
 from collections.abc import AsyncIterator, Callable
@@ -138,6 +139,19 @@ def _sighup(app: FastAPI) -> Any:
         loop.remove_signal_handler(signal.SIGHUP)
 
 
+def process_age() -> float | None:
+    """Seconds since this process started (Linux's /proc; None elsewhere), for the start-up
+    line the image test reads."""
+    try:
+        with open("/proc/self/stat") as fh:
+            start_ticks = int(fh.read().rsplit(")", 1)[1].split()[19])
+        with open("/proc/uptime") as fh:
+            uptime = float(fh.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+
+
 @contextlib.asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     """Load the localiser (unless one was given to :func:`create_app`) into the app's
@@ -164,12 +178,14 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     )
     swapped(loc)
     state.serving = serving
+    age = process_age()
     log.info(
-        "ready: bundle %s (%s, %d vectors), embedding with %s",
+        "ready: bundle %s (%s, %d vectors), embedding with %s%s",
         loc.info.index.id,
         loc.info.index.key,
         loc.info.index.count,
         loc.runtime,
+        "" if age is None else f" ({age:.2f} s after the process started)",
     )
     try:
         with _sighup(app):
