@@ -97,6 +97,63 @@ def _update_running(bn: nn.BatchNorm1d, mean: torch.Tensor, var: torch.Tensor, m
         bn.running_var.mul_(1 - mom).add_(unbiased, alpha=mom)
 
 
+class BatchStats(torch.autograd.Function):
+    """The batch mean and biased variance of ``x @ w + b`` over the rows of x, from x's
+    covariance: x float [M, C], w [C, O], b [O] -> (mean [O], var [O]) in w's dtype.
+
+    ``mean = x̄ w + b`` and ``var_o = w_o^T S w_o`` (S the [C, C] covariance of x), so the
+    [M, O] products are never formed. The covariance is the product of the centred rows in x's
+    dtype, summed over blocks of :data:`BLOCK` rows in float64; everything of size C x C or
+    C x O is float64. The backward is written out rather than differentiated through those
+    steps: ``dx = (w dmean)^T / M + (2 / M) (x - x̄) (w diag(dvar) w^T)``,
+    ``dw = x̄^T dmean + 2 S w diag(dvar)``, ``db = dmean``: one [M, C] x [C, C] product in x's
+    dtype, where autograd through the float64 covariance took two float64 ones and the copies
+    (on an AMD EPYC without fast float64 products, 15 % of the paper configuration's training
+    step; docs/results/training.md).
+    """
+
+    #: Rows a block of the covariance's float32 product (its partial sums are added in float64).
+    BLOCK = 4096
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, w: torch.Tensor, b: torch.Tensor):  # type: ignore[override]
+        m, step = x.shape[0], BatchStats.BLOCK
+        # Block sums in x's dtype, added in float64 (a float64 copy of x would be a pass of
+        # its own).
+        xbar = sum(x[s : s + step].sum(0).double() for s in range(0, m, step)) / m  # [C]
+        xc = x - xbar.to(x.dtype)
+        cov = torch.zeros(x.shape[1], x.shape[1], dtype=torch.float64, device=x.device)
+        for s in range(0, m, step):
+            block = xc[s : s + step]
+            cov += (block.t() @ block).double()
+        cov /= m
+        w64 = w.double()
+        sw = cov @ w64  # [C, O]
+        mean = (xbar @ w64 + b.double()).to(w.dtype)
+        var = (sw * w64).sum(0).clamp_min(0).to(w.dtype)
+        ctx.save_for_backward(xc, xbar, w64, sw)
+        ctx.dtypes = (x.dtype, w.dtype, b.dtype)
+        return mean, var
+
+    @staticmethod
+    def backward(ctx: Any, dmean: torch.Tensor | None, dvar: torch.Tensor | None):  # type: ignore[override]
+        xc, xbar, w64, sw = ctx.saved_tensors
+        x_dtype, w_dtype, b_dtype = ctx.dtypes
+        m = xc.shape[0]
+        o = w64.shape[1]
+        dm = (dmean if dmean is not None else xc.new_zeros(o)).double()
+        dv = (dvar if dvar is not None else xc.new_zeros(o)).double()
+        dx = dw = db = None
+        if ctx.needs_input_grad[0]:
+            g = (w64 * dv) @ w64.t() * (2.0 / m)  # [C, C]
+            dx = torch.addmm(((w64 @ dm) / m).to(x_dtype), xc, g.to(x_dtype))
+        if ctx.needs_input_grad[1]:
+            dw = (torch.outer(xbar, dm) + 2.0 * sw * dv).to(w_dtype)
+        if ctx.needs_input_grad[2]:
+            db = dm.to(b_dtype)
+        return dx, dw, db
+
+
 def folded_linear_bn(
     lin: nn.Linear, bn: nn.Module, x: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -104,26 +161,17 @@ def folded_linear_bn(
     either mode of ``bn`` (a ``BatchNorm1d``, or ``nn.Identity``: W' = W^T, t = bias).
 
     In training mode the batch mean and variance of ``lin(x)`` are taken from x's [C, C]
-    covariance (``mean = x̄ W + b``, ``var_o = w_o^T S w_o``), never from the [M, O] outputs,
-    and the running statistics are updated as ``BatchNorm1d`` would; autograd differentiates
-    through those small products, so the gradients are the reference's."""
+    covariance (:class:`BatchStats`), never from the [M, O] outputs, and the running statistics
+    are updated as ``BatchNorm1d`` would; the gradients are the reference's."""
     w = lin.weight.t()  # [C, O], a view
     bias = lin.bias if lin.bias is not None else x.new_zeros(w.shape[1])
     if not isinstance(bn, nn.BatchNorm1d):
         return w, bias
     assert bn.weight is not None and bn.bias is not None
     if bn.training or bn.running_mean is None:
-        m = x.shape[0]
-        # In float64: the gradients through these statistics cancel the sparse max gradient
-        # almost exactly, and float32 sums would leave a few per cent of it.
-        x64, w64 = x.double(), w.double()
-        xbar = x64.mean(0)
-        xc = x64 - xbar
-        cov = (xc.t() @ xc) / m  # [C, C]
-        mean = (xbar @ w64 + bias).to(w.dtype)
-        var = ((cov @ w64) * w64).sum(0).clamp_min(0).to(w.dtype)
+        mean, var = BatchStats.apply(x, w, bias)
         if bn.training:
-            _update_running(bn, mean, var, m)
+            _update_running(bn, mean, var, x.shape[0])
     else:
         assert bn.running_var is not None
         mean, var = bn.running_mean, bn.running_var

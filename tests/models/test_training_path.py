@@ -13,7 +13,7 @@ import torch
 
 from pnvlad_service.models.config import ModelConfig
 from pnvlad_service.models.factory import build_model
-from pnvlad_service.models.training_path import LinearMax
+from pnvlad_service.models.training_path import BatchStats, LinearMax
 from tests.models.helpers import CONFIGS, clouds, trained_like
 
 CASES = {
@@ -100,6 +100,22 @@ def test_linear_max_gradcheck(relu: bool) -> None:
     want = (x @ w + t).amax(1)
     want = want.relu() if relu else want
     torch.testing.assert_close(LinearMax.apply(x, w, t, relu), want)
+
+
+@pytest.mark.parametrize("block", [4096, 5])
+def test_batch_stats_gradcheck_and_values(block: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """BatchStats' mean and variance are those of the [M, O] product it never forms, and its
+    written-out backward is autograd's (float64 gradcheck; blocks of 5 rows of 13 too)."""
+    monkeypatch.setattr(BatchStats, "BLOCK", block)
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(13, 4, dtype=torch.float64, generator=g, requires_grad=True)
+    w = torch.randn(4, 6, dtype=torch.float64, generator=g, requires_grad=True)
+    b = torch.randn(6, dtype=torch.float64, generator=g, requires_grad=True)
+    mean, var = BatchStats.apply(x, w, b)
+    y = x @ w + b
+    torch.testing.assert_close(mean, y.mean(0))
+    torch.testing.assert_close(var, y.var(0, unbiased=False))
+    assert torch.autograd.gradcheck(lambda x, w, b: BatchStats.apply(x, w, b), (x, w, b))
 
 
 def test_state_dict_unchanged_by_the_fast_path() -> None:
