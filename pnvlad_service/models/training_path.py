@@ -230,6 +230,107 @@ def netvlad_forward(pool: NetVLAD, h: torch.Tensor, inv: torch.Tensor | None, b:
     return _vlad_head(pool, vlad)
 
 
+class _VladLink:
+    """What :class:`_VladIn` and :class:`_VladSums` share: the features h, their inverse norms
+    and the assignment; and, from ``_VladSums``' backward (which autograd runs first), its
+    gradient for ``_VladIn``'s."""
+
+    h: torch.Tensor
+    inv: torch.Tensor
+    a: torch.Tensor | None = None
+    d_sums: torch.Tensor | None = None
+    inv_grad: torch.Tensor | None = None
+
+
+class _VladIn(torch.autograd.Function):
+    """``h = relu(z)``, ``inv = 1 / max(|h|, 1e-12)`` (per row) and the cluster logits
+    ``(h @ wc) * inv`` [M, K] of the last layer's pre-activation z [M, D]; h and inv go to
+    :class:`_VladSums` through ``link``. Its backward forms the gradient of z in one product
+    a cloud, ``[dP | a] @ [wc^T ; dS]``, scaled by inv, plus the norm's term (a multiple of h)
+    and the ReLU mask, where autograd made three [M, D] gradients (logits, sums, norm) and
+    added them in as many passes."""
+
+    @staticmethod
+    def forward(ctx: Any, z: torch.Tensor, wc: torch.Tensor, link: _VladLink, b: int):  # type: ignore[override]
+        h = torch.relu(z)
+        norm = torch.linalg.vector_norm(h, dim=1, keepdim=True)
+        inv = norm.clamp_min(1e-12).reciprocal()
+        hw = h @ wc.to(h.dtype)  # [M, K]
+        link.h, link.inv = h, inv
+        ctx.link, ctx.b = link, b
+        ctx.save_for_backward(h, inv, norm, hw, wc)
+        return hw * inv
+
+    @staticmethod
+    def backward(ctx: Any, dp: torch.Tensor):  # type: ignore[override]
+        h, inv, norm, hw, wc = ctx.saved_tensors
+        link: _VladLink = ctx.link
+        b = ctx.b
+        m, d = h.shape
+        n, k = m // b, wc.shape[1]
+        dp = dp.to(h.dtype)
+        a, d_sums = link.a, link.d_sums
+        if a is None or d_sums is None:  # the sums took no gradient: logits only
+            left, right = dp.reshape(b, n, k), wc.t().to(h.dtype).expand(b, k, d)
+        else:
+            left = torch.cat([dp, a.to(h.dtype)], dim=1).reshape(b, n, 2 * k)
+            wct = wc.t().to(h.dtype).expand(b, k, d)
+            right = torch.cat([wct, d_sums.to(h.dtype)], dim=1)  # [B, 2K, D]
+        dh = torch.bmm(left, right).reshape(m, d).mul_(inv)
+        # d inv / dh = -inv^3 h where |h| > 1e-12: the logits' and the sums' share of it.
+        dinv = (dp * hw).sum(1, keepdim=True)
+        if link.inv_grad is not None:
+            dinv = dinv + link.inv_grad
+        coef = torch.where(norm > 1e-12, -dinv * inv.pow(3), torch.zeros_like(inv))
+        dh.addcmul_(h, coef)
+        dz = torch.ops.aten.threshold_backward(dh, h, 0)
+        dwc = (h.t() @ (dp * inv)).to(wc.dtype) if ctx.needs_input_grad[1] else None
+        link.a = link.d_sums = link.inv_grad = None
+        return dz, dwc, None, None
+
+
+class _VladSums(torch.autograd.Function):
+    """NetVLAD's weighted sums ``S_b = (a inv)_b^T h_b`` [B, K, D] of the features and inverse
+    norms :class:`_VladIn` put in ``link``, for the assignment a [M, K]. Its backward returns
+    a's gradient and leaves the features' (and the norms') to ``_VladIn``'s, through ``link``."""
+
+    @staticmethod
+    def forward(ctx: Any, a: torch.Tensor, link: _VladLink, b: int):  # type: ignore[override]
+        h, inv = link.h, link.inv
+        m, d = h.shape
+        aw = (a * inv).to(h.dtype)
+        ctx.link, ctx.b = link, b
+        ctx.save_for_backward(a)
+        return torch.bmm(aw.reshape(b, m // b, -1).transpose(1, 2), h.reshape(b, m // b, d))
+
+    @staticmethod
+    def backward(ctx: Any, ds: torch.Tensor):  # type: ignore[override]
+        (a,) = ctx.saved_tensors
+        link: _VladLink = ctx.link
+        h, inv = link.h, link.inv
+        b = ctx.b
+        m, d = h.shape
+        hds = torch.bmm(h.reshape(b, m // b, d), ds.to(h.dtype).transpose(1, 2))  # [B, N, K]
+        hds = hds.reshape(m, -1).to(a.dtype)
+        link.a, link.d_sums = a, ds
+        link.inv_grad = (a * hds).sum(1, keepdim=True).to(inv.dtype)
+        return hds * inv, None, None
+
+
+def relu_l2_netvlad_forward(pool: NetVLAD, z: torch.Tensor, b: int, n: int) -> torch.Tensor:
+    """NetVLAD of ``relu(z)`` with each row L2-normalised (the paper's per-point normalisation),
+    z [B*N, D] the last layer's pre-activation -> [B, out]: :func:`netvlad_forward` of those
+    features, with the gradient of z formed in one product a cloud (:class:`_VladIn`)."""
+    k = pool.clusters
+    link = _VladLink()
+    logits = _VladIn.apply(z, pool.cluster_weights, link, b)  # [M, K]
+    logits = pool.cluster_bn(logits) if pool.bn else logits + pool.cluster_biases
+    a = torch.softmax(logits, dim=-1)
+    sums = _VladSums.apply(a, link, b)  # [B, K, D]
+    centre = a.reshape(b, n, k).sum(1).unsqueeze(2) * pool.centers.t()  # [B, K, D]
+    return _vlad_head(pool, sums.to(centre.dtype) - centre)
+
+
 def affine_netvlad_forward(
     pool: NetVLAD, lin: nn.Linear, bn: nn.Module, x: torch.Tensor, b: int, n: int
 ) -> torch.Tensor:

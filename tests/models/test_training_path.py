@@ -118,6 +118,45 @@ def test_batch_stats_gradcheck_and_values(block: int, monkeypatch: pytest.Monkey
     assert torch.autograd.gradcheck(lambda x, w, b: BatchStats.apply(x, w, b), (x, w, b))
 
 
+@pytest.mark.parametrize("bn", [True, False])
+def test_fused_relu_l2_netvlad_gradcheck(bn: bool) -> None:
+    """The pair of Functions that computes ReLU, the per-point L2 norm and NetVLAD's sums (and
+    forms their gradient in one product a cloud) against autograd, in float64, 2 clouds."""
+    from pnvlad_service.models.netvlad import NetVLAD
+    from pnvlad_service.models.training_path import relu_l2_netvlad_forward
+
+    torch.manual_seed(0)
+    pool = NetVLAD(5, 3, 4, bn=bn, gating=True).double().train()
+    z = torch.randn(2 * 6, 5, dtype=torch.float64, requires_grad=True)
+    with torch.no_grad():
+        z[3] = -1.0  # a point whose features are all zero after the ReLU (norm clamped)
+
+    def fused(z: torch.Tensor) -> torch.Tensor:
+        return relu_l2_netvlad_forward(pool, z, 2, 6)
+
+    def reference(z: torch.Tensor) -> torch.Tensor:
+        h = torch.nn.functional.normalize(torch.relu(z), dim=1)
+        return pool(h.reshape(2, 6, 5))
+
+    torch.testing.assert_close(fused(z), reference(z))
+    assert torch.autograd.gradcheck(fused, (z,))
+
+
+def test_the_paper_head_takes_the_fused_functions(monkeypatch: pytest.MonkeyPatch) -> None:
+    from pnvlad_service.models import training_path
+
+    calls = []
+    real = training_path._VladIn.forward
+    monkeypatch.setattr(
+        training_path._VladIn, "forward", staticmethod(lambda *a: calls.append(1) or real(*a))
+    )
+    for name in ("compact", "paper-narrow"):
+        model = trained_like(CONFIGS[name]).train()
+        calls.clear()
+        model(clouds(2, n=64))
+        assert len(calls) == 1, name
+
+
 def test_state_dict_unchanged_by_the_fast_path() -> None:
     cfg = CONFIGS["compact"]
     fast = build_model(cfg)
