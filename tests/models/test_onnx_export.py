@@ -253,3 +253,29 @@ def test_a_foreign_onnx_file_is_refused(exported: Path, tmp_path: Path) -> None:
     onnx.save(proto, str(d / ONNX_FILE))
     with pytest.raises(InputError, match="not an ONNX file that pnvlad exported"):
         OnnxEncoder.from_checkpoint(d)
+
+
+def test_the_same_top1_on_the_tiny_citys_submaps(tiny: Path, tmp_path: Path) -> None:
+    """Every submap of the tiny city (the test and the training layouts, leave-one-out nearest
+    neighbour among them) has the same top-1 under both runtimes, for PN_VLAD and bev-netvlad
+    with canonical heading. (The 1,000-submap check with trained weights:
+    benchmarks/bench_runtime.py --root.)"""
+    from pnvlad_service.index.build import list_database_submaps
+    from pnvlad_service.io.readers import read_points
+    from pnvlad_service.models.inference import other_distances
+
+    records = [*list_database_submaps(tiny), *list_database_submaps(tiny, layout="train")]
+    x = np.stack([read_points(tiny / r.path, "benchmark") for r in records]).astype(np.float32)
+    for name, cfg in [
+        ("compact", ModelConfig.compact()),
+        ("bev", ModelConfig.bev(canonical_heading=True)),
+    ]:
+        d = _model_dir(tmp_path / name, cfg)
+        onnx_export.export_onnx(d)
+        want = Encoder.from_checkpoint(d).embed(x)
+        ort = OnnxEncoder.from_checkpoint(d, threads=2)
+        got = ort.embed(x)
+        ort.close()
+        assert len(x) >= 100
+        assert cosines(got, want).min() >= MIN_COS
+        assert (other_distances(got).argmin(1) == other_distances(want).argmin(1)).all(), name
