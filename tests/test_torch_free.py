@@ -76,3 +76,28 @@ def test_what_needs_torch_says_so_in_one_line(
         f"error: {command} needs the 'torch' package, which is not installed. "
         "Install it with: pip install 'pnvlad[torch]'"
     )
+
+
+def test_index_add_without_torch_embeds_on_model_onnx(tmp_path: Path) -> None:
+    """A robot's computer without torch adds its survey run to the map (then reloads the
+    server): `pnvlad index add` embeds with ONNX Runtime, and the vectors are torch's."""
+    pytest.importorskip("onnx")
+    from pnvlad_service.index.build import add_to_bundle, build_bundle
+    from pnvlad_service.index.bundle import IndexBundle
+    from pnvlad_service.models.onnx_export import export_onnx
+    from tests.index.helpers import RUNS, make_checkpoint, make_tree
+
+    tree = make_tree(tmp_path / "tree")
+    ckpt = make_checkpoint(tmp_path / "ckpt")
+    export_onnx(ckpt)
+    for name in ("torch.index", "onnx.index"):
+        build_bundle(tmp_path / name, ckpt, tree, runs=[RUNS[0]], progress=False)
+    add_to_bundle(tmp_path / "torch.index", ckpt, tree, runs=[RUNS[1]], progress=False)
+    r = cli_without_torch("-q", "index", "add", str(tmp_path / "onnx.index"), "-m", str(ckpt),
+                          "-r", str(tree), "--run", RUNS[1], "--no-progress")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    a, b = (IndexBundle.load(tmp_path / n) for n in ("torch.index", "onnx.index"))
+    assert a.count == b.count
+    va = a.index.reconstruct_n(0, a.count)
+    vb = b.index.reconstruct_n(0, b.count)
+    assert abs(va - vb).max() < 1e-5
