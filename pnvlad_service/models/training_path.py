@@ -284,7 +284,9 @@ class _VladIn(torch.autograd.Function):
         coef = torch.where(norm > 1e-12, -dinv * inv.pow(3), torch.zeros_like(inv))
         dh.addcmul_(h, coef)
         dz = torch.ops.aten.threshold_backward(dh, h, 0)
-        dwc = (h.t() @ (dp * inv)).to(wc.dtype) if ctx.needs_input_grad[1] else None
+        dwc = None
+        if ctx.needs_input_grad[1]:
+            dwc = (h.t() @ (dp * inv).to(h.dtype)).to(wc.dtype)
         link.a = link.d_sums = link.inv_grad = None
         return dz, dwc, None, None
 
