@@ -16,10 +16,14 @@ one query, 2 positives, 8 negatives and an other negative, lazy quadruplet loss)
 
 The contenders run one step each in turn, round after round, so a noisy neighbour slows all of
 them alike; each figure is the median over the rounds, and each ratio the median of the
-per-round ratios to the port's step in the same round.
+per-round ratios to the port's step in the same round. The first line names the CPU (its model
+name, torch's CPU capability, native bfloat16); ``--profile NAME`` ends with torch's profile of
+one more step of that contender (its operators by self time, and by input shape).
 
     python benchmarks/bench_train_step.py --threads 2 --rounds 7
     python benchmarks/bench_train_step.py --only port,paper,paper-before --bf16 on
+    python benchmarks/bench_train_step.py --threads 2 --rounds 3 --only port,paper,compact \
+        --profile paper
 """
 
 from __future__ import annotations
@@ -74,6 +78,18 @@ def make_step(
     return step
 
 
+def cpu_name() -> str:
+    """The CPU's model name (Linux /proc/cpuinfo), else what platform says."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--threads", type=int, default=2)
@@ -83,6 +99,7 @@ def main() -> None:
     ap.add_argument("--bf16", choices=["auto", "on", "off"], default="auto")
     ap.add_argument("--compile", action="store_true", help="also time torch.compile'd models")
     ap.add_argument("--only", help="comma-separated contenders (default: all)")
+    ap.add_argument("--profile", metavar="NAME", help="also profile one step of this contender")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     native = bf16_supported()
@@ -114,7 +131,7 @@ def main() -> None:
         steps = {k: v for k, v in steps.items() if k in keep}
 
     print(
-        f"torch {torch.__version__}, {platform.processor() or platform.machine()}, "
+        f"torch {torch.__version__}, {cpu_name()} ({torch.backends.cpu.get_cpu_capability()}), "
         f"{args.threads} threads, {args.batch} clouds x {args.points} points, "
         f"fwd + bwd + SGD; native bf16: {native}; rounds: {args.rounds}"
     )
@@ -156,6 +173,15 @@ def main() -> None:
                 b / a for b, a in zip(times[f"{name}-before"], times[name], strict=True)
             )
             print(f"{name}: fast path {gain:.2f}x its before")
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+            steps[args.profile]()
+        print(f"\none step of {args.profile}, profiled (its time is the profiler's too):")
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=20))
+        by_shape = prof.key_averages(group_by_input_shape=True)
+        print(by_shape.table(sort_by="self_cpu_time_total", row_limit=25))
 
 
 if __name__ == "__main__":

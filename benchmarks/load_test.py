@@ -22,11 +22,26 @@ with ``--query-run``, the submaps of a run the bundle left out, as a vehicle wou
 ``--server-env PNVLAD_VERIFY_CACHE=0`` starts the server without its cache of prepared
 candidates (every candidate prepared afresh: the cold cost).
 
+``--runtime torch onnx`` starts one server per runtime (``PNVLAD_RUNTIME``; the model needs
+its ``model.onnx``, ``pnvlad model export``) and alternates the phases' slices between them as
+it alternates re-ranking off and on, then prints each runtime's 1-client p50 and 8-client
+throughput against torch's (the #38 target: ONNX Runtime no more than 5 % slower anywhere).
+
+``--swap OTHER`` is another test: the clients (the largest ``--clients``) query for
+``--seconds`` while the server's map is swapped between ``--index`` and ``OTHER`` every
+``--swap-every`` seconds (``POST /admin/reload``), and once to a broken copy of ``OTHER`` (its
+geometry truncated, or its index file cut), which must be refused (422) with the old map still
+answering. Every answer must name one of the two bundles, and its matches must be submaps of
+the bundle it names; it prints the errors, the answers per bundle, the p50/p99 outside and
+during the swaps.
+
 Loopback only; bounded in time and count.
 
     python benchmarks/load_test.py --index demo/map.index --clients 1 8 --seconds 20
     python benchmarks/load_test.py --index runs/demo/map.index \
         --query-run runs/demo/city/business/HELD_OUT_RUN --server-env PNVLAD_VERIFY_CACHE=0
+    python benchmarks/load_test.py --index map.index --runtime torch onnx --clients 1 8
+    python benchmarks/load_test.py --index map.index --swap map-plus-run.index --clients 8
 """
 
 from __future__ import annotations
@@ -36,6 +51,8 @@ import contextlib
 import json
 import os
 import re
+import shutil
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -146,11 +163,13 @@ def has_geometry(index: Path | None) -> bool:
     return Manifest.read(index).geometry is not None
 
 
-def encoder_baseline(checkpoint: Path, clouds: list[np.ndarray], repeats: int) -> dict:
+def encoder_baseline(
+    checkpoint: Path, clouds: list[np.ndarray], repeats: int, runtime: str = "auto"
+) -> dict:
     """Batch-1 median latency (ms) and batch-32 throughput (clouds/s) of the encoder alone."""
     from pnvlad_service.index.build import load_encoder
 
-    enc = load_encoder(checkpoint)
+    enc = load_encoder(checkpoint, runtime=runtime)
     x1 = clouds[0][None]
     for _ in range(3):
         enc.embed(x1)
@@ -166,6 +185,9 @@ def encoder_baseline(checkpoint: Path, clouds: list[np.ndarray], repeats: int) -
         t = time.perf_counter()
         enc.embed(x32)
         t32.append(time.perf_counter() - t)
+    close = getattr(enc, "close", None)
+    if close is not None:
+        close()
     return {"batch1_ms": 1000 * float(np.median(t1)), "batch32_cps": 32 / float(np.median(t32))}
 
 
@@ -289,7 +311,7 @@ def batch_sizes(url: str) -> dict[str, float]:
     return out
 
 
-def main() -> None:
+def main() -> int | None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--index", type=Path, help="Bundle: start a server on it (and read its map).")
     ap.add_argument("--checkpoint", type=Path, help="Model (default: the bundle's).")
@@ -304,8 +326,9 @@ def main() -> None:
         "--rounds",
         type=int,
         default=3,
-        help="With re-ranking off and on: each phase's seconds cut into this many slices, the "
-        "two modes alternating slice by slice and each pooled (one --seconds block each: 1).",
+        help="With re-ranking off and on (or several runtimes): each phase's seconds cut into "
+        "this many slices, the modes alternating slice by slice and each pooled (one --seconds "
+        "block each: 1).",
     )
     ap.add_argument("--body", choices=["binary", "json"], default="binary")
     ap.add_argument("--queries", type=int, default=64, help="Distinct query clouds.")
@@ -317,6 +340,13 @@ def main() -> None:
         choices=["auto", "both", "off"],
         default="auto",
         help="Phases with re-ranking off and on (both; auto: when the bundle has geometry).",
+    )
+    ap.add_argument(
+        "--runtime",
+        nargs="+",
+        choices=["torch", "onnx", "auto"],
+        help="One server per runtime (PNVLAD_RUNTIME), their phases alternated slice by slice "
+        "(default: one server, its own choice).",
     )
     ap.add_argument(
         "--perturb",
@@ -337,11 +367,26 @@ def main() -> None:
         metavar="NAME=VALUE",
         help="Environment of the started server, e.g. PNVLAD_VERIFY_CACHE=0 (repeatable).",
     )
+    ap.add_argument(
+        "--swap",
+        type=Path,
+        help="The swap test: another bundle (same model) the map is swapped with while the "
+        "largest --clients query for --seconds.",
+    )
+    ap.add_argument("--swap-every", type=float, default=2.0, help="Seconds between swaps.")
     args = ap.parse_args()
     if not args.url and not args.index:
         ap.error("give --index (start a server) or --url")
+    if args.swap is not None:
+        if args.index is None or args.url is not None:
+            ap.error("--swap starts its own server: give --index, not --url")
+        return swap_test(args)
     both = args.rerank == "both" or (args.rerank == "auto" and has_geometry(args.index))
-    modes = ["off", "on"] if both else [None]
+    reranks = ["off", "on"] if both else [None]
+    runtimes = args.runtime or [None]
+    if len(runtimes) > 1 and args.url:
+        ap.error("several --runtime values start their own servers: give --index, not --url")
+    modes = [(rt, rr) for rt in runtimes for rr in reranks]
 
     scales: list[float | None] = []
     if args.query_run is not None:
@@ -359,26 +404,38 @@ def main() -> None:
     result: dict = {}
 
     def baseline(when: str) -> None:
-        if args.baseline and checkpoint is not None:
-            enc = encoder_baseline(checkpoint, clouds, args.repeats)
-            result.setdefault("encoder_runs", []).append(enc)
+        if not args.baseline or checkpoint is None:
+            return
+        for rt in runtimes:
+            enc = encoder_baseline(checkpoint, clouds, args.repeats, rt or "auto")
+            result.setdefault("encoder_runs", {}).setdefault(rt or "-", []).append(enc)
             print(
-                f"encoder alone ({when}): batch-1 {enc['batch1_ms']:.1f} ms, "
-                f"batch-32 {enc['batch32_cps']:.1f} clouds/s",
+                f"encoder alone ({when}{', ' + rt if rt else ''}): batch-1 "
+                f"{enc['batch1_ms']:.1f} ms, batch-32 {enc['batch32_cps']:.1f} clouds/s",
                 flush=True,
             )
 
     baseline("before")
 
-    proc = None
-    url, pid = args.url, args.pid
-    if url is None:
-        env = dict(kv.split("=", 1) for kv in args.server_env)
-        proc, url = start_server(args.index, checkpoint=args.checkpoint, env=env)
-        pid = proc.pid
-    if urlparse(url).hostname not in ("127.0.0.1", "localhost", "::1"):
-        raise SystemExit("loopback only: the load test refuses other hosts")
+    servers: dict[str | None, tuple[subprocess.Popen | None, str, int | None]] = {}
     try:
+        for rt in runtimes:
+            if args.url is not None:
+                servers[rt] = (None, args.url, args.pid)
+                continue
+            env = dict(kv.split("=", 1) for kv in args.server_env)
+            if rt is not None:
+                env["PNVLAD_RUNTIME"] = rt
+            proc, url = start_server(args.index, checkpoint=args.checkpoint, env=env)
+            servers[rt] = (proc, url, proc.pid)
+        for _, url, _ in servers.values():
+            if urlparse(url).hostname not in ("127.0.0.1", "localhost", "::1"):
+                raise SystemExit("loopback only: the load test refuses other hosts")
+        for rt, (_, url, _) in servers.items():
+            with LocalizeClient(url) as c:
+                _, ready = c.send("GET", "/readyz")
+            result.setdefault("runtimes", {})[rt or "-"] = json.loads(ready).get("runtime")
+            print(f"server {url}: {json.loads(ready).get('runtime')}", flush=True)
 
         def request(mode: str | None) -> tuple[list[tuple[bytes, str]], str]:
             """The bodies (and their paths) of a phase: re-ranking off, on, or the server's
@@ -405,117 +462,319 @@ def main() -> None:
                 for c, sc in zip(clouds, scales, strict=True)
             ], "application/json"
 
-        for mode in modes:
-            run_phase(url, 1, 2.0, 10, *request(mode))  # warm-up
+        for rt, rr in modes:
+            run_phase(servers[rt][1], 1, 2.0, 10, *request(rr))  # warm-up
         result["phases"] = []
         rounds = args.rounds if len(modes) > 1 else 1
         print(
-            f"{'clients':>7} {'rerank':>6} {'round':>5} {'requests':>8} {'errors':>6} "
-            f"{'req/s':>7} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'mean batch':>10} "
-            f"{'registered':>10} {'verified':>8} {'embed p50':>9} {'verify p50':>10} "
-            f"{'CPU ms/req':>10} {'of which child':>14}"
+            f"{'clients':>7} {'runtime':>7} {'rerank':>6} {'round':>5} {'requests':>8} "
+            f"{'errors':>6} {'req/s':>7} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} "
+            f"{'mean batch':>10} {'registered':>10} {'verified':>8} {'embed p50':>9} "
+            f"{'verify p50':>10} {'CPU ms/req':>10} {'of which child':>14}"
         )
 
         def row(ph: dict, label: str) -> None:
             print(
-                f"{ph['clients']:>7} {ph['rerank']:>6} {label:>5} {ph['requests']:>8} "
-                f"{ph['errors']:>6} {ph['throughput']:>7.2f} {ph['p50_ms']:>8.1f} "
-                f"{ph['p95_ms']:>8.1f} {ph['p99_ms']:>8.1f} {ph['mean_batch']:>10.2f} "
-                f"{ph['registered_mean']:>10.2f} {100 * ph['verified_share']:>7.0f}% "
-                f"{ph['embed_p50_ms']:>9.1f} {ph['verify_p50_ms']:>10.1f} "
+                f"{ph['clients']:>7} {ph['runtime']:>7} {ph['rerank']:>6} {label:>5} "
+                f"{ph['requests']:>8} {ph['errors']:>6} {ph['throughput']:>7.2f} "
+                f"{ph['p50_ms']:>8.1f} {ph['p95_ms']:>8.1f} {ph['p99_ms']:>8.1f} "
+                f"{ph['mean_batch']:>10.2f} {ph['registered_mean']:>10.2f} "
+                f"{100 * ph['verified_share']:>7.0f}% {ph['embed_p50_ms']:>9.1f} "
+                f"{ph['verify_p50_ms']:>10.1f} "
                 f"{ph['cpu_server_ms'] + ph['cpu_child_ms']:>10.1f} {ph['cpu_child_ms']:>14.1f}",
                 flush=True,
             )
 
         for n in args.clients:
-            # Off and on alternate in `rounds` slices each (off, on, off, on, ...), pooled:
-            # a machine that drifts during the phase weighs on both alike.
+            # The modes (runtimes x re-ranking off / on) alternate in `rounds` slices each,
+            # pooled: a machine that drifts during the phase weighs on all alike.
             slices: dict = {mode: [] for mode in modes}
             for r in range(rounds):
-                for mode in modes:
+                for rt, rr in modes:
+                    _, url, pid = servers[rt]
                     b0, c0 = batch_sizes(url), process_cpu(pid)
                     sl = run_phase(
-                        url, n, args.seconds / rounds, args.max_requests // rounds, *request(mode)
+                        url, n, args.seconds / rounds, args.max_requests // rounds, *request(rr)
                     )
                     b1, c1 = batch_sizes(url), process_cpu(pid)
                     sl["cpu"] = {k: c1[k] - c0[k] for k in c1}
                     sl["batches"] = b1.get("batches", 0) - b0.get("batches", 0)
                     sl["clouds"] = b1.get("clouds", 0) - b0.get("clouds", 0)
-                    slices[mode].append(sl)
+                    slices[(rt, rr)].append(sl)
                     if rounds > 1:
-                        row(summarise([sl]) | {"rerank": mode or "-"}, str(r + 1))
-            for mode in modes:
-                ph = summarise(slices[mode]) | {"rerank": mode or "-", "rounds": rounds}
+                        label = {"runtime": rt or "-", "rerank": rr or "-"}
+                        row(summarise([sl]) | label, str(r + 1))
+            for rt, rr in modes:
+                ph = summarise(slices[(rt, rr)]) | {
+                    "runtime": rt or "-",
+                    "rerank": rr or "-",
+                    "rounds": rounds,
+                }
                 result["phases"].append(ph)
                 row(ph, "all")
                 for e in ph["first_errors"]:
                     print(f"  error: {e}")
         names = (*STAGES, "outside")
         print("where a request's time goes, p50 ms (the server's stages; outside: HTTP, client)")
-        print(f"{'clients':>7} {'rerank':>6} " + " ".join(f"{n:>10}" for n in names))
+        print(f"{'clients':>7} {'runtime':>7} {'rerank':>6} " + " ".join(f"{n:>10}" for n in names))
         for ph in result["phases"]:
             print(
-                f"{ph['clients']:>7} {ph['rerank']:>6} "
+                f"{ph['clients']:>7} {ph['runtime']:>7} {ph['rerank']:>6} "
                 + " ".join(f"{ph[n + '_p50_ms']:>10.1f}" for n in names)
             )
-        if pid:
-            result["server_peak_rss_mb"] = vmhwm_mb(pid)
+        for rt, (_, _, pid) in servers.items():
+            if not pid:
+                continue
+            peak = vmhwm_mb(pid)
             kids = {k: vmhwm_mb(k) for k in children(pid)}
-            result["child_peak_rss_mb"] = kids
+            result.setdefault("server_peak_rss_mb", {})[rt or "-"] = peak
+            result.setdefault("child_peak_rss_mb", {})[rt or "-"] = kids
             print(
-                f"server peak RSS (VmHWM): {result['server_peak_rss_mb']:.0f} MB"
+                f"server peak RSS (VmHWM{', ' + rt if rt else ''}): {peak:.0f} MB"
                 + "".join(f", child process {k} {mb:.0f} MB" for k, mb in kids.items())
             )
     finally:
-        if proc is not None:
-            proc.terminate()
-            proc.wait(20)
-    baseline("after")  # with the server stopped, as before the phases
-    if result.get("encoder_runs"):
-        runs = result["encoder_runs"]
-        result["encoder"] = {
-            key: float(np.mean([r[key] for r in runs])) for key in ("batch1_ms", "batch32_cps")
-        }
-        enc = result["encoder"]
+        for proc, _, _ in servers.values():
+            if proc is not None:
+                proc.terminate()
+                proc.wait(20)
+    baseline("after")  # with the servers stopped, as before the phases
+    for rt, runs in result.get("encoder_runs", {}).items():
+        enc = {key: float(np.mean([r[key] for r in runs])) for key in ("batch1_ms", "batch32_cps")}
+        result.setdefault("encoder", {})[rt] = enc
         print(
-            f"encoder alone (mean): batch-1 {enc['batch1_ms']:.1f} ms, "
-            f"batch-32 {enc['batch32_cps']:.1f} clouds/s"
+            f"encoder alone (mean{', ' + rt if rt != '-' else ''}): batch-1 "
+            f"{enc['batch1_ms']:.1f} ms, batch-32 {enc['batch32_cps']:.1f} clouds/s"
         )
-    enc = result.get("encoder")
-    if both:
-        rerank_targets(result.get("phases", []))
-    for ph in result.get("phases", []) if enc else []:
-        if ph.get("rerank") == "on":
-            continue  # the encoder targets are about the path without re-ranking
-        if ph["clients"] == 1:
-            print(
-                f"target 1: p50 {ph['p50_ms']:.1f} ms vs 1.25 x batch-1 "
-                f"{1.25 * enc['batch1_ms']:.1f} ms -> "
-                f"{'OK' if ph['p50_ms'] <= 1.25 * enc['batch1_ms'] else 'MISSED'}"
-            )
-        if ph["clients"] == 8:
-            print(
-                f"target 2: {ph['throughput']:.2f} req/s vs 0.8 x batch-32 "
-                f"{0.8 * enc['batch32_cps']:.2f} clouds/s -> "
-                f"{'OK' if ph['throughput'] >= 0.8 * enc['batch32_cps'] else 'MISSED'}"
-            )
+    for rt in runtimes:
+        phases = [p for p in result.get("phases", []) if p["runtime"] == (rt or "-")]
+        if both:
+            rerank_targets(phases, rt)
+        enc = result.get("encoder", {}).get(rt or "-")
+        for ph in phases if enc else []:
+            if ph.get("rerank") == "on":
+                continue  # the encoder targets are about the path without re-ranking
+            tag = f" ({rt})" if rt else ""
+            if ph["clients"] == 1:
+                print(
+                    f"target 1{tag}: p50 {ph['p50_ms']:.1f} ms vs 1.25 x batch-1 "
+                    f"{1.25 * enc['batch1_ms']:.1f} ms -> "
+                    f"{'OK' if ph['p50_ms'] <= 1.25 * enc['batch1_ms'] else 'MISSED'}"
+                )
+            if ph["clients"] == 8:
+                print(
+                    f"target 2{tag}: {ph['throughput']:.2f} req/s vs 0.8 x batch-32 "
+                    f"{0.8 * enc['batch32_cps']:.2f} clouds/s -> "
+                    f"{'OK' if ph['throughput'] >= 0.8 * enc['batch32_cps'] else 'MISSED'}"
+                )
+    if "torch" in runtimes and "onnx" in runtimes:
+        runtime_targets(result.get("phases", []))
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
 
 
-def rerank_targets(phases: list[dict]) -> None:
+def runtime_targets(phases: list[dict]) -> None:
+    """ONNX Runtime's 1-client p50 and 8-client throughput against torch's, each client count
+    and re-ranking mode (#38: no more than 5 % slower anywhere)."""
+    by = {(p["runtime"], p["clients"], p["rerank"]): p for p in phases}
+    for (rt, n, rr), onnx in sorted(by.items(), key=lambda kv: (kv[0][1], kv[0][2])):
+        torch_ph = by.get(("torch", n, rr))
+        if rt != "onnx" or torch_ph is None:
+            continue
+        slower_p50 = onnx["p50_ms"] / torch_ph["p50_ms"] - 1
+        slower_tput = 1 - onnx["throughput"] / torch_ph["throughput"]
+        for what, slower in (("p50", slower_p50), ("throughput", slower_tput)):
+            verdict = "OK" if slower <= 0.05 else "MISSED"
+            word = "slower" if slower > 0 else "faster"
+            print(
+                f"onnx vs torch, {n} client(s), re-ranking {rr}: {what} "
+                f"{100 * abs(slower):.1f} % {word} (target: at most 5 % slower) -> {verdict}"
+            )
+
+
+# --------------------------------------------------------------------------------------------
+# The swap test
+# --------------------------------------------------------------------------------------------
+
+
+def broken_copy(bundle: Path, work: Path) -> Path:
+    """A copy of ``bundle`` that must be refused: its geometry truncated by a row and a half,
+    or (without geometry) its index file cut short."""
+    from pnvlad_service.index.geometry import POINTS_FILE, ROW_BYTES
+
+    out = work / "broken.index"
+    shutil.copytree(bundle, out)
+    points = out / POINTS_FILE
+    if points.is_file():
+        os.truncate(points, max(0, points.stat().st_size - ROW_BYTES - ROW_BYTES // 2))
+    else:
+        data = (out / "index.faiss").read_bytes()
+        (out / "index.faiss").write_bytes(data[: len(data) // 2])
+    return out
+
+
+def swap_test(args: argparse.Namespace) -> int:
+    """8 clients (the largest --clients) across swaps of two bundles and one refused one."""
+    import secrets
+    import tempfile
+
+    from pnvlad_service.index.bundle import Metadata
+    from pnvlad_service.localization.localizer import checked_model
+
+    bundles = {"a": args.index.resolve(), "b": args.swap.resolve()}
+    ids: dict[str, str] = {}
+    members: dict[str, set[str]] = {}
+    for name, path in bundles.items():
+        checked_model(path, args.checkpoint)  # same model for both, or say so now
+        members[name] = set(Metadata.load(path / "metadata.npz").submap_id.tolist())
+    clouds, scales = (
+        run_queries(args.query_run, args.queries)
+        if args.query_run is not None
+        else (load_queries(args.index, args.queries), [])
+    )
+    scales = scales or [None] * len(clouds)
+    bodies = [
+        (c.astype("<f4").tobytes(), "/localize?top_n=5" + (f"&scale={s!r}" if s else ""))
+        for c, s in zip(clouds, scales, strict=True)
+    ]
+    key = secrets.token_urlsafe(16)
+    env = dict(kv.split("=", 1) for kv in args.server_env) | {"PNVLAD_ADMIN_KEY": key}
+    if args.runtime:
+        env["PNVLAD_RUNTIME"] = args.runtime[0]
+    work = Path(tempfile.mkdtemp(prefix="pnvlad-swap-"))
+    broken = broken_copy(bundles["b"], work)
+    proc, url = start_server(bundles["a"], checkpoint=args.checkpoint, env=env)
+    clients = max(args.clients)
+    answers: list[tuple[float, float, int, str, list[str]]] = []  # start, end, status, id, ids
+    swaps: list[tuple[float, float, str, int, str]] = []  # start, end, to, status, detail
+    lock = threading.Lock()
+    stop = time.monotonic() + args.seconds
+    try:
+        with LocalizeClient(url) as c:
+            ids["a"] = json.loads(c.send("GET", "/readyz")[1])["index"]["id"]
+            print(f"server {url}: {json.loads(c.send('GET', '/readyz')[1])['runtime']}")
+
+        def client(k: int) -> None:
+            with LocalizeClient(url, timeout=120) as conn:
+                i = k
+                while time.monotonic() < stop:
+                    body, path = bodies[i % len(bodies)]
+                    i += clients
+                    t = time.perf_counter()
+                    try:
+                        status, data = conn.send("POST", path, body, "application/octet-stream")
+                    except ServerError:
+                        status, data = 0, b"{}"
+                    t1 = time.perf_counter()
+                    doc = json.loads(data) if status == 200 else {}
+                    names = [m["submap_id"] for m in doc.get("matches", [])]
+                    with lock:
+                        answers.append((t, t1, status, doc.get("index", {}).get("id", ""), names))
+
+        def swapper() -> None:
+            # a -> b -> a, then the broken copy (refused: a serves on), then b, a, b, ...
+            schedule = ["b", "a", "broken"] + ["b", "a"] * 10_000
+            n = 0
+            with LocalizeClient(url, api_key=key, timeout=300) as admin:
+                while time.monotonic() < stop - args.swap_every:
+                    time.sleep(args.swap_every)
+                    to = schedule[n]
+                    path = broken if to == "broken" else bundles[to]
+                    body = json.dumps({"index": str(path)}).encode()
+                    t = time.perf_counter()
+                    status, data = admin.send("POST", "/admin/reload", body, "application/json")
+                    t1 = time.perf_counter()
+                    doc = json.loads(data)
+                    if status == 200 and to != "broken":
+                        ids[to] = doc["current"]["index"]["id"]
+                    detail = (
+                        doc.get("detail", "") if status != 200 else doc["current"]["index"]["id"]
+                    )
+                    with lock:
+                        swaps.append((t, t1, to, status, detail))
+                    print(f"swap to {to}: {status} in {t1 - t:.2f} s ({detail})", flush=True)
+                    n += 1
+
+        threads = [threading.Thread(target=client, args=(k,)) for k in range(clients)]
+        threads.append(threading.Thread(target=swapper))
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        proc.terminate()
+        proc.wait(20)
+        shutil.rmtree(work, ignore_errors=True)
+    by_id = {v: k for k, v in ids.items()}
+    errors = [a for a in answers if a[2] != 200]
+    wrong = [a for a in answers if a[2] == 200 and (a[3] not in by_id
+             or any(n not in members[by_id[a[3]]] for n in a[4]))]  # fmt: skip
+    good = [s for s in swaps if s[2] != "broken"]
+    refused = [s for s in swaps if s[2] == "broken"]
+
+    def during(a: tuple) -> bool:
+        return any(a[0] < s[1] + 0.5 and a[1] > s[0] for s in good)
+
+    lat = {
+        "all": [1000 * (a[1] - a[0]) for a in answers if a[2] == 200],
+        "during swaps": [1000 * (a[1] - a[0]) for a in answers if a[2] == 200 and during(a)],
+        "outside swaps": [1000 * (a[1] - a[0]) for a in answers if a[2] == 200 and not during(a)],
+    }
+    counts = {name: sum(1 for a in answers if a[3] == i) for name, i in ids.items()}
+    print(
+        f"{len(answers)} answers from {clients} clients in {args.seconds:.0f} s: "
+        f"{len(errors)} errors, {len(wrong)} not labelled with exactly one bundle of theirs; "
+        + ", ".join(f"{n} from bundle {k} ({ids[k]})" for k, n in counts.items())
+    )
+    for name, values in lat.items():
+        if values:
+            p50, p99 = np.percentile(values, [50, 99])
+            print(f"  {name:>14}: {len(values):5d} answers, p50 {p50:.1f} ms, p99 {p99:.1f} ms")
+    print(
+        f"{len(good)} swaps ({sum(s[3] == 200 for s in good)} answered 200), load + swap "
+        f"{np.mean([s[1] - s[0] for s in good]) if good else float('nan'):.2f} s on average"
+    )
+    for s in refused:
+        after = [a for a in answers if a[0] > s[1] and a[2] == 200][:20]
+        kept = {a[3] for a in after}
+        print(
+            f"the broken bundle: {s[3]} ({s[4]}); the next {len(after)} answers from "
+            f"{sorted(by_id.get(k, k) for k in kept)}"
+        )
+    ok = (
+        not errors
+        and not wrong
+        and all(s[3] == 200 for s in good)
+        and all(400 <= s[3] < 500 for s in refused)
+    )
+    print("swap test:", "OK" if ok else "FAILED")
+    if args.json:
+        args.json.write_text(
+            json.dumps(
+                {"answers": len(answers), "errors": len(errors), "mislabelled": len(wrong),
+                 "per_bundle": counts, "ids": ids, "swaps": swaps,
+                 "latency_ms": {k: (np.percentile(v, [50, 99]).tolist() if v else None)
+                                for k, v in lat.items()}},
+                indent=2,
+            )
+        )  # fmt: skip
+    return 0 if ok else 1
+
+
+def rerank_targets(phases: list[dict], runtime: str | None = None) -> None:
     """What re-ranking adds to the 1-client p50 and takes from the 8-client throughput."""
     by = {(p["clients"], p["rerank"]): p for p in phases}
+    tag = f" ({runtime})" if runtime else ""
     if (1, "off") in by and (1, "on") in by:
         add = by[(1, "on")]["p50_ms"] - by[(1, "off")]["p50_ms"]
         print(
-            f"re-ranking adds {add:.1f} ms to the 1-client p50 (target <= 25) -> "
+            f"re-ranking{tag} adds {add:.1f} ms to the 1-client p50 (target <= 25) -> "
             f"{'OK' if add <= 25 else 'MISSED'}"
         )
     if (8, "off") in by and (8, "on") in by:
         drop = 1 - by[(8, "on")]["throughput"] / by[(8, "off")]["throughput"]
         print(
-            f"re-ranking takes {100 * drop:.1f} % of the 8-client throughput (target <= 30) "
+            f"re-ranking{tag} takes {100 * drop:.1f} % of the 8-client throughput (target <= 30) "
             f"-> {'OK' if drop <= 0.30 else 'MISSED'}"
         )
 

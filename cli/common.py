@@ -35,13 +35,37 @@ def user_errors() -> Iterator[None]:
 
     Unexpected exceptions are not caught: a traceback is the right thing for a bug.
     """
-    from pnvlad_service.errors import PnvladError
+    from pnvlad_service.errors import MissingDependencyError, PnvladError
 
     try:
         yield
     except (PnvladError, FileNotFoundError, FileExistsError, IsADirectoryError) as exc:
         typer.secho(f"error: {exc}", err=True, fg=typer.colors.RED)
         raise typer.Exit(code=2) from None
+    except ModuleNotFoundError as exc:
+        # torch (and onnx, for the export) are the `torch` extra: whatever needs them says so
+        # in one line rather than a traceback from deep inside the library.
+        top = (exc.name or "").split(".")[0]
+        if top not in TORCH_EXTRA:
+            raise
+        missing = MissingDependencyError(top, "torch", _command_path())
+        typer.secho(f"error: {missing}", err=True, fg=typer.colors.RED)
+        raise typer.Exit(code=2) from None
+
+
+#: The modules of the `torch` extra (pyproject.toml).
+TORCH_EXTRA = ("torch", "onnx")
+
+
+def _command_path() -> str:
+    """The running command, e.g. ``pnvlad train`` (Typer 0.20 and later carry their own copy of
+    click, whose context stack is not click's)."""
+    try:
+        from typer._click.globals import get_current_context
+    except ImportError:
+        from click import get_current_context
+    ctx = get_current_context(silent=True)
+    return ctx.command_path if ctx is not None else "this command"
 
 
 # Options that several commands take, declared once so that a flag means the same everywhere:

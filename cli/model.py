@@ -1,4 +1,5 @@
-"""`pnvlad model`: import weights from the PyTorch port, inspect a model directory."""
+"""`pnvlad model`: import weights from the PyTorch port, inspect a model directory, export it to
+ONNX."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ app = typer.Typer(
     rich_markup_mode="markdown",
     help=(
         "Model directories (model.json + model.safetensors): import weights trained with the "
-        "PyTorch port of PointNetVLAD, or show what a model directory holds."
+        "PyTorch port of PointNetVLAD, show what a model directory holds, or export its encoder "
+        "to ONNX (model.onnx) for a server without torch."
     ),
     no_args_is_help=True,
 )
@@ -104,3 +106,56 @@ def info(
             typer.echo(f"  {k:18s} {v}")
         typer.echo(f"  weights_sha256     {doc['weights_sha256']}")
         typer.echo(f"  config_sha256      {doc['config_sha256']}")
+
+
+@app.command("export")
+def export(
+    model_dir: Path = typer.Argument(
+        ...,
+        help="Model directory (model.json + model.safetensors) or a training run directory "
+        "(its model/ is used). model.onnx is written into it.",
+    ),
+    point_tile: int = typer.Option(
+        512,
+        "--point-tile",
+        help="Points a tile of the widest per-point layers in the graph (0: whole clouds).",
+    ),
+    check_tree: Path = typer.Option(
+        None,
+        "--check-root",
+        help="A benchmark tree whose test-layout submaps are checked too (real clouds; "
+        "default: the seeded check clouds only).",
+    ),
+    check_count: int = typer.Option(
+        64, "--check-count", help="With --check-root: submaps checked (the first ones)."
+    ),
+) -> None:
+    """Write the encoder as model.onnx beside its weights, for a server without torch.
+
+    The graph is the fast inference path (batch norms folded; PN_VLAD, PN_MAX and bev-netvlad,
+    with canonical heading when the model has it), with a dynamic batch size. Before it is
+    written, ONNX Runtime's descriptors of the check clouds (seeded street-like clouds, and
+    --check-root's submaps) must be within cosine 0.9999 of torch's, as one batch and one cloud
+    at a time; exit 2 otherwise. The file records the sha256 of the weights and configuration
+    it came from: `pnvlad serve` refuses it beside other weights. Needs torch and onnx
+    (pip install 'pnvlad[torch]').
+
+    Example: pnvlad model export runs/model
+    """
+    with user_errors():
+        import numpy as np
+
+        from pnvlad_service.models.onnx_export import export_onnx
+
+        points = None
+        if check_tree is not None:
+            from pnvlad_service.index.build import list_database_submaps
+            from pnvlad_service.io.readers import read_points
+
+            records = list_database_submaps(check_tree)[:check_count]
+            points = np.stack([read_points(check_tree / r.path, "benchmark") for r in records])
+        report = export_onnx(model_dir, point_tile=point_tile, points=points)
+        typer.echo(
+            f"wrote {report.path} ({report.bytes / 1e6:.1f} MB): {report.clouds} clouds within "
+            f"cosine {report.min_cosine:.6f} of torch (>= 0.9999), {report.seconds:.1f} s"
+        )

@@ -33,6 +33,15 @@ def serve(
     workers: int = typer.Option(
         None, "--workers", "-w", help="Server processes, each with its own model (default 1)."
     ),
+    runtime: str = typer.Option(
+        None,
+        "--runtime",
+        help="What embeds: torch, onnx (ONNX Runtime on the model's model.onnx, pnvlad model "
+        "export) or auto (default: torch when installed, else onnx). Env PNVLAD_RUNTIME.",
+    ),
+    threads: int = typer.Option(
+        None, "--threads", help="Encoder threads (ONNX Runtime's or torch's). Env PNVLAD_THREADS."
+    ),
     torch_threads: int = typer.Option(None, "--torch-threads", help="torch intra-op threads."),
     batch_wait_ms: float = typer.Option(
         None, "--batch-wait-ms", help="Micro-batcher wait for requests being parsed (default 2)."
@@ -71,7 +80,11 @@ def serve(
     best match is verified and gives the query's pose on the map.
 
     Loads the model and the index once. Refuses to start when the bundle was built with other
-    weights than the checkpoint, or when its geometry file is truncated or fails its hash.
+    weights than the checkpoint, when its geometry file is truncated or fails its hash, or
+    when the model.onnx it would run was exported from other weights. Embeds with ONNX Runtime
+    when torch is not installed (or with --runtime onnx), and says which at start-up and in
+    /readyz. POST /admin/reload (with PNVLAD_ADMIN_KEY or PNVLAD_API_KEY) or SIGHUP swaps in a
+    new bundle while it serves; one that fails its checks is refused and the old one serves on.
     Every setting can also come from the environment (PNVLAD_INDEX, PNVLAD_CHECKPOINT,
     PNVLAD_HOST, PNVLAD_PORT, PNVLAD_API_KEY for bearer-token auth, PNVLAD_MAX_BODY_BYTES, ...;
     see docs/SERVICE.md). OpenAPI docs at /docs.
@@ -95,6 +108,8 @@ def serve(
         "HOST": host,
         "PORT": port,
         "WORKERS": workers,
+        "RUNTIME": runtime,
+        "THREADS": threads,
         "TORCH_THREADS": torch_threads,
         "BATCH_WAIT_MS": batch_wait_ms,
         "RERANK": rerank,
@@ -113,6 +128,8 @@ def serve(
     from pnvlad_service.errors import InputError
     from pnvlad_service.index.geometry import check_geometry
     from pnvlad_service.localization.localizer import checked_model
+    from pnvlad_service.models.onnx_encoder import check_onnx_file
+    from pnvlad_service.models.runtimes import choose_runtime
     from pnvlad_service.server.settings import ServerSettings
 
     with user_errors():
@@ -121,6 +138,8 @@ def serve(
             raise InputError("no index bundle given (--index or PNVLAD_INDEX)", "index")
         identity = checked_model(settings.index, settings.checkpoint)
         check_geometry(settings.index, verify=settings.verify_bundle)
+        if choose_runtime(identity.checkpoint, settings.runtime) == "onnx":
+            check_onnx_file(identity.checkpoint, identity.weights_sha256)
     os.environ["PNVLAD_CHECKPOINT"] = identity.checkpoint
     uvicorn.run(
         "pnvlad_service.server.app:create_app_from_env",

@@ -29,7 +29,7 @@ step() { printf '\n\033[1m== %s\033[0m  (%ds)\n' "$*" "$(( $(date +%s) - start )
 
 step "1/7 set up $VENV"
 . scripts/venv.sh
-ensure_venv plot
+ensure_venv torch,plot
 export PATH="$PWD/$VENV/bin:$PATH"
 pnvlad --version
 

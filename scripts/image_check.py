@@ -8,17 +8,23 @@ right. Then:
 
 - ``POST /localize`` without the token must answer 401 (application/problem+json);
 - with ``Authorization: Bearer TOKEN`` it must answer 200 with a right top-1 match;
-- every other held-out query in the test regions is sent too and counted (printed, not judged).
+- every other held-out query in the test regions is sent too and counted (printed, not judged);
+- with ``--raw``, the query's raw scan (``raw_scans/<timestamp>.bin``, KITTI layout) is sent with
+  ``preprocess=true``: it must answer 200 (the filter G and verification ran in the image);
+- with ``--reload PATH`` (the bundle's path in the container), ``POST /admin/reload``: 401
+  without the token, 422 naming a bundle that is not there, 200 for PATH read again (the old
+  and the new bundle the same), and the query's top-1 right again.
 
-Exits 0 when both checks pass, 1 otherwise.
+Exits 0 when every check passes, 1 otherwise.
 
     python3 scripts/image_check.py --url http://127.0.0.1:8000 --root city --dataset business \
-        --held 2026-03-25-15-04-29 --token secret
+        --held 2026-03-25-15-04-29 --token secret --raw --reload /data/index
 """
 
 from __future__ import annotations
 
 import argparse
+import array
 import csv
 import json
 import math
@@ -44,15 +50,18 @@ def _inside(regions: dict, n: float, e: float) -> bool:
     return any(cn - w < n < cn + w and ce - w < e < ce + w for cn, ce in regions["centres"])
 
 
-def _post(url: str, body: bytes, token: str | None) -> tuple[int, str, bytes]:
-    headers = {"Content-Type": "application/octet-stream"}
+def _post(
+    url: str,
+    body: bytes,
+    token: str | None,
+    path: str = "/localize?top_n=3&dtype=float64",
+    ctype: str = "application/octet-stream",
+) -> tuple[int, str, bytes]:
+    headers = {"Content-Type": ctype}
     if token is not None:
         headers["Authorization"] = f"Bearer {token}"
     req = urllib.request.Request(
-        f"{url.rstrip('/')}/localize?top_n=3&dtype=float64",
-        data=body,
-        headers=headers,
-        method="POST",
+        f"{url.rstrip('/')}{path}", data=body, headers=headers, method="POST"
     )
     try:
         with urllib.request.urlopen(req, timeout=60) as resp:
@@ -71,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--held", required=True, help="the run left out of the index")
     ap.add_argument("--token", required=True, help="the server's PNVLAD_API_KEY")
     ap.add_argument("--radius", type=float, default=25.0)
+    ap.add_argument("--raw", action="store_true", help="also send the query's raw scan")
+    ap.add_argument("--reload", metavar="PATH", help="also reload the bundle at PATH")
     args = ap.parse_args(argv)
 
     ds = args.root / args.dataset
@@ -138,7 +149,74 @@ def main(argv: list[str] | None = None) -> int:
         f"  all {len(queries)} held-out queries in the test regions: {hits} right by their top-1"
         " (information only)"
     )
+    if args.raw:
+        ok &= _raw_scan(args, ds / args.held / "raw_scans" / f"{query[0]}.bin", query)
+    if args.reload:
+        ok &= _reload(args, body, answer, query)
     return 0 if ok else 1
+
+
+def _raw_scan(args: argparse.Namespace, path: Path, query: tuple[str, float, float]) -> bool:
+    """The query's raw scan (float32 x, y, z, intensity) as float32 xyz, preprocess=true."""
+    values = array.array("f")
+    values.frombytes(path.read_bytes())
+    xyz = array.array("f")
+    for i in range(0, len(values), 4):
+        xyz.extend(values[i : i + 3])
+    status, _, raw = _post(args.url, xyz.tobytes(), args.token, "/localize?preprocess=true")
+    if status != 200:
+        print(f"  its raw scan ({len(xyz) // 3} points, preprocess=true): {status} {raw[:300]!r}"
+              "  WRONG")  # fmt: skip
+        return False
+    answer = json.loads(raw)
+    top = answer["matches"][0]
+    off = math.hypot(top["northing"] - query[1], top["easting"] - query[2])
+    print(
+        f"  its raw scan ({len(xyz) // 3} points, preprocess=true): 200, verified "
+        f"{answer['verified']}, top-1 {off:.1f} m from the truth (a single scan: information "
+        f"only); preprocess {answer['timings_ms']['preprocess']:.1f} ms"
+    )
+    return True
+
+
+def _reload(
+    args: argparse.Namespace, body: bytes, before: dict, query: tuple[str, float, float]
+) -> bool:
+    """POST /admin/reload: refused without the token and for a missing bundle, then done."""
+    ok = True
+    js = "application/json"
+    status, ctype, _ = _post(args.url, b"{}", None, "/admin/reload", js)
+    good = status == 401 and ctype.startswith("application/problem+json")
+    ok &= good
+    print(f"  reload without the token: {status}  {'ok' if good else 'WRONG'}")
+    missing = args.reload.rstrip("/") + "-missing"
+    status, _, raw = _post(args.url, json.dumps({"index": missing}).encode(), args.token,
+                           "/admin/reload", js)  # fmt: skip
+    good = status == 422 and missing in json.loads(raw).get("detail", "")
+    ok &= good
+    print(f"  reload of {missing}: {status}, naming it  {'ok' if good else 'WRONG'}")
+    status, _, raw = _post(args.url, json.dumps({"index": args.reload}).encode(), args.token,
+                           "/admin/reload", js)  # fmt: skip
+    if status != 200:
+        print(f"  reload of {args.reload}: {status} {raw[:300]!r}  WRONG")
+        return False
+    done = json.loads(raw)
+    same = done["current"]["index"] == before["index"]
+    status, _, raw = _post(args.url, body, args.token)
+    after = json.loads(raw) if status == 200 else {"matches": [{}], "index": None}
+    top = after["matches"][0]
+    right = (
+        status == 200
+        and math.hypot(top["northing"] - query[1], top["easting"] - query[2]) <= args.radius
+    )
+    ok &= same and right and after["index"] == done["current"]["index"]
+    print(
+        f"  reload of {args.reload}: 200 in {done['load_s']:.2f} s (encoder reused: "
+        f"{done['encoder_reused']}), bundle {done['current']['index']['id']}"
+        f"{' as before' if same else ' CHANGED'}; the query again: "
+        f"{'RIGHT' if right else 'WRONG'}"
+    )
+    return ok
 
 
 if __name__ == "__main__":

@@ -3,24 +3,29 @@
 # machine with no container registry (podman as root; no Docker engine needed):
 #   1. install podman, runc and debootstrap when missing (apt-get) and configure podman;
 #   2. make the local base image once (debootstrap bookworm, minbase, + python3 3.11) and reuse it;
-#   3. build the image: the local base and the torch wheel from pip's find-links folder come in as
-#      build arguments; the Dockerfile's defaults (python:3.11-slim, PyTorch's CPU index) are
-#      untouched;
-#   4. make the demo data with the image's own CLI, cached under runs/image-test/: a tiny
-#      synthetic city, a short training run, an index bundle of every run but one;
+#   3. build the image (no torch: ONNX Runtime) and, when the demo data must be made, the tools
+#      image (--target tools: torch and onnx): the local base and the torch wheel from pip's
+#      find-links folder come in as build arguments; the Dockerfile's defaults (python:3.11-slim,
+#      PyTorch's CPU index) are untouched;
+#   4. make the demo data with the tools image's CLI, cached under runs/image-test/: a tiny
+#      synthetic city, a short training run, the model exported to model.onnx, an index bundle of
+#      every run but one;
 #   5. run the image with a read-only root filesystem and no writable path at all (the service
 #      writes nothing), as uid 10001, no capabilities, PNVLAD_API_KEY set, the bundle and the
-#      model mounted read-only;
+#      model mounted read-only; time from `podman run` to the first 200 of /readyz (target 3 s);
 #   6. wait until its HEALTHCHECK reports healthy (fail with its log if not within the start
 #      period);
-#   7. POST /localize a submap of the held-out run: 401 without the token, the right place with it
+#   7. POST /localize a submap of the held-out run: 401 without the token, the right place with it;
+#      a raw scan through the filter G; POST /admin/reload: 401 without the token, 422 naming a
+#      missing bundle, 200 for the mounted one read again, the right place again
 #      (scripts/image_check.py);
 #   8. SIGTERM: the server must exit 0 within 10 s with no traceback in its log;
-#   9. print the image size and each step's time.
+#   9. print the image size (at most 400 MB), its start-up time and each step's time.
 # Exits 0 when every check passes. With --skip-if-unable (.ci/run) it prints one line and exits 0
 # on a machine where it cannot run (not root, or podman neither present nor installable).
 #
-# Environment: PNVLAD_IMAGE (tag, default localhost/pnvlad:test), PNVLAD_IMAGE_BASE (base image;
+# Environment: PNVLAD_IMAGE (tag, default localhost/pnvlad:test; the tools image is tagged
+# localhost/pnvlad-tools:test beside it), PNVLAD_IMAGE_BASE (base image;
 # default: the local Debian one, made when missing; python:3.11-slim where a registry is reachable),
 # PNVLAD_IMAGE_TEST_DIR (cache, default runs/image-test), PNVLAD_TORCH_WHEEL (a torch CPU wheel;
 # default: the one in pip's find-links folder, else PyTorch's CPU index).
@@ -31,6 +36,9 @@ SKIP_IF_UNABLE=0
 [ "${1:-}" = "--skip-if-unable" ] && SKIP_IF_UNABLE=1
 
 IMAGE="${PNVLAD_IMAGE:-localhost/pnvlad:test}"
+TOOLS="${IMAGE%:*}-tools:${IMAGE##*:}"
+SIZE_LIMIT_MB=400
+READY_TARGET_S=3
 # The recipe's number is part of the name: change the recipe below, bump it.
 LOCAL_BASE="localhost/pnvlad-base:bookworm-python3.11-1"
 BASE="${PNVLAD_IMAGE_BASE:-$LOCAL_BASE}"
@@ -194,14 +202,17 @@ origin=$(git remote get-url origin 2>/dev/null || true)
 case "$origin" in  # a repository URL, not a local clone's path
     *://*|git@*) build_args+=(--build-arg "SOURCE=$origin" --label "$oci.source=$origin") ;;
 esac
-if ! pm build --network host --format docker --layers "${volumes[@]}" "${build_args[@]}" \
-        -t "$IMAGE" . > "$CACHE/build.log" 2>&1; then
-    tail -40 "$CACHE/build.log" >&2
-    fail "podman build failed (log: $CACHE/build.log)"
-fi
-total_steps=$(grep -c ' STEP [0-9]' "$CACHE/build.log" || true)
-cached=$(grep -c -- '--> Using cache' "$CACHE/build.log" || true)
-echo "built $(pm image inspect --format '{{.Id}}' "$IMAGE" | cut -c1-12): $total_steps steps, $cached from cache (log: $CACHE/build.log)"
+build() {  # build TARGET TAG LOG: one target of the Dockerfile (empty TARGET: the served image)
+    if ! pm build --network host --format docker --layers "${volumes[@]}" "${build_args[@]}" \
+            ${1:+--target "$1"} -t "$2" . > "$3" 2>&1; then
+        tail -40 "$3" >&2
+        fail "podman build ${1:+--target $1 }failed (log: $3)"
+    fi
+    total_steps=$(grep -c ' STEP [0-9]' "$3" || true)
+    cached=$(grep -c -- '--> Using cache' "$3" || true)
+    echo "built ${1:-the served image} $(pm image inspect --format '{{.Id}}' "$2" | cut -c1-12): $total_steps steps, $cached from cache (log: $3)"
+}
+build "" "$IMAGE" "$CACHE/build.log"
 label() { pm image inspect --format "{{index .Labels \"org.opencontainers.image.$1\"}}" "$IMAGE"; }
 echo "labels: version $(label version), revision $(label revision | cut -c1-12), licenses $(label licenses)"
 [ "$(label version)" = "$version" ] || fail "label version $(label version) != pnvlad $version"
@@ -214,31 +225,40 @@ found=$(pm run --rm --network none --no-healthcheck --entrypoint sh "$IMAGE" -c 
      ls -d /root/.cache /tmp/* /opt/venv/lib/python3*/site-packages/pip 2>/dev/null' | grep -v '^/usr/bin/apt-get$' || true)
 [ -z "$found" ] || fail "the final image holds: $found"
 echo "user $user; no compiler, installer or cache in the image (apt-get is the base's)"
+pm run --rm --network none --no-healthcheck --entrypoint python "$IMAGE" -c \
+    'import importlib.util, sys; sys.exit(1 if importlib.util.find_spec("torch") else 0)' ||
+    fail "torch is in the served image"
+size=$(pm image inspect --format '{{.Size}}' "$IMAGE")
+[ $(( size / 1000000 )) -le "$SIZE_LIMIT_MB" ] ||
+    fail "the image is $(( size / 1000000 )) MB, over the $SIZE_LIMIT_MB MB limit"
+echo "no torch; $(( size / 1000000 )) MB (limit $SIZE_LIMIT_MB MB)"
 
 # ---------------------------------------------------------------------------------------------
-# The demo data, made by the image's CLI and kept until the code that makes it changes.
+# The demo data, made by the tools image's CLI and kept until the code that makes it changes.
 # The compact encoder, 1024 points a cloud and as few negatives as the tiny city holds.
 TRAIN_YAML='model: {preset: compact, num_points: 1024}
 train: {negatives: 6, hard_negatives: 3, sampled_negatives: 40}'
 STEPS=40
 # The key: the recipe and the code that makes the data (not the server's, which only reads it).
-key=$( { echo "$TRAIN_YAML $STEPS"; find pnvlad_service cli -type f \( -name '*.py' -o -name '*.yaml' \) \
+key=$( { echo "$TRAIN_YAML $STEPS export"; find pnvlad_service cli -type f \( -name '*.py' -o -name '*.yaml' \) \
         ! -path 'pnvlad_service/server/*' ! -name serve.py -print0 | sort -z | xargs -0 cat; } |
     sha256sum | cut -c1-12)
 DATA="$CACHE/data-$key"
 cli() { pm run --rm --network none --no-healthcheck --user 0:0 -e TQDM_DISABLE=1 \
-        -v "$DATA:/work" -w /work --entrypoint pnvlad "$IMAGE" "$@"; }
+        -v "$DATA:/work" -w /work --entrypoint pnvlad "$TOOLS" "$@"; }
 step "4/8 demo data -> $DATA"
 if [ -f "$DATA/done" ]; then
     echo "cached: city, model and bundle made by this code before"
 else
     rm -rf "$CACHE"/data-*
     mkdir -p "$DATA"
+    build tools "$TOOLS" "$CACHE/build-tools.log"
     cli -q synth --preset tiny --seed 0 --out city --no-progress
     echo "$TRAIN_YAML" > "$DATA/train.yaml"
     cli train -c train.yaml --root city --splits city/splits.json -o train --max-steps "$STEPS" \
         --seed 0 --no-progress 2>&1 | grep -v ' INFO ' || true
     [ -f "$DATA/train/model/model.json" ] || fail "training wrote no model"
+    cli -q model export train/model || fail "pnvlad model export failed"
 fi
 dataset=$(basename "$(dirname "$(ls "$DATA"/city/*/test_regions.json | head -1)")")
 mapfile -t runs < <(cd "$DATA/city/$dataset" && ls -d -- */ | tr -d / | sort)
@@ -263,16 +283,36 @@ trap cleanup EXIT
 # No systemd here to run the healthcheck's timer (--health-interval disable): step 6 runs it.
 # The service writes nothing: not even a tmpfs (podman's --read-only adds /tmp, /var/tmp and
 # /run ones unless --read-only-tmpfs=false; docker's adds none).
+t_run=$(now)
 pm run -d --name "$NAME" --network host --health-interval disable \
     --read-only --read-only-tmpfs=false \
     --user 10001:10001 --cap-drop ALL --security-opt no-new-privileges \
     -e PNVLAD_API_KEY="$token" -e PNVLAD_HOST=127.0.0.1 -e PNVLAD_PORT="$port" \
     -v "$DATA/map.index:/data/index:ro" -v "$DATA/train/model:/data/model:ro" \
     "$IMAGE" > /dev/null
-sleep 1
+# Start-up: from `podman run` to the first 200 of /readyz, polled from the host every 50 ms.
+ready_s=$(python3 - "$port" "$t_run" <<'PY'
+import sys, time, urllib.request
+port, t0 = sys.argv[1], float(sys.argv[2])
+deadline = time.time() + 90
+while time.time() < deadline:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/readyz", timeout=1) as r:
+            if r.status == 200:
+                print(f"{time.time() - t0:.2f}")
+                sys.exit(0)
+    except OSError:
+        pass
+    time.sleep(0.05)
+sys.exit(1)
+PY
+) || { pm logs "$NAME" | tail -20 >&2; fail "not ready within 90 s"; }
 uid=$(pm exec "$NAME" id -u 2>/dev/null) || { pm logs "$NAME" >&2; fail "the container exited at once"; }
 [ "$uid" = 10001 ] || fail "the server runs as uid $uid"
 echo "container $NAME on 127.0.0.1:$port: uid $uid, read-only root $(pm inspect --format '{{.HostConfig.ReadonlyRootfs}}' "$NAME")"
+runtime=$(python3 -c 'import json, sys, urllib.request; print(json.load(urllib.request.urlopen(sys.argv[1]))["runtime"])' "http://127.0.0.1:$port/readyz")
+server_said=$(pm logs "$NAME" 2>&1 | sed -n 's/.*ready: .*(\([0-9.]* s\) after the process started).*/\1/p' | tail -1)
+echo "ready ${ready_s} s after podman run (target ${READY_TARGET_S} s; the server: ${server_said:-?} after its process started), embedding with $runtime"
 
 # ---------------------------------------------------------------------------------------------
 step "6/8 wait for the HEALTHCHECK"
@@ -298,7 +338,8 @@ echo "health: $(pm inspect --format '{{.State.Health.Status}}' "$NAME") after $(
 # ---------------------------------------------------------------------------------------------
 step "7/8 POST /localize"
 python3 scripts/image_check.py --url "http://127.0.0.1:$port" --root "$DATA/city" \
-    --dataset "$dataset" --held "$held" --token="$token" || { pm logs "$NAME" | tail -20 >&2; fail "the HTTP checks"; }
+    --dataset "$dataset" --held "$held" --token="$token" --raw --reload /data/index ||
+    { pm logs "$NAME" | tail -20 >&2; fail "the HTTP checks"; }
 
 # ---------------------------------------------------------------------------------------------
 step "8/8 SIGTERM"
@@ -320,12 +361,13 @@ printf '\nimage %s: %s MB (%s bytes, uncompressed); its layers over 100 kB, olde
     "$IMAGE" "$(( size / 1000000 ))" "$size"
 pm history --format json "$IMAGE" | python3 -c '
 import json, sys
-# The final stage copies two folders: the venv (torch and the dependencies), then pnvlad.
-names = iter(["/opt/venv: torch and the dependencies", "/opt/venv: pnvlad itself"])
+# The final stage copies two folders: the venv (the dependencies), then pnvlad.
+names = iter(["/opt/venv: the dependencies (ONNX Runtime, FAISS, ...)", "/opt/venv: pnvlad itself"])
 for layer in reversed(json.load(sys.stdin)):
     what = layer["CreatedBy"].replace("/bin/sh -c #(nop) ", "")
     what = next(names) if what.startswith("COPY dir:") else what
     what = "base image " + sys.argv[1] if what.startswith("ADD file:") else what
+    what = "bytecode of what the server imports" if "import faiss, onnxruntime" in what else what
     if layer["size"] > 100_000:
         print("  %7.1f MB  %s" % (layer["size"] / 1e6, what[:80]))
 ' "$BASE"
@@ -335,4 +377,6 @@ pm run --rm --network none --no-healthcheck --entrypoint sh "$IMAGE" -c \
     awk '{printf "  %s %s", $2, $1} END {print ""}'
 echo "step times:"
 for s in "${steps[@]}"; do printf '  %7s s  %s\n' "${s%%|*}" "${s#*|}"; done
-printf '  %7s s  total\nimage test passed\n' "$(elapsed "$t0" "$(now)")"
+printf '  %7s s  total\n' "$(elapsed "$t0" "$(now)")"
+printf 'image %s MB (limit %s), ready %s s after podman run (target %s s)\nimage test passed\n' \
+    "$(( size / 1000000 ))" "$SIZE_LIMIT_MB" "$ready_s" "$READY_TARGET_S"

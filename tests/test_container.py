@@ -1,6 +1,7 @@
 """The container image's recipe, without a container engine: what the Dockerfile promises a plain
-`docker build .` (the official Python base, PyTorch's CPU wheels, OCI labels, a non-root user, a
-curl-free HEALTHCHECK, `pnvlad serve`), and scripts/image_check.py, the HTTP judge of
+`docker build .` (the official Python base, no torch in the served image and PyTorch's CPU
+wheels in the tools one, OCI labels, a non-root user, a curl-free HEALTHCHECK, `pnvlad serve`),
+and scripts/image_check.py, the HTTP judge of
 scripts/image_test.sh, against a stub server: it passes a right answer and fails a wrong place,
 a server that answers without the token, and one that is down.
 """
@@ -88,12 +89,46 @@ def test_runtime_stage_is_non_root_curl_free_and_serves() -> None:
     assert copies and all(c.startswith("--from=") for c in copies)
 
 
-def test_torch_installed_before_the_project_files_are_copied() -> None:
-    ins = _instructions()
-    torch_at = next(i for i, (k, a) in enumerate(ins) if k == "RUN" and "TORCH_REQUIREMENT" in a)
-    sources = ("pnvlad_service", "cli")
-    sources_at = min(i for i, (k, a) in enumerate(ins) if k == "COPY" and a.split()[0] in sources)
-    assert torch_at < sources_at
+def _stages() -> dict[str, list[tuple[str, str]]]:
+    """Each stage's instructions by its name (the unnamed last one: "final")."""
+    out: dict[str, list[tuple[str, str]]] = {}
+    name = None
+    for k, a in _instructions():
+        if k == "FROM":
+            name = a.split(" AS ")[1] if " AS " in a else "final"
+            out[name] = [(k, a)]
+        elif name is not None:
+            out[name].append((k, a))
+    return out
+
+
+def test_the_served_image_holds_no_torch_and_the_tools_image_does() -> None:
+    stages = _stages()
+
+    def lineage(name: str) -> set[str]:
+        """The stage and every stage it starts from or copies from."""
+        seen, todo = set(), [name]
+        while todo:
+            s = todo.pop()
+            if s in seen or s not in stages:
+                continue
+            seen.add(s)
+            base = stages[s][0][1].split(" AS ")[0]
+            todo += [base] + [a.split()[0].removeprefix("--from=") for k, a in stages[s]
+                              if k == "COPY" and a.startswith("--from=")]  # fmt: skip
+        return seen
+
+    torch_stages = {n for n, ins in stages.items() if any("TORCH_REQUIREMENT" in a for k, a in ins
+                                                          if k == "RUN")}  # fmt: skip
+    assert torch_stages == {"tools"}
+    assert "tools" not in lineage("final")
+    final_runs = " ".join(a for k, a in stages["final"] if k == "RUN")
+    assert "find_spec('torch')" in final_runs  # the build fails if torch ever gets in
+    # The tools image installs torch before it copies pnvlad (its slow layer stays cached).
+    tools = [(k, a) for k, a in stages["tools"]]
+    torch_at = next(i for i, (k, a) in enumerate(tools) if "TORCH_REQUIREMENT" in a and k == "RUN")
+    pnvlad_at = next(i for i, (k, a) in enumerate(tools) if a.startswith("--from=build"))
+    assert torch_at < pnvlad_at
 
 
 def test_every_package_is_installed() -> None:

@@ -46,7 +46,6 @@ from pnvlad_service.models.store import ModelIdentity, model_identity, resolve_m
 if TYPE_CHECKING:
     from pnvlad_service.data.frames import SubmapFrame
     from pnvlad_service.data.tree import Submap
-    from pnvlad_service.models.inference import Encoder
 
 log = logging.getLogger(__name__)
 
@@ -128,14 +127,27 @@ def embed_submaps(
 
 
 def load_encoder(
-    model: str | Path, device: str | None = None, identity: ModelIdentity | None = None
-) -> Encoder:
-    """The encoder of a model directory or of the training run that made it; ``identity``,
-    when the caller has it, spares hashing the weights again."""
-    from pnvlad_service.models.inference import Encoder
+    model: str | Path,
+    device: str | None = None,
+    identity: ModelIdentity | None = None,
+    *,
+    runtime: str = "auto",
+    threads: int | None = None,
+) -> Any:
+    """The encoder of a model directory or of the training run that made it, on ``runtime``
+    (``auto``: torch when installed, else ONNX Runtime with ``model.onnx``;
+    :mod:`pnvlad_service.models.runtimes`); ``identity``, when the caller has it, spares
+    hashing the weights again; ``threads``: ONNX Runtime's."""
+    from pnvlad_service.models.runtimes import open_encoder
 
     sha = identity.weights_sha256 if identity is not None else None
-    return Encoder.from_checkpoint(resolve_model_dir(model), device=device, weights_sha256=sha)
+    return open_encoder(
+        resolve_model_dir(model),
+        runtime=runtime,
+        device=device,
+        weights_sha256=sha,
+        threads=threads,
+    )
 
 
 def default_preprocess_config(layout: str = "test") -> dict[str, Any]:

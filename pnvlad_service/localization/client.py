@@ -112,6 +112,14 @@ class LocalizeClient:
         """``GET /info``: the bundle's manifest, the model and the request limits."""
         return self.call("GET", "/info")
 
+    def reload(self, index: str | None = None, checkpoint: str | None = None) -> Any:
+        """``POST /admin/reload`` (the client's ``api_key`` must be the server's admin key):
+        serve the bundle at ``index`` (a path on the server; None: the serving bundle's path
+        read again) with ``checkpoint`` (None: the serving model). The swap's report, or
+        :class:`ServerRefused` (a bundle that fails its checks: 422 naming the file)."""
+        body = json.dumps({"index": index, "checkpoint": checkpoint}).encode()
+        return self.call("POST", "/admin/reload", body, "application/json")
+
     # the transport ----------------------------------------------------------------------
     def call(
         self, method: str, path: str, body: bytes | None = None, content_type: str | None = None

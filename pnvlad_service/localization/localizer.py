@@ -53,6 +53,8 @@ from pnvlad_service.localization.verify import (
     verify,
 )
 from pnvlad_service.localization.verify_process import VerifyProcess
+from pnvlad_service.models.runtimes import describe as describe_runtime
+from pnvlad_service.models.runtimes import torch_installed
 from pnvlad_service.models.store import ModelIdentity, model_identity
 
 log = logging.getLogger(__name__)
@@ -127,7 +129,7 @@ def set_threads(torch_threads: int | None = None, faiss_threads: int | None = No
     """Process-wide thread counts of torch (intra-op) and FAISS (OpenMP); ``None``: as is.
     FAISS's count also reaches the threads that search later (:func:`faiss_threads_here`)."""
     global _faiss_threads
-    if torch_threads:
+    if torch_threads and torch_installed():  # a server on ONNX Runtime may have no torch
         import torch
 
         torch.set_num_threads(torch_threads)
@@ -204,6 +206,9 @@ class Localizer:
             index=IndexInfo(id=bundle.bundle_id, key=bundle.key, count=bundle.count),
         )
         self._closed = False
+        #: Whether :meth:`close` closes the encoder too (a reload that hands the encoder on
+        #: to the next localiser clears it: ``serving.py``).
+        self.owns_encoder = True
         self._batcher = (
             None
             if batching is None
@@ -229,6 +234,9 @@ class Localizer:
         verify_config: VerifyConfig | None = None,
         verify_process: bool = False,
         threshold: float | None = None,
+        runtime: str = "auto",
+        threads: int | None = None,
+        encoder: Any = None,
     ) -> Localizer:
         """Load the bundle at ``index`` and ``model`` (default: the one the bundle records),
         after checking that the bundle was built with these weights (:func:`checked_model`);
@@ -237,7 +245,10 @@ class Localizer:
         process (:class:`VerifyProcess`: for a server whose threads embed while others
         verify); ``threshold``: the verification threshold, replacing ``verify_config``'s;
         None takes the one chosen for these weights when the model directory records it
-        (:mod:`.calibration`), else ``verify_config``'s."""
+        (:mod:`.calibration`), else ``verify_config``'s. ``runtime``: ``auto``, ``torch`` or
+        ``onnx`` (:mod:`pnvlad_service.models.runtimes`), ``threads`` ONNX Runtime's;
+        ``encoder``: one already loaded to reuse when it holds these weights (a reload of the
+        bundle with the same model: ``serving.py``)."""
         ident = checked_model(index, model)
         verify_config = verify_config or VerifyConfig()
         source = "given"
@@ -249,14 +260,18 @@ class Localizer:
         log.info("verification threshold %.2f (%s)", threshold, source)
         t0 = time.perf_counter()
         bundle = IndexBundle.load(index, verify=verify)
-        encoder = load_encoder(ident.checkpoint, device=device, identity=ident)
+        if encoder is None or getattr(encoder, "weights_sha256", None) != ident.weights_sha256:
+            encoder = load_encoder(
+                ident.checkpoint, device=device, identity=ident, runtime=runtime, threads=threads
+            )
         log.info(
-            "loaded %s (%s, %d vectors) and model %s in %.2f s",
+            "loaded %s (%s, %d vectors) and model %s in %.2f s; embedding with %s",
             index,
             bundle.key,
             bundle.count,
             ident.checkpoint,
             time.perf_counter() - t0,
+            describe_runtime(encoder),
         )
         return cls(
             bundle,
@@ -280,7 +295,7 @@ class Localizer:
         if getattr(self.encoder, "crowded_by", None) == self._verification_in_flight:
             self.encoder.crowded_by = None  # a caller's encoder outlives this localizer
         close = getattr(self.encoder, "close", None)
-        if close is not None:
+        if close is not None and self.owns_encoder:
             close()
 
     def __enter__(self) -> Localizer:
@@ -288,6 +303,11 @@ class Localizer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    @property
+    def runtime(self) -> str:
+        """What embeds, in one line: ``onnxruntime 1.22.0, 2 threads`` or ``torch 2.8.0, ...``."""
+        return describe_runtime(self.encoder)
 
     def _verification_in_flight(self) -> bool:
         return self._verifying > 0

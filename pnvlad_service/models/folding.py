@@ -67,8 +67,17 @@ def fold_model(model: Any) -> dict[str, Any]:
         "stem": [fold_linear(a, b) for a, b in zip(model.stem, model.stem_bn, strict=True)],
         "trunk": [fold_linear(a, b) for a, b in zip(model.trunk, model.trunk_bn, strict=True)],
     }
-    pool = model.pool
-    if model.cfg.arch == "pointnetvlad":
+    p.update(fold_head(model.pool, model.cfg.arch == "pointnetvlad"))
+    return p
+
+
+def fold_head(pool: Any, vlad: bool) -> dict[str, Any]:
+    """The pooling head folded, in float64: for NetVLAD (``vlad``) the cluster logits (batch
+    norm folded in), the centres [K, D] and the fully connected layer with its rows reordered
+    cluster-major (``k*D + d``); PN_MAX's fully connected layer; the gating (or None).
+    bev-netvlad's export (``onnx_export.py``) takes the same."""
+    p: dict[str, Any] = {}
+    if vlad:
         import torch
         from torch import nn
 

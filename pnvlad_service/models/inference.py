@@ -131,6 +131,9 @@ class Encoder:
     when the first batch comes; 1: one cloud at a time on all of torch's threads).
     """
 
+    #: Which runtime embeds (``OnnxEncoder.runtime`` is ``"onnx"``; ``runtimes.py``).
+    runtime = "torch"
+
     def __init__(
         self,
         model: torch.nn.Module,

@@ -35,6 +35,7 @@ from pnvlad_service.models.training_path import (
     lin_act,
     linear_bn_max,
     netvlad_forward,
+    relu_l2_netvlad_forward,
 )
 
 
@@ -216,22 +217,26 @@ def fast_forward(model: PointNetVLAD, points: torch.Tensor) -> torch.Tensor:
         for i, (lin, bn) in enumerate(zip(model.trunk, model.trunk_bn, strict=True))
     ]
     vlad = isinstance(model.pool, NetVLAD)
+    # The paper's last layer: ReLU, per-point L2 and NetVLAD as one pair of autograd Functions.
+    fused = vlad and layers[-1][2] and cfg.point_l2_norm and len(model.trunk) > 0
     for i, (lin, bn, relu) in enumerate(layers):
         if i == feat_at and model.feature_tnet is not None:
             if pending is not None:  # no stem layer took the input transform
                 h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
             pending = _tnet(model.feature_tnet, h.reshape(b, n, -1))
-        if i == len(layers) - 1 and vlad and not relu and not cfg.point_l2_norm:
+        last = i == len(layers) - 1
+        if last and vlad and not relu and not cfg.point_l2_norm:
             if pending is not None:
                 h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
             assert isinstance(model.pool, NetVLAD)
             return F.normalize(affine_netvlad_forward(model.pool, lin, bn, h, b, n), dim=1)
-        if i == len(layers) - 1 and not vlad:
+        if last and not vlad:
             src = h if pending is None else torch.bmm(h.reshape(b, n, -1), pending)
             g = linear_bn_max(lin, bn, src.reshape(b, n, -1), relu)
             y = model.pool.fc(g)
             gating = model.pool.gating
             return F.normalize(gating(y) if gating is not None else y, dim=1)
+        relu = relu and not (last and fused)  # the fused head applies it
         if pending is not None:
             z = bn(folded_linear(lin, pending, h, b, n))
             h = z.relu_() if relu else z
@@ -241,6 +246,8 @@ def fast_forward(model: PointNetVLAD, points: torch.Tensor) -> torch.Tensor:
     if pending is not None:  # a transform after the last layer (not a shipped configuration)
         h = torch.bmm(h.reshape(b, n, -1), pending).reshape(b * n, -1)
     assert isinstance(model.pool, NetVLAD)
+    if fused:
+        return F.normalize(relu_l2_netvlad_forward(model.pool, h, b, n), dim=1)
     inv = None
     if cfg.point_l2_norm:
         inv = 1.0 / torch.linalg.vector_norm(h, dim=1, keepdim=True).clamp_min(1e-12)

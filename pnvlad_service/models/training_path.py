@@ -97,6 +97,63 @@ def _update_running(bn: nn.BatchNorm1d, mean: torch.Tensor, var: torch.Tensor, m
         bn.running_var.mul_(1 - mom).add_(unbiased, alpha=mom)
 
 
+class BatchStats(torch.autograd.Function):
+    """The batch mean and biased variance of ``x @ w + b`` over the rows of x, from x's
+    covariance: x float [M, C], w [C, O], b [O] -> (mean [O], var [O]) in w's dtype.
+
+    ``mean = x̄ w + b`` and ``var_o = w_o^T S w_o`` (S the [C, C] covariance of x), so the
+    [M, O] products are never formed. The covariance is the product of the centred rows in x's
+    dtype, summed over blocks of :data:`BLOCK` rows in float64; everything of size C x C or
+    C x O is float64. The backward is written out rather than differentiated through those
+    steps: ``dx = (w dmean)^T / M + (2 / M) (x - x̄) (w diag(dvar) w^T)``,
+    ``dw = x̄^T dmean + 2 S w diag(dvar)``, ``db = dmean``: one [M, C] x [C, C] product in x's
+    dtype, where autograd through the float64 covariance took two float64 ones and the copies
+    (on an AMD EPYC without fast float64 products, 15 % of the paper configuration's training
+    step; docs/results/training.md).
+    """
+
+    #: Rows a block of the covariance's float32 product (its partial sums are added in float64).
+    BLOCK = 4096
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, w: torch.Tensor, b: torch.Tensor):  # type: ignore[override]
+        m, step = x.shape[0], BatchStats.BLOCK
+        # Block sums in x's dtype, added in float64 (a float64 copy of x would be a pass of
+        # its own).
+        xbar = sum(x[s : s + step].sum(0).double() for s in range(0, m, step)) / m  # [C]
+        xc = x - xbar.to(x.dtype)
+        cov = torch.zeros(x.shape[1], x.shape[1], dtype=torch.float64, device=x.device)
+        for s in range(0, m, step):
+            block = xc[s : s + step]
+            cov += (block.t() @ block).double()
+        cov /= m
+        w64 = w.double()
+        sw = cov @ w64  # [C, O]
+        mean = (xbar @ w64 + b.double()).to(w.dtype)
+        var = (sw * w64).sum(0).clamp_min(0).to(w.dtype)
+        ctx.save_for_backward(xc, xbar, w64, sw)
+        ctx.dtypes = (x.dtype, w.dtype, b.dtype)
+        return mean, var
+
+    @staticmethod
+    def backward(ctx: Any, dmean: torch.Tensor | None, dvar: torch.Tensor | None):  # type: ignore[override]
+        xc, xbar, w64, sw = ctx.saved_tensors
+        x_dtype, w_dtype, b_dtype = ctx.dtypes
+        m = xc.shape[0]
+        o = w64.shape[1]
+        dm = (dmean if dmean is not None else xc.new_zeros(o)).double()
+        dv = (dvar if dvar is not None else xc.new_zeros(o)).double()
+        dx = dw = db = None
+        if ctx.needs_input_grad[0]:
+            g = (w64 * dv) @ w64.t() * (2.0 / m)  # [C, C]
+            dx = torch.addmm(((w64 @ dm) / m).to(x_dtype), xc, g.to(x_dtype))
+        if ctx.needs_input_grad[1]:
+            dw = (torch.outer(xbar, dm) + 2.0 * sw * dv).to(w_dtype)
+        if ctx.needs_input_grad[2]:
+            db = dm.to(b_dtype)
+        return dx, dw, db
+
+
 def folded_linear_bn(
     lin: nn.Linear, bn: nn.Module, x: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -104,26 +161,17 @@ def folded_linear_bn(
     either mode of ``bn`` (a ``BatchNorm1d``, or ``nn.Identity``: W' = W^T, t = bias).
 
     In training mode the batch mean and variance of ``lin(x)`` are taken from x's [C, C]
-    covariance (``mean = x̄ W + b``, ``var_o = w_o^T S w_o``), never from the [M, O] outputs,
-    and the running statistics are updated as ``BatchNorm1d`` would; autograd differentiates
-    through those small products, so the gradients are the reference's."""
+    covariance (:class:`BatchStats`), never from the [M, O] outputs, and the running statistics
+    are updated as ``BatchNorm1d`` would; the gradients are the reference's."""
     w = lin.weight.t()  # [C, O], a view
     bias = lin.bias if lin.bias is not None else x.new_zeros(w.shape[1])
     if not isinstance(bn, nn.BatchNorm1d):
         return w, bias
     assert bn.weight is not None and bn.bias is not None
     if bn.training or bn.running_mean is None:
-        m = x.shape[0]
-        # In float64: the gradients through these statistics cancel the sparse max gradient
-        # almost exactly, and float32 sums would leave a few per cent of it.
-        x64, w64 = x.double(), w.double()
-        xbar = x64.mean(0)
-        xc = x64 - xbar
-        cov = (xc.t() @ xc) / m  # [C, C]
-        mean = (xbar @ w64 + bias).to(w.dtype)
-        var = ((cov @ w64) * w64).sum(0).clamp_min(0).to(w.dtype)
+        mean, var = BatchStats.apply(x, w, bias)
         if bn.training:
-            _update_running(bn, mean, var, m)
+            _update_running(bn, mean, var, x.shape[0])
     else:
         assert bn.running_var is not None
         mean, var = bn.running_mean, bn.running_var
@@ -180,6 +228,109 @@ def netvlad_forward(pool: NetVLAD, h: torch.Tensor, inv: torch.Tensor | None, b:
     # v[k, d] = sum_n aw[n, k] h[n, d] - (sum_n a[n, k]) c[d, k]: one batched product.
     vlad = torch.baddbmm(centre, aw.reshape(b, n, k).transpose(1, 2), h.reshape(b, n, d), beta=-1)
     return _vlad_head(pool, vlad)
+
+
+class _VladLink:
+    """What :class:`_VladIn` and :class:`_VladSums` share: the features h, their inverse norms
+    and the assignment; and, from ``_VladSums``' backward (which autograd runs first), its
+    gradient for ``_VladIn``'s."""
+
+    h: torch.Tensor
+    inv: torch.Tensor
+    a: torch.Tensor | None = None
+    d_sums: torch.Tensor | None = None
+    inv_grad: torch.Tensor | None = None
+
+
+class _VladIn(torch.autograd.Function):
+    """``h = relu(z)``, ``inv = 1 / max(|h|, 1e-12)`` (per row) and the cluster logits
+    ``(h @ wc) * inv`` [M, K] of the last layer's pre-activation z [M, D]; h and inv go to
+    :class:`_VladSums` through ``link``. Its backward forms the gradient of z in one product
+    a cloud, ``[dP | a] @ [wc^T ; dS]``, scaled by inv, plus the norm's term (a multiple of h)
+    and the ReLU mask, where autograd made three [M, D] gradients (logits, sums, norm) and
+    added them in as many passes."""
+
+    @staticmethod
+    def forward(ctx: Any, z: torch.Tensor, wc: torch.Tensor, link: _VladLink, b: int):  # type: ignore[override]
+        h = torch.relu(z)
+        norm = torch.linalg.vector_norm(h, dim=1, keepdim=True)
+        inv = norm.clamp_min(1e-12).reciprocal()
+        hw = h @ wc.to(h.dtype)  # [M, K]
+        link.h, link.inv = h, inv
+        ctx.link, ctx.b = link, b
+        ctx.save_for_backward(h, inv, norm, hw, wc)
+        return hw * inv
+
+    @staticmethod
+    def backward(ctx: Any, dp: torch.Tensor):  # type: ignore[override]
+        h, inv, norm, hw, wc = ctx.saved_tensors
+        link: _VladLink = ctx.link
+        b = ctx.b
+        m, d = h.shape
+        n, k = m // b, wc.shape[1]
+        dp = dp.to(h.dtype)
+        a, d_sums = link.a, link.d_sums
+        if a is None or d_sums is None:  # the sums took no gradient: logits only
+            left, right = dp.reshape(b, n, k), wc.t().to(h.dtype).expand(b, k, d)
+        else:
+            left = torch.cat([dp, a.to(h.dtype)], dim=1).reshape(b, n, 2 * k)
+            wct = wc.t().to(h.dtype).expand(b, k, d)
+            right = torch.cat([wct, d_sums.to(h.dtype)], dim=1)  # [B, 2K, D]
+        dh = torch.bmm(left, right).reshape(m, d).mul_(inv)
+        # d inv / dh = -inv^3 h where |h| > 1e-12: the logits' and the sums' share of it.
+        dinv = (dp * hw).sum(1, keepdim=True)
+        if link.inv_grad is not None:
+            dinv = dinv + link.inv_grad
+        coef = torch.where(norm > 1e-12, -dinv * inv.pow(3), torch.zeros_like(inv))
+        dh.addcmul_(h, coef)
+        dz = torch.ops.aten.threshold_backward(dh, h, 0)
+        dwc = None
+        if ctx.needs_input_grad[1]:
+            dwc = (h.t() @ (dp * inv).to(h.dtype)).to(wc.dtype)
+        link.a = link.d_sums = link.inv_grad = None
+        return dz, dwc, None, None
+
+
+class _VladSums(torch.autograd.Function):
+    """NetVLAD's weighted sums ``S_b = (a inv)_b^T h_b`` [B, K, D] of the features and inverse
+    norms :class:`_VladIn` put in ``link``, for the assignment a [M, K]. Its backward returns
+    a's gradient and leaves the features' (and the norms') to ``_VladIn``'s, through ``link``."""
+
+    @staticmethod
+    def forward(ctx: Any, a: torch.Tensor, link: _VladLink, b: int):  # type: ignore[override]
+        h, inv = link.h, link.inv
+        m, d = h.shape
+        aw = (a * inv).to(h.dtype)
+        ctx.link, ctx.b = link, b
+        ctx.save_for_backward(a)
+        return torch.bmm(aw.reshape(b, m // b, -1).transpose(1, 2), h.reshape(b, m // b, d))
+
+    @staticmethod
+    def backward(ctx: Any, ds: torch.Tensor):  # type: ignore[override]
+        (a,) = ctx.saved_tensors
+        link: _VladLink = ctx.link
+        h, inv = link.h, link.inv
+        b = ctx.b
+        m, d = h.shape
+        hds = torch.bmm(h.reshape(b, m // b, d), ds.to(h.dtype).transpose(1, 2))  # [B, N, K]
+        hds = hds.reshape(m, -1).to(a.dtype)
+        link.a, link.d_sums = a, ds
+        link.inv_grad = (a * hds).sum(1, keepdim=True).to(inv.dtype)
+        return hds * inv, None, None
+
+
+def relu_l2_netvlad_forward(pool: NetVLAD, z: torch.Tensor, b: int, n: int) -> torch.Tensor:
+    """NetVLAD of ``relu(z)`` with each row L2-normalised (the paper's per-point normalisation),
+    z [B*N, D] the last layer's pre-activation -> [B, out]: :func:`netvlad_forward` of those
+    features, with the gradient of z formed in one product a cloud (:class:`_VladIn`)."""
+    k = pool.clusters
+    link = _VladLink()
+    logits = _VladIn.apply(z, pool.cluster_weights, link, b)  # [M, K]
+    logits = pool.cluster_bn(logits) if pool.bn else logits + pool.cluster_biases
+    a = torch.softmax(logits, dim=-1)
+    sums = _VladSums.apply(a, link, b)  # [B, K, D]
+    centre = a.reshape(b, n, k).sum(1).unsqueeze(2) * pool.centers.t()  # [B, K, D]
+    return _vlad_head(pool, sums.to(centre.dtype) - centre)
 
 
 def affine_netvlad_forward(

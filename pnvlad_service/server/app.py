@@ -2,32 +2,41 @@
 
 Routes (one router per resource, :mod:`pnvlad_service.server.routes`): ``POST /localize``
 (JSON, raw float32/float64 xyz, or ``.npy``), ``POST /localize/batch``, ``GET /healthz``,
-``GET /readyz``, ``GET /info``, ``GET /metrics`` and the API docs at ``/docs`` and ``/redoc``
-(served from installed assets, :mod:`pnvlad_service.server.docs`). Errors are
-``application/problem+json``. Bodies are bounded while read
+``GET /readyz``, ``GET /info``, ``GET /metrics``, ``POST /admin/reload`` and the API docs at
+``/docs`` and ``/redoc`` (served from installed assets, :mod:`pnvlad_service.server.docs`).
+Errors are ``application/problem+json``. Bodies are bounded while read
 (:class:`~pnvlad_service.server.middleware.BodyLimit`). The lifespan loads the
-:class:`~pnvlad_service.localization.localizer.Localizer` once, in the thread pool; the routes
-get it, the settings and the metrics through :mod:`pnvlad_service.server.deps`.
+:class:`~pnvlad_service.localization.localizer.Localizer` once, in the thread pool, and puts it
+in a :class:`~pnvlad_service.localization.serving.ServingMap`, which swaps it for a new bundle
+on ``POST /admin/reload`` or SIGHUP; the routes lease it, and get the settings and the metrics,
+through :mod:`pnvlad_service.server.deps`.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
+import os
+import signal
+import threading
 from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
 
 from fastapi import Depends, FastAPI
 from fastapi.concurrency import run_in_threadpool
 
 from pnvlad_service import __version__
-from pnvlad_service.errors import InputError
+from pnvlad_service.errors import InputError, PnvladError
 from pnvlad_service.localization.localizer import Localizer, set_threads
+from pnvlad_service.localization.serving import ReloadInProgress, ServingMap
 from pnvlad_service.server import docs, problems
 from pnvlad_service.server.contract import Contract
 from pnvlad_service.server.deps import require_key
 from pnvlad_service.server.metrics import Metrics
 from pnvlad_service.server.middleware import BodyLimit, RequestCounter
-from pnvlad_service.server.routes import localize, ops
+from pnvlad_service.server.routes import admin, localize, ops
 from pnvlad_service.server.settings import ServerSettings
 
 log = logging.getLogger(__name__)
@@ -39,15 +48,22 @@ DESCRIPTION = (
 
 
 def load_localizer(
-    settings: ServerSettings, on_batch: Callable[[int], None] | None = None
+    settings: ServerSettings,
+    on_batch: Callable[[int], None] | None = None,
+    index: Path | None = None,
+    model: Path | None = None,
+    encoder: Any = None,
 ) -> Localizer:
-    """The localiser that ``settings`` name (bundle, model, device, threads, batching)."""
-    set_threads(settings.torch_threads, settings.faiss_threads)
-    if settings.index is None:
+    """The localiser that ``settings`` name (bundle, model, runtime, device, threads,
+    batching); ``index`` and ``model`` replace the settings' (a reload), ``encoder`` is reused
+    when it holds the model's weights."""
+    set_threads(settings.torch_threads or settings.threads, settings.faiss_threads)
+    index = index or settings.index
+    if index is None:
         raise InputError("no index bundle given (--index or PNVLAD_INDEX)", "index")
     return Localizer.load(
-        settings.index,
-        settings.checkpoint,
+        index,
+        model or settings.checkpoint,
         device=settings.device,
         verify=settings.verify_bundle,
         batching=settings.batching(),
@@ -55,29 +71,129 @@ def load_localizer(
         verify_config=settings.verify_config(),
         verify_process=settings.verify_process,
         threshold=settings.verify_threshold,
+        runtime=settings.runtime,
+        threads=settings.threads or settings.torch_threads,
+        encoder=encoder,
     )
+
+
+def reload_loader(
+    settings: ServerSettings, on_batch: Callable[[int], None] | None
+) -> Callable[[Path, Path, Any], Localizer]:
+    """How a :class:`ServingMap` loads the next bundle: as at start-up, warmed up unless it
+    reuses the serving encoder (which is warm)."""
+
+    def load(index: Path, model: Path, encoder: Any) -> Localizer:
+        loc = load_localizer(settings, on_batch, index, model, encoder)
+        if loc.encoder is not encoder:
+            try:
+                loc.warm_up(min(settings.warm_up, settings.batch_max_size))
+            except BaseException:
+                loc.close()
+                raise
+        return loc
+
+    return load
+
+
+def reload_now(app: FastAPI) -> None:
+    """SIGHUP: reload the serving bundle's path (a new bundle written there, e.g. by
+    ``pnvlad index add``); a bundle that fails its checks is logged and the old one serves on."""
+    serving: ServingMap | None = app.state.serving
+    metrics = app.state.metrics
+    if serving is None:
+        return
+    try:
+        done = serving.reload()
+    except ReloadInProgress:
+        metrics.reloads.labels("busy").inc()
+        log.warning("SIGHUP: a reload is already in progress")
+        return
+    except PnvladError as exc:
+        metrics.reloads.labels("refused").inc()
+        log.error(
+            "SIGHUP: reload refused, still serving %s: %s", serving.current.info.index.id, exc
+        )
+        return
+    metrics.reloads.labels("swapped").inc()
+    log.info("SIGHUP: now serving %s (%.2f s)", done.current["index"]["id"], done.load_s)
+
+
+@contextlib.contextmanager
+def _sighup(app: FastAPI) -> Any:
+    """SIGHUP reloads while the block runs (in the main thread's event loop only: uvicorn's
+    process; under ``--workers N`` uvicorn's supervisor restarts the workers one by one on its
+    own SIGHUP)."""
+    loop = asyncio.get_running_loop()
+    if not hasattr(signal, "SIGHUP") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_hup() -> None:
+        loop.run_in_executor(None, reload_now, app)
+
+    loop.add_signal_handler(signal.SIGHUP, on_hup)
+    try:
+        yield
+    finally:
+        loop.remove_signal_handler(signal.SIGHUP)
+
+
+def process_age() -> float | None:
+    """Seconds since this process started (Linux's /proc; None elsewhere), for the start-up
+    line the image test reads."""
+    try:
+        with open("/proc/self/stat") as fh:
+            start_ticks = int(fh.read().rsplit(")", 1)[1].split()[19])
+        with open("/proc/uptime") as fh:
+            uptime = float(fh.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
 
 
 @contextlib.asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-    """Load the localiser (unless one was given to :func:`create_app`), close it at the end."""
+    """Load the localiser (unless one was given to :func:`create_app`) into the app's
+    :class:`ServingMap`; close what the app loaded at the end."""
     state = app.state
-    owned = state.localizer is None
-    if owned:
-        state.localizer = await run_in_threadpool(
-            load_localizer, state.settings, state.metrics.batch_size.observe
-        )
-    loc: Localizer = state.localizer
-    if owned:
-        largest = min(state.settings.warm_up, state.settings.batch_max_size)
+    settings: ServerSettings = state.settings
+    given: Localizer | None = state.localizer
+    observe = state.metrics.batch_size.observe
+    loc = given
+    if loc is None:
+        loc = await run_in_threadpool(load_localizer, settings, observe)
+        largest = min(settings.warm_up, settings.batch_max_size)
         await run_in_threadpool(loc.warm_up, largest)
-    state.metrics.index_vectors.set(loc.info.index.count)
+
+    def swapped(new: Localizer) -> None:
+        state.metrics.index_vectors.set(new.info.index.count)
+
+    serving = ServingMap(
+        loc,
+        settings.index or loc.bundle.path,
+        reload_loader(settings, observe),
+        drain_s=settings.reload_drain_s,
+        on_swap=swapped,
+    )
+    swapped(loc)
+    state.serving = serving
+    age = process_age()
+    log.info(
+        "ready: bundle %s (%s, %d vectors), embedding with %s%s",
+        loc.info.index.id,
+        loc.info.index.key,
+        loc.info.index.count,
+        loc.runtime,
+        "" if age is None else f" ({age:.2f} s after the process started)",
+    )
     try:
-        yield
+        with _sighup(app):
+            yield
     finally:
-        if owned:
-            state.localizer = None
-            loc.close()
+        state.serving = None
+        if given is None or serving.current is not given:
+            serving.close()  # the caller closes the localiser it gave
 
 
 def create_app(
@@ -98,13 +214,15 @@ def create_app(
     docs.install(app)
     app.state.settings = settings
     app.state.metrics = metrics
-    app.state.localizer = localizer
+    app.state.localizer = localizer  # given (tests), else the lifespan loads one
+    app.state.serving = None
     problems.install(app, on_error=metrics.error)
 
     # The bearer check is declared (and in the OpenAPI document) only when a key is set.
     protected = [Depends(require_key)] if settings.api_key is not None else []
     app.include_router(localize.router(Contract(settings.limits())), dependencies=protected)
     app.include_router(ops.router(protected))
+    app.include_router(admin.router())
 
     def count(route: str, method: str, status: int) -> None:
         metrics.requests.labels(route, method, str(status)).inc()

@@ -40,6 +40,13 @@ class Metrics:
         self.index_vectors = Gauge(
             "pnvlad_index_vectors", "Vectors in the loaded index.", registry=self.registry
         )
+        self.reloads = Counter(
+            "pnvlad_reloads",
+            "Map reloads (admin route or SIGHUP) by result: swapped, refused (the bundle failed "
+            "its checks; the old one kept serving), busy (another reload was running).",
+            ["result"],
+            registry=self.registry,
+        )
         self.disconnects = Counter(
             "pnvlad_client_disconnects",
             "Requests whose client went away before the body was complete.",

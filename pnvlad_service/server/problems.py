@@ -24,8 +24,10 @@ PROBLEM_TYPE = "application/problem+json"
 KINDS: dict[str, tuple[int, str]] = {
     "malformed-json": (400, "Malformed JSON"),
     "unauthorized": (401, "Missing or wrong bearer token"),
+    "forbidden": (403, "Forbidden"),
     "not-found": (404, "Not found"),
     "method-not-allowed": (405, "Method not allowed"),
+    "conflict": (409, "Conflict"),
     "body-too-large": (413, "Request body too large"),
     "unsupported-media-type": (415, "Unsupported content type"),
     "invalid-input": (422, "Invalid input"),

@@ -12,7 +12,7 @@ import dataclasses
 import typing
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from pnvlad_service.localization import answers
 
@@ -133,7 +133,41 @@ class Health(BaseModel):
     status: str
 
 
+class Ready(BaseModel):
+    """``/readyz``: ready, what embeds (``onnxruntime 1.22.0, 2 threads`` or ``torch ...``) and
+    the bundle in service."""
+
+    status: str
+    runtime: str
+    index: dict[str, Any]
+
+
+class ReloadRequest(BaseModel):
+    """``POST /admin/reload``: the bundle to serve next (default: the serving bundle's path,
+    read again) and its model (default: the serving model). Paths on the server."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    index: str | None = Field(None, description="Index bundle directory on the server.")
+    checkpoint: str | None = Field(
+        None, description="Model directory on the server (default: the serving model)."
+    )
+
+
+class ReloadResponse(BaseModel):
+    """What a reload swapped: the bundle and model before and after."""
+
+    previous: dict[str, Any]
+    current: dict[str, Any]
+    index_path: str
+    encoder_reused: bool
+    load_s: float
+    drain_s: float
+    runtime: str
+
+
 class Info(BaseModel):
     manifest: dict[str, Any]
     model: dict[str, Any]
+    runtime: str
     limits: dict[str, Any]

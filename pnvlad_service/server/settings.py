@@ -7,6 +7,7 @@ configures the service the same way.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -33,6 +34,17 @@ class ServerSettings(BaseSettings):
     workers: int = Field(1, ge=1, description="Server processes (each loads model and index).")
     api_key: SecretStr | None = Field(
         None, description="When set, /localize* and /info need 'Authorization: Bearer <key>'."
+    )
+    admin_key: SecretStr | None = Field(
+        None,
+        description="Bearer token of POST /admin/reload; default: the API key. With neither "
+        "set, the admin route answers 403 (SIGHUP still reloads).",
+    )
+    reload_drain_s: float = Field(
+        30.0,
+        gt=0,
+        description="How long a reload waits for the queries on the old bundle before closing "
+        "it (seconds).",
     )
     max_body_bytes: int = Field(
         32 * 1024 * 1024, ge=1024, description="Largest request body accepted (bytes)."
@@ -71,7 +83,20 @@ class ServerSettings(BaseSettings):
         description="Batch sizes 1..this embedded once at start-up, so that no request pays "
         "for the first forward pass of its batch size (0: none).",
     )
-    torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
+    runtime: Literal["auto", "torch", "onnx"] = Field(
+        "auto",
+        description="What embeds: torch, or ONNX Runtime on the model directory's model.onnx "
+        "(pnvlad model export); auto: torch when it is installed, else ONNX Runtime.",
+    )
+    threads: int | None = Field(
+        None,
+        ge=1,
+        description="Encoder threads: ONNX Runtime's, or torch's intra-op threads (default: "
+        "the CPUs of the process for ONNX Runtime, torch's own default).",
+    )
+    torch_threads: int | None = Field(
+        None, ge=1, description="torch intra-op threads (PNVLAD_THREADS sets both runtimes')."
+    )
     faiss_threads: int | None = Field(
         1,
         ge=1,

@@ -466,8 +466,11 @@ def test_metrics_count_requests_errors_and_stages(client) -> None:
 
 def test_ops_endpoints(client, local) -> None:
     assert client.get("/healthz").json() == {"status": "ok"}
-    assert client.get("/readyz").json() == {"status": "ready"}
+    ready = client.get("/readyz").json()
+    assert ready["status"] == "ready" and ready["runtime"].startswith("torch ")
+    assert ready["index"] == {"id": local[1].bundle_id, "key": "Flat", "count": 2 * PER_RUN}
     info = client.get("/info").json()
+    assert info["runtime"] == ready["runtime"]
     assert info["manifest"]["files"] == local[1].manifest.files
     assert info["limits"]["max_body_bytes"] == MAX_BODY
     doc = client.get("/openapi.json").json()

@@ -20,18 +20,20 @@ def healthz() -> dict[str, str]:
     return {"status": "ok"}
 
 
-def readyz(loc: Localizer = Depends(get_localizer)) -> dict[str, str]:
-    """Readiness: model and index are loaded."""
-    return {"status": "ready"}
+def readyz(loc: Localizer = Depends(get_localizer)) -> dict[str, Any]:
+    """Readiness: model and index are loaded. Says what embeds (ONNX Runtime or torch, its
+    version and threads) and which bundle serves."""
+    return {"status": "ready", "runtime": loc.runtime, "index": loc.info.to_json()["index"]}
 
 
 def info(
     loc: Localizer = Depends(get_localizer), settings: ServerSettings = Depends(get_settings)
 ) -> dict[str, Any]:
-    """The bundle's manifest, the model and the request limits."""
+    """The bundle's manifest, the model, the runtime and the request limits."""
     return {
         "manifest": loc.manifest_json(),
         "model": loc.identity.to_json(),
+        "runtime": loc.runtime,
         "limits": {"max_body_bytes": settings.max_body_bytes, **settings.limits().to_json()},
     }
 
@@ -50,7 +52,7 @@ def router(protected: list[DependsParam]) -> APIRouter:
         "/readyz",
         readyz,
         methods=["GET"],
-        response_model=schemas.Health,
+        response_model=schemas.Ready,
         responses=problems.openapi_responses(503),
     )
     r.add_api_route(

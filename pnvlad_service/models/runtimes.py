@@ -1,0 +1,90 @@
+"""Which runtime embeds with a model directory: torch (:class:`~.inference.Encoder`) or ONNX
+Runtime (:class:`~.onnx_encoder.OnnxEncoder`, ``model.onnx`` beside the weights).
+
+``runtime="auto"`` takes torch when it is installed, else ONNX Runtime when the directory has
+``model.onnx``; ``"torch"`` and ``"onnx"`` insist. A choice that cannot be had is an error that
+says what to install or export. This module imports neither runtime at module level.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from typing import Any
+
+from pnvlad_service.errors import InputError, MissingDependencyError
+from pnvlad_service.models.onnx_encoder import ONNX_FILE
+
+#: The values ``runtime`` takes (``--runtime``, ``PNVLAD_RUNTIME``).
+RUNTIMES = ("auto", "torch", "onnx")
+
+
+def torch_installed() -> bool:
+    """Whether torch can be imported here (without importing it)."""
+    try:
+        return importlib.util.find_spec("torch") is not None
+    except (ValueError, ImportError):  # a stub in sys.modules (tests block torch so)
+        return False
+
+
+def choose_runtime(directory: str | Path, runtime: str = "auto") -> str:
+    """``"torch"`` or ``"onnx"`` for the model directory ``directory`` (resolved already)."""
+    if runtime not in RUNTIMES:
+        raise InputError(f"runtime must be one of {list(RUNTIMES)}, got {runtime!r}", "runtime")
+    has_onnx = (Path(directory) / ONNX_FILE).is_file()
+    if runtime == "torch" or (runtime == "auto" and torch_installed()):
+        if not torch_installed():
+            raise MissingDependencyError("torch", "torch", "the torch runtime")
+        return "torch"
+    if not has_onnx:
+        if runtime == "auto":
+            raise InputError(
+                f"torch is not installed and the model directory has no {ONNX_FILE}: export it "
+                f"where torch is (pnvlad model export {directory}), or install pnvlad[torch]",
+                directory,
+            )
+        raise InputError(
+            f"no {ONNX_FILE} in this model directory: pnvlad model export {directory}",
+            directory,
+        )
+    return "onnx"
+
+
+def open_encoder(
+    directory: str | Path,
+    *,
+    runtime: str = "auto",
+    device: str | None = None,
+    weights_sha256: str | None = None,
+    threads: int | None = None,
+) -> Any:
+    """The encoder of the model directory ``directory`` on the runtime :func:`choose_runtime`
+    picks. ``device`` is torch's (ONNX Runtime runs on the CPU: another device is an error);
+    ``threads``: ONNX Runtime's (torch's are process-wide, ``set_threads``)."""
+    from pnvlad_service.models.store import resolve_model_dir
+
+    directory = resolve_model_dir(directory)
+    chosen = choose_runtime(directory, runtime)
+    if chosen == "onnx":
+        if device not in (None, "cpu"):
+            raise InputError(f"the ONNX runtime runs on the CPU, not on {device!r}", "device")
+        from pnvlad_service.models.onnx_encoder import OnnxEncoder
+
+        return OnnxEncoder.from_checkpoint(
+            directory, weights_sha256=weights_sha256, threads=threads
+        )
+    from pnvlad_service.models.inference import Encoder
+
+    return Encoder.from_checkpoint(directory, device=device, weights_sha256=weights_sha256)
+
+
+def describe(encoder: Any) -> str:
+    """One line naming the runtime of ``encoder`` and its version (logs, /readyz)."""
+    runtime = getattr(encoder, "runtime", None)
+    if runtime == "onnx":
+        return encoder.describe()
+    if runtime == "torch":
+        import torch
+
+        return f"torch {torch.__version__}, {torch.get_num_threads()} threads"
+    return type(encoder).__name__

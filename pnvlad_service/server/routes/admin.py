@@ -1,0 +1,65 @@
+"""Administration: ``POST /admin/reload``, a new map while the server serves.
+
+The bundle named (default: the serving one's path, read again: ``pnvlad index add`` rewrites a
+bundle in place) is loaded and checked beside the one in service, then swapped in; queries in
+flight finish on the old one, which is then closed
+(:class:`~pnvlad_service.localization.serving.ServingMap`). A bundle that fails its checks
+(missing or corrupt files, a truncated geometry, other weights than the model) is refused with
+a 422 naming the file, and the old one keeps serving; a reload while another runs is a 409.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import APIRouter, Depends
+from fastapi.concurrency import run_in_threadpool
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.localization.serving import ReloadInProgress, ServingMap
+from pnvlad_service.server import problems, schemas
+from pnvlad_service.server.deps import get_metrics, get_serving, require_admin
+from pnvlad_service.server.metrics import Metrics
+from pnvlad_service.server.problems import Problem
+
+log = logging.getLogger(__name__)
+
+
+async def reload(
+    body: schemas.ReloadRequest | None = None,
+    serving: ServingMap = Depends(get_serving),
+    metrics: Metrics = Depends(get_metrics),
+) -> dict[str, Any]:
+    """Load a bundle beside the serving one, check it, swap it in, close the old one.
+
+    JSON ``{"index": "/data/index-2", "checkpoint": null}`` (both optional: the serving bundle's
+    path read again, the serving model). Answers with the bundle and model before and after. A
+    bundle that fails its checks is refused (422 naming the file) and the old one keeps
+    serving; 409 while another reload runs."""
+    body = body or schemas.ReloadRequest()
+    try:
+        done = await run_in_threadpool(serving.reload, body.index, body.checkpoint)
+    except ReloadInProgress as exc:
+        metrics.reloads.labels("busy").inc()
+        raise Problem("conflict", str(exc)) from None
+    except InputError as exc:
+        metrics.reloads.labels("refused").inc()
+        log.error("reload refused, still serving %s: %s", serving.current.info.index.id, exc)
+        raise
+    metrics.reloads.labels("swapped").inc()
+    return {**done.to_json(), "runtime": serving.current.runtime}
+
+
+def router() -> APIRouter:
+    """The admin routes, each behind :func:`~pnvlad_service.server.deps.require_admin`."""
+    r = APIRouter(tags=["admin"], dependencies=[Depends(require_admin)])
+    r.add_api_route(
+        "/admin/reload",
+        reload,
+        methods=["POST"],
+        response_model=schemas.ReloadResponse,
+        responses=problems.openapi_responses(401, 403, 409, 422, 503),
+        summary="Serve another index bundle (or the same path read again) without downtime",
+    )
+    return r
