@@ -31,6 +31,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
+from pnvlad_service.localization.prior import Nearby, Prior, PriorConfig, PriorFit, register_near
 from pnvlad_service.localization.verify import (
     PreparedCache,
     QueryCloud,
@@ -111,6 +112,12 @@ def _verify(query: QueryCloud, ids: list[int], config: VerifyConfig) -> Verifica
     return verify(query, bundle_candidates(_GEOMETRY, ids), config, cache=_CACHE)
 
 
+def _register_near(
+    query: QueryCloud, nearby: Nearby, prior: Prior, config: PriorConfig
+) -> PriorFit:
+    return register_near(query, _GEOMETRY, nearby, prior, config, cache=_CACHE)
+
+
 class VerifyProcess:
     """One child process that verifies queries against the geometry of the bundle at
     ``bundle_dir`` (see the module doc). :meth:`verify` blocks its caller until the answer is
@@ -157,9 +164,19 @@ class VerifyProcess:
     def verify(self, query: QueryCloud, ids: Sequence[int], config: VerifyConfig) -> Verification:
         """:func:`~.verify.verify` of ``query`` against the bundle rows ``ids`` (retrieval
         order), run in the child."""
+        return self._call(_verify, query, [int(i) for i in ids], config)
+
+    def register_near(
+        self, query: QueryCloud, nearby: Nearby, prior: Prior, config: PriorConfig
+    ) -> PriorFit:
+        """:func:`~.prior.register_near` of ``query`` to the bundle rows ``nearby`` from
+        ``prior``, run in the child."""
+        return self._call(_register_near, query, nearby, prior, config)
+
+    def _call(self, fn: Any, *args: Any) -> Any:
         pool = self._started()
         try:
-            return pool.submit(_verify, query, [int(i) for i in ids], config).result()
+            return pool.submit(fn, *args).result()
         except BrokenProcessPool:
             with self._lock:
                 if self._pool is pool:
