@@ -55,6 +55,7 @@ def load_localizer(
         verify_config=settings.verify_config(),
         verify_process=settings.verify_process,
         threshold=settings.verify_threshold,
+        prior_config=settings.prior_config(),
     )
 
 
