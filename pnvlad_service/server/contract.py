@@ -293,7 +293,8 @@ def cloud_variants(schema: dict[str, Any], limits: Limits) -> None:
         form["properties"]["preprocess"]["enum"] = [flag]
     del raw["properties"]["preprocess"]["default"]
     del raw["properties"]["scale"]  # a raw scan is in metres
-    pre["properties"].pop("prior", None)  # a prior is a sensor's pose: raw scans only
+    if "prior" in pre["properties"]:  # a prior is a sensor's pose: raw scans only
+        pre["properties"]["prior"] = {"type": "null", "description": "Raw scans only."}
     raw["required"] = [*schema.get("required", []), "preprocess"]
     schema.clear()
     schema.update(head, oneOf=[pre, raw])
@@ -330,7 +331,7 @@ def _cloud_rank(err: dict[str, Any], loc: Loc) -> tuple[Any, ...]:
     kind = err["type"]
     if not loc:
         return (7,) if kind == "value_error" else (1,)
-    if kind == "extra_forbidden":
+    if kind == "extra_forbidden" and len(loc) == 1:
         return (2,)
     if loc[0] == "points":
         if len(loc) == 1:
@@ -369,6 +370,8 @@ def _cloud_error(
         return InputError(str(inner), where)
     if not loc:
         return InputError(f"expected a JSON object, got {type(value).__name__}", where)
+    if loc[0] == "prior":
+        return _prior_error(err, loc, limits)
     if kind == "extra_forbidden":
         extra = sorted(str(e["loc"][-1]) for e in errors if e["type"] == "extra_forbidden")
         return InputError(f"unknown fields {extra}; allowed: {allowed}", where)
@@ -394,8 +397,6 @@ def _cloud_error(
             f"must be one of ['submap', 'scan', 'window'], got {show_value(value)}",
             f"{prefix}kind",
         )
-    if loc[0] == "prior":
-        return _prior_error(err, loc, limits)
     if loc == ("scale",):
         try:
             limits.check_scale(value)
