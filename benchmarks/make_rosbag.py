@@ -3,6 +3,7 @@
 Usage: python benchmarks/make_rosbag.py --out city.bag [--preset demo] [--area 0] [--run 0]
        [--seed 0] [--storage sqlite3|mcap] [--max-scans N] [--tf]
        [--off-map METRES [--back METRES]] [--kidnap AT_S:GAP_S [--hide-gap]]
+       [--beams N --columns N]
 
 Rebuilds one run of ``pnvlad synth`` (:func:`pnvlad_service.synth.generate.simulated_drive`:
 same city, route and seed as the tree ``pnvlad synth --preset PRESET --seed SEED`` writes)
@@ -17,7 +18,9 @@ drives the run's route, METRES further through streets the route never takes (of
 of the area's runs), turns and comes back onto the route for ``--back`` metres (default 200);
 ``--kidnap AT_S:GAP_S`` drops the scans of GAP_S seconds from AT_S on (the robot carried
 elsewhere: ``/odom`` goes on from where it was, ``/ground_truth`` jumps; ``--hide-gap``: the
-clock does not jump either).
+clock does not jump either). ``--beams`` / ``--columns`` cast the scans with another sensor
+(64 x 2,600 rays give about 120,000 points, a KITTI HDL-64E scan's count; the presets cast a
+few thousand).
 """
 
 from __future__ import annotations
@@ -95,6 +98,8 @@ def main() -> None:
         action="store_true",
         help="with --kidnap: the clock does not jump over the gap either",
     )
+    parser.add_argument("--beams", type=int, default=0, help="cast with this many beams")
+    parser.add_argument("--columns", type=int, default=0, help="... and columns (rays a turn)")
     args = parser.parse_args()
     require("rosbags", "rosbags", "rosbag", "Writing ROS bags")  # before minutes of simulation
 
@@ -102,6 +107,9 @@ def main() -> None:
     from pnvlad_service.synth.generate import get_preset, simulated_drive
 
     spec = get_preset(args.preset)
+    dense = {k: v for k, v in (("beams", args.beams), ("columns", args.columns)) if v}
+    if dense:
+        spec = spec.model_copy(update={"lidar": spec.lidar.model_copy(update=dense)})
     if args.off_map:
         from pnvlad_service.synth.excursions import off_map_drive
 

@@ -275,6 +275,34 @@ def write_follow_csv(rows: Sequence[FollowRow], path: str | Path) -> Path:
     return path
 
 
+def read_follow_csv(path: str | Path) -> list[FollowRow]:
+    """The rows of a CSV :func:`write_follow_csv` wrote (to summarise it again)."""
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(FollowRow)
+    rows = []
+    with open(path, newline="", encoding="utf-8") as fh:
+        for doc in csv.DictReader(fh):
+            kw: dict[str, Any] = {}
+            for f in dataclasses.fields(FollowRow):
+                if f.name not in doc:
+                    continue
+                text, kind = doc[f.name], str(hints[f.name])
+                if text == "":
+                    kw[f.name] = None if "None" in kind else f.default
+                elif "bool" in kind:
+                    kw[f.name] = text == "true"
+                elif "int" in kind:
+                    kw[f.name] = int(text)
+                elif "float" in kind:
+                    kw[f.name] = float(text)
+                else:
+                    kw[f.name] = text
+            rows.append(FollowRow(**kw))
+    return rows
+
+
 @dataclass(frozen=True)
 class FollowSummary:
     """The figures of a followed drive (``None`` where the truth, or a fix, is missing).

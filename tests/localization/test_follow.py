@@ -15,6 +15,7 @@ from pnvlad_service.localization.follow import (
     COLUMNS,
     follow_drive,
     plot_follow,
+    read_follow_csv,
     stage_means,
     summarise_follow,
     write_follow_csv,
@@ -130,6 +131,9 @@ def test_csv_round_trip_and_the_png(tmp_path: Path) -> None:
     assert [b["state"] for b in back] == [r.state for r in rows]
     assert [b["verified"] == "true" for b in back] == [r.verified for r in rows]
     assert float(back[10]["pose_northing"]) == pytest.approx(rows[10].pose_northing)
+    again = read_follow_csv(path)
+    assert summarise_follow(again, 2.0, 3.0).line() == summarise_follow(rows, 2.0, 3.0).line()
+    assert [a.reason for a in again] == [r.reason for r in rows]
     png = plot_follow(rows, tmp_path / "f.png", map_ne=np.c_[[5735000.0], [620000.0]])
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
     means = stage_means(rows)
