@@ -46,6 +46,8 @@ GOOD_M = 1.0
 GOOD_DEG = 2.0
 #: The truth farther than this from every map entry is off the map (docs/TRACKING.md).
 OFF_MAP_M = 25.0
+#: The truth moving more than this between two scans jumped (a kidnapped robot).
+JUMP_M = 30.0
 
 Odometry = Literal["poses", "kiss-icp", "none"]
 
@@ -318,6 +320,9 @@ class FollowSummary:
     scan off the map to the last ``lost`` before the localiser next has a fix (negative: it
     said lost before the truth was that far off); ``back_to_fix``: per stretch off the map,
     (scans, seconds, metres driven) from the first scan back on the map to the next fix;
+    ``jumps``: per jump of the truth (a kidnapped robot: :data:`JUMP_M` between two scans),
+    (scans, seconds) from the first scan after it to the localiser's lost or reset, and to its
+    next fix (``None`` when it never came);
     ``to_fix``: per loss of the track (lost or a reset), (scans, seconds, metres) to the next
     fix; ``wall_s`` and ``duration_s``: the replay's wall time and the drive's."""
 
@@ -343,6 +348,7 @@ class FollowSummary:
     off_map_verified: int | None
     to_lost: tuple[tuple[int, float, float], ...] = ()
     back_to_fix: tuple[tuple[int, float, float | None], ...] = ()
+    jumps: tuple[tuple[int | None, float | None, int | None, float | None], ...] = ()
     to_fix: tuple[tuple[int, float, float | None], ...] = ()
 
     @property
@@ -360,10 +366,11 @@ class FollowSummary:
             f"{self.realtime:.2f}x real time)"
         )
         if self.first_fix_scan is None:
-            return text + "; no fix"
-        where = f"{self.first_fix_m:.1f} m, " if self.first_fix_m is not None else ""
-        text += f"; first fix at scan {self.first_fix_scan} ({where}{self.first_fix_s:.1f} s)"
-        text += f"; {100 * (self.verified_share or 0):.1f} % of the scans after it verified"
+            text += "; no fix"
+        else:
+            where = f"{self.first_fix_m:.1f} m, " if self.first_fix_m is not None else ""
+            text += f"; first fix at scan {self.first_fix_scan} ({where}{self.first_fix_s:.1f} s)"
+            text += f"; {100 * (self.verified_share or 0):.1f} % of the scans after it verified"
         if self.median_error_m is not None:
             text += (
                 f"; pose error median {self.median_error_m:.2f} m / {self.median_yaw_deg:.2f} "
@@ -392,6 +399,12 @@ class FollowSummary:
                 for n, s, m in self.back_to_fix
             ]
             text += "; a fix " + ", ".join(parts) + " after coming back"
+        for lost_n, lost_s, fix_n, fix_s in self.jumps:
+            text += "; the truth jumped: "
+            text += "never lost" if lost_n is None else f"lost {lost_n} scans ({lost_s:.1f} s)"
+            text += " after it, " + (
+                "no fix since" if fix_n is None else f"a fix {fix_n} scans ({fix_s:.1f} s) after it"
+            )
         if self.to_fix:
             parts = [
                 f"{n} scans ({s:.1f} s" + (f", {m:.0f} m)" if m is not None else ")")
@@ -450,6 +463,7 @@ def summarise_follow(
         off_map_verified=sum(r.verified for r in off) if has_map else None,
         to_lost=_to_lost(rows, off_map_m),
         back_to_fix=_back_to_fix(rows, off_map_m),
+        jumps=_jumps(rows),
         to_fix=_to_fix(rows),
     )
 
@@ -471,16 +485,14 @@ def _stretches(rows: Sequence[FollowRow], off_map_m: float) -> list[tuple[int, i
 
 
 def _to_lost(rows: Sequence[FollowRow], off_map_m: float) -> tuple[tuple[int, float, float], ...]:
-    """Per stretch off the map that the localiser was tracking into: (scans, seconds, its
-    distance from the map) from the stretch's first scan to the ``lost`` that ended that
-    tracking (before or in the stretch)."""
+    """Per stretch off the map: (scans, seconds, the truth's distance from the map) from the
+    stretch's first scan to the ``lost`` that ended the tracking that went into it (before the
+    stretch, with no fix since, or in it)."""
     out = []
     for first, last in _stretches(rows, off_map_m):
-        k = first - 1  # back over the tracking that went into the stretch, to how it ended
-        while k >= 0 and rows[k].state == TRACKING and rows[k].how != "fix":
-            k -= 1
-        if k >= 0 and rows[k].event == "lost":
-            lost: int | None = k  # said lost before the truth was that far off
+        before = [k for k in range(first) if rows[k].event == "lost"]
+        if before and all(r.how != "fix" for r in rows[before[-1] : first]):
+            lost: int | None = before[-1]  # said lost before the truth was that far off
         else:
             lost = next((j for j in range(first, last + 1) if rows[j].event == "lost"), None)
         if lost is None:
@@ -507,6 +519,32 @@ def _back_to_fix(
         if rows[nxt].driven_m is not None and rows[back].driven_m is not None:
             metres = rows[nxt].driven_m - rows[back].driven_m
         out.append((nxt - back, rows[nxt].time_s - rows[back].time_s, metres))
+    return tuple(out)
+
+
+def _jumps(
+    rows: Sequence[FollowRow],
+) -> tuple[tuple[int | None, float | None, int | None, float | None], ...]:
+    """Per jump of the truth between two rows: (scans, seconds) from the row after it to the
+    first lost or reset, and to the first fix after that."""
+    out = []
+    for k in range(1, len(rows)):
+        a, b = rows[k - 1], rows[k]
+        if None in (a.true_northing, a.true_easting, b.true_northing, b.true_easting):
+            continue
+        step = math.hypot(b.true_northing - a.true_northing, b.true_easting - a.true_easting)
+        if step <= JUMP_M:
+            continue
+        lost = next((j for j in range(k, len(rows)) if rows[j].event in ("lost", "reset")), None)
+        fix = None
+        if lost is not None:
+            fix = next((j for j in range(lost, len(rows)) if rows[j].how == "fix"), None)
+        out.append((
+            None if lost is None else lost - k,
+            None if lost is None else rows[lost].time_s - b.time_s,
+            None if fix is None else fix - k,
+            None if fix is None else rows[fix].time_s - b.time_s,
+        ))  # fmt: skip
     return tuple(out)
 
 

@@ -160,3 +160,25 @@ def test_odometry_choices_and_bad_arguments() -> None:
         follow_drive(no_poses, svc, odometry="poses")
     with pytest.raises(InputError, match="no rows"):
         summarise_follow([], 1.0)
+
+
+def test_a_jump_of_the_truth_is_timed_to_lost_and_to_the_next_fix() -> None:
+    from pnvlad_service.localization.follow import FollowRow
+
+    rows = []
+    for i in range(12):
+        jumped = 400.0 if i >= 5 else 0.0
+        r = FollowRow(i, i * 100_000, i * 0.1, true_northing=5735000.0 + i + jumped,
+                      true_easting=620000.0)  # fmt: skip
+        r.state, r.how = ("tracking", "registered") if i < 7 else ("searching", None)
+        r.verified = i < 7
+        rows.append(r)
+    rows[7].event, rows[7].state = "lost", "lost"
+    rows[7].verified = False
+    rows[10].how, rows[10].event, rows[10].state = "fix", "relocalised", "tracking"
+    rows[10].verified = True
+    s = summarise_follow(rows, 1.0)
+    assert s.jumps == ((2, pytest.approx(0.2), 5, pytest.approx(0.5)),)
+    assert "the truth jumped: lost 2 scans (0.2 s) after it, a fix 5 scans (0.5 s) after it" in (
+        s.line()
+    )
