@@ -118,7 +118,7 @@ class PriorConfig:
     from the prior: no yaw search). The defaults are measured (docs/TRACKING.md).
     """
 
-    max_submaps: int = 6
+    max_submaps: int = 4
     same_run: bool = True
     min_fitness: float = 0.4
     max_sigma_m: float | None = 1.0
