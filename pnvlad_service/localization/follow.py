@@ -216,7 +216,7 @@ def follow_drive(
             row.pose_northing = float(step.pose[1, 3])
             row.pose_easting = float(step.pose[0, 3])
             row.pose_yaw_deg = yaw_of(step.pose)
-        if truth is not None:
+        if truth is not None and np.isfinite(truth[i]).all():  # NaN: no truth for this scan
             _errors(row, step.pose, truth[i], truth_of_map)
             row.driven_m = float(driven[i]) if driven is not None else None
             if positions is not None:
@@ -231,7 +231,9 @@ def follow_drive(
 
 
 def _driven(xyz: np.ndarray) -> np.ndarray:
-    return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xyz[:, :2], axis=0), axis=1))]
+    """Metres driven to each pose (a step to or from a pose without truth counts 0)."""
+    steps = np.linalg.norm(np.diff(xyz[:, :2], axis=0), axis=1)
+    return np.r_[0.0, np.cumsum(np.nan_to_num(steps, nan=0.0))]
 
 
 def _errors(

@@ -45,6 +45,7 @@ from pnvlad_service.localization.batching import Batching, BatchResult, MicroBat
 from pnvlad_service.localization.calibration import CALIBRATION_FILE, read_calibration
 from pnvlad_service.localization.limits import Limits, query_kind
 from pnvlad_service.localization.prior import (
+    NEAR_CACHE_ENTRIES,
     MapPositions,
     PositionsOnce,
     Prior,
@@ -399,6 +400,8 @@ class Localizer:
         self._positions = PositionsOnce(lambda: MapPositions.of_metadata(bundle.metadata))
         # Candidates' prepared clouds by bundle row (consecutive queries share candidates).
         self._prepared = PreparedCache(self.verify_config.cache_entries)
+        # Targets near priors (entries laid together), by their rows: a few of the latest.
+        self._near = PreparedCache(NEAR_CACHE_ENTRIES if self.verify_config.cache_entries else 0)
         # Verifications in flight: with another one, or the encoder busy, small_gicp runs on
         # VerifyConfig.crowded_threads (the cores are taken).
         self._verifying = 0
@@ -698,7 +701,7 @@ class Localizer:
                         "the verification process died; this query is registered in the "
                         "server's process, the next one starts a new child"
                     )
-            return register_near(query, geometry, nearby, prior, config, cache=self._prepared)
+            return register_near(query, geometry, nearby, prior, config, cache=self._near)
         finally:
             with self._verifying_lock:
                 self._verifying -= 1

@@ -39,6 +39,11 @@ import numpy as np
 from pnvlad_service.localization import registration as reg
 from pnvlad_service.localization.verify import Candidate, Check, Pose, QueryCloud
 
+#: Prepared targets near priors a localiser keeps (apart from verification's cache of single
+#: candidates): a tracked robot's target changes every few metres and is not asked for again
+#: once passed, so a few suffice; each holds up to ``max_submaps`` entries' points, prepared.
+NEAR_CACHE_ENTRIES = 16
+
 #: Radius a prior request searches when it gives none, metres (docs/TRACKING.md: the map's
 #: keyframes are 5 m apart and a scan keeps 50 m; 20 m holds the 4-8 nearest of one drive).
 DEFAULT_RADIUS_M = 20.0

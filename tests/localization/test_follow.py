@@ -182,3 +182,13 @@ def test_a_jump_of_the_truth_is_timed_to_lost_and_to_the_next_fix() -> None:
     assert "the truth jumped: lost 2 scans (0.2 s) after it, a fix 5 scans (0.5 s) after it" in (
         s.line()
     )
+
+
+def test_a_scan_without_truth_has_no_errors_and_the_distance_goes_on() -> None:
+    truth = true_poses()
+    truth[10] = np.nan  # the truth topic had no pose for scan 10
+    rows = follow_drive(StandInDrive(), Service(right={2, 3}), truth=truth, progress=False)
+    assert rows[10].true_northing is None and rows[10].pose_error_m is None
+    assert rows[9].pose_error_m is not None and rows[11].pose_error_m is not None
+    driven = [r.driven_m for r in rows if r.driven_m is not None]
+    assert len(driven) == N - 1 and all(np.isfinite(driven)) and driven == sorted(driven)
