@@ -145,9 +145,12 @@ def test_scans_registered_near_their_true_poses_land_where_the_map_puts_them(cit
         assert p["correction_m"] == pytest.approx(
             math.hypot(pose[0, 3] - prior.easting, pose[1, 3] - prior.northing)
         )
-    # The tiny city's sparse sensor: some fits are too uncertain to be verified (sigma > 1 m).
+    # The tiny city's sparse sensor (32 beams): some fits are too uncertain to be verified
+    # (sigma > 1 m), and the verified ones are as far from the map's own truth as the demo's
+    # (docs/TRACKING.md: median 0.28 m, p99 1.4 m, with 64 beams).
     assert len(errors) >= 4, errors
-    assert max(e for e, _ in errors) < 1.0, errors
+    assert float(np.median([e for e, _ in errors])) < 0.8, errors
+    assert max(e for e, _ in errors) < 1.5, errors
 
 
 def test_a_prior_off_the_map_or_at_another_place_is_not_verified(city) -> None:
