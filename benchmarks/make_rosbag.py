@@ -2,6 +2,8 @@
 
 Usage: python benchmarks/make_rosbag.py --out city.bag [--preset demo] [--area 0] [--run 0]
        [--seed 0] [--storage sqlite3|mcap] [--max-scans N] [--tf]
+       [--off-map METRES [--back METRES]] [--kidnap AT_S:GAP_S [--hide-gap]]
+       [--beams N --columns N]
 
 Rebuilds one run of ``pnvlad synth`` (:func:`pnvlad_service.synth.generate.simulated_drive`:
 same city, route and seed as the tree ``pnvlad synth --preset PRESET --seed SEED`` writes)
@@ -10,6 +12,15 @@ and writes it as a bag: ``/points`` (sensor_msgs/PointCloud2, float32 x, y, z, f
 ``odom`` frame whose origin is the area's UTM origin), ``/ground_truth`` (Odometry: the true
 poses) and, with ``--tf``, ``/tf`` (odom <- lidar). A path ending in ``.bag`` is a ROS 1 bag,
 anything else a ROS 2 bag folder. It prints the commands that read the bag back.
+
+Drives that test a localiser (:mod:`pnvlad_service.synth.excursions`): ``--off-map METRES``
+drives the run's route, METRES further through streets the route never takes (off a map made
+of the area's runs), turns and comes back onto the route for ``--back`` metres (default 200);
+``--kidnap AT_S:GAP_S`` drops the scans of GAP_S seconds from AT_S on (the robot carried
+elsewhere: ``/odom`` goes on from where it was, ``/ground_truth`` jumps; ``--hide-gap``: the
+clock does not jump either). ``--beams`` / ``--columns`` cast the scans with another sensor
+(64 x 2,600 rays give about 120,000 points, a KITTI HDL-64E scan's count; the presets cast a
+few thousand).
 """
 
 from __future__ import annotations
@@ -62,6 +73,33 @@ def main() -> None:
     parser.add_argument("--storage", choices=["sqlite3", "mcap"], default="sqlite3")
     parser.add_argument("--max-scans", type=int, default=0, help="only the first N (0: all)")
     parser.add_argument("--tf", action="store_true", help="also write the poses on /tf")
+    parser.add_argument(
+        "--off-map",
+        type=float,
+        default=0.0,
+        metavar="METRES",
+        help="drive this far beyond the route's end (off the map) and back",
+    )
+    parser.add_argument(
+        "--back",
+        type=float,
+        default=200.0,
+        metavar="METRES",
+        help="with --off-map: metres driven back along the route",
+    )
+    parser.add_argument(
+        "--kidnap",
+        default=None,
+        metavar="AT_S:GAP_S",
+        help="drop GAP_S seconds of scans from AT_S on (a kidnapped robot)",
+    )
+    parser.add_argument(
+        "--hide-gap",
+        action="store_true",
+        help="with --kidnap: the clock does not jump over the gap either",
+    )
+    parser.add_argument("--beams", type=int, default=0, help="cast with this many beams")
+    parser.add_argument("--columns", type=int, default=0, help="... and columns (rays a turn)")
     args = parser.parse_args()
     require("rosbags", "rosbags", "rosbag", "Writing ROS bags")  # before minutes of simulation
 
@@ -69,12 +107,33 @@ def main() -> None:
     from pnvlad_service.synth.generate import get_preset, simulated_drive
 
     spec = get_preset(args.preset)
-    drive = simulated_drive(spec, args.area, args.run, args.seed)
+    dense = {k: v for k, v in (("beams", args.beams), ("columns", args.columns)) if v}
+    if dense:
+        spec = spec.model_copy(update={"lidar": spec.lidar.model_copy(update=dense)})
+    if args.off_map:
+        from pnvlad_service.synth.excursions import off_map_drive
+
+        drive = off_map_drive(spec, args.area, args.run, args.seed, args.off_map, args.back)
+    else:
+        drive = simulated_drive(spec, args.area, args.run, args.seed)
     truth = true_poses(drive)
+    if args.kidnap:
+        from pnvlad_service.synth.excursions import Kidnapped
+
+        at_s, gap_s = (float(v) for v in args.kidnap.split(":"))
+        drive = Kidnapped(drive, at_s, gap_s, hide_gap=args.hide_gap)
+        truth = drive.true_poses
+        print(
+            f"kidnapped: scans {drive.gap_index - 1} and {drive.gap_index} of the bag are "
+            f"{gap_s:g} s of driving apart"
+        )
     if args.max_scans:
         drive = FirstScans(drive, args.max_scans)
         truth = truth[: len(drive)]
-    east, north = (float(v) for v in getattr(drive, "drive", drive).world.origin)
+    inner = drive
+    while not hasattr(inner, "world"):
+        inner = inner.drive
+    east, north = (float(v) for v in inner.world.origin)
     started = time.perf_counter()
     write_drive_bag(
         drive,
@@ -100,6 +159,10 @@ def main() -> None:
     print(
         f"  pnvlad data prepare --rosbag {args.out} --cloud-topic /points --pose-topic /odom "
         f"--origin {north:.3f},{east:.3f} --out bench/city/{drive.name}"
+    )
+    print(
+        f"  pnvlad localize --rosbag {args.out} --cloud-topic /points --pose-topic /odom "
+        f"--truth-topic /ground_truth --origin {north:.3f},{east:.3f} --index MAP"
     )
 
 

@@ -1,14 +1,18 @@
-"""Every run of a `pnvlad synth` tree replayed as a ROS bag against a map of the others (#34).
+"""Every run of a `pnvlad synth` tree followed as a ROS bag against a map of the others (#34, #36).
 
 For each run of each area (or those named): a keyframe bundle of the area's other runs
 (``pnvlad index build --layout keyframe``, cached under OUT/maps), the run written as a ROS 2
-bag holding every ``--every``-th scan (``/points``, and the true poses on ``/ground_truth``, as
-``benchmarks/make_rosbag.py`` writes them), then ``pnvlad localize --rosbag BAG --index MAP``
-(the replay CLI, in this process) asks with each scan as a raw single scan. Prints one row a run
-(the share of answers within 25 m, verified, the median error of the verified poses and the
-verified poses more than 5 m off) and the totals; the CSVs and PNGs stay in OUT/replays.
+bag of every scan (``--every``) with its GNSS/INS poses on ``/odom`` and the simulator's truth
+on ``/ground_truth``, as ``benchmarks/make_rosbag.py`` writes them, then ``pnvlad localize
+--rosbag BAG --pose-topic /odom --truth-topic /ground_truth --index MAP`` (the command, in this
+process) follows it: searching until a fix agrees with the odometry, then tracking. Prints one
+row a run (its direction, the distance and time to the first fix, the share of the scans after
+it with a verified pose, the share within 1 m and 2 degrees of the truth, median and p99 pose
+errors against the truth and against the map's own truth, verified poses more than 5 m off,
+relocalisations, losses, scans a second) and the totals; the CSVs and PNGs stay in
+OUT/replays. ``--per-scan`` asks with every ``--every``-th scan alone instead (the #34 replay).
 
-    python benchmarks/replay_benchmark.py --root B --model runs/bev_scan/model --out out/replay
+    python benchmarks/replay_benchmark.py --root B --model runs/bev_scan/model --out out/follow
 """
 
 from __future__ import annotations
@@ -42,35 +46,72 @@ class EveryNth:
         return self.drive.scan(int(self.index[i]))
 
 
-def replay_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
-    """Bundle, bag and replay of one run; its figures."""
-    from typer.testing import CliRunner
-
-    from pnvlad_cli.main import app
-    from pnvlad_service.data.sources.rosbag_write import write_drive_bag
+def map_of(root: Path, model: Path, out: Path, area: str, name: str) -> Path:
+    """The keyframe bundle of the area's runs but ``name`` (built once)."""
     from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.index.build import build_bundle
+
+    bundle = out / "maps" / area / f"{name}.index"
+    if not (bundle / "manifest.json").is_file():
+        others = [r for r in BenchmarkTree(root).runs(area) if r != name]
+        build_bundle(bundle, model, root, datasets=[area], runs=others, layout="keyframe",
+                     progress=False)  # fmt: skip
+    return bundle
+
+
+def bag_of(root: Path, out: Path, area: str, name: str, every: int) -> tuple[Path, str, object]:
+    """The run as a ROS 2 bag (written once), the --origin of its pose frame, the drive."""
+    from pnvlad_service.data.sources.rosbag_write import write_drive_bag
     from pnvlad_service.synth.generate import simulated_drive
     from pnvlad_service.synth.windows import drives_of
 
-    tree = BenchmarkTree(root)
-    bundle = out / "maps" / area / f"{name}.index"
-    if not (bundle / "manifest.json").is_file():
-        others = [r for r in tree.runs(area) if r != name]
-        build_bundle(bundle, model, root, datasets=[area], runs=others, layout="keyframe",
-                     progress=False)  # fmt: skip
     drive = simulated_drive(*drives_of(root)[(area, name)])
     east, north = (float(v) for v in drive.world.origin)
-    bag = out / "bags" / area / name
+    bag = out / "bags" / area / f"{name}-every{every}"
     if not (bag / "metadata.yaml").is_file():
         bag.parent.mkdir(parents=True, exist_ok=True)
         sub = EveryNth(drive, every)
         write_drive_bag(sub, bag, origin_ne=(north, east), truth=sub.true, progress=False)
+    return bag, f"{north!r},{east!r}", drive
+
+
+def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
+    """Map, bag and the followed drive of one run; its figures."""
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+    from pnvlad_service.localization.follow import read_follow_csv, summarise_follow
+
+    bundle = map_of(root, model, out, area, name)
+    bag, origin, drive = bag_of(root, out, area, name, every)
     dest = out / "replays" / area / name
     dest.parent.mkdir(parents=True, exist_ok=True)
+    args = ["localize", "--rosbag", str(bag), "--cloud-topic", "/points", "--pose-topic", "/odom",
+            "--truth-topic", "/ground_truth", "--origin", origin, "--index", str(bundle),
+            "-m", str(model), "--out", str(dest), "--no-progress"]  # fmt: skip
     t0 = time.perf_counter()
-    args = ["localize", "--rosbag", str(bag), "--cloud-topic", "/points",
-            "--pose-topic", "/ground_truth", "--origin", f"{north!r},{east!r}", "--every", "1",
+    res = CliRunner().invoke(app, args)
+    if res.exit_code != 0:
+        raise SystemExit(f"following {area}/{name} failed:\n{res.output}")
+    wall = time.perf_counter() - t0
+    s = summarise_follow(read_follow_csv(f"{dest}.csv"), wall)
+    return {"area": area, "run": name, "reverse": bool(drive.reverse), "summary": s,
+            "line": res.stdout.strip().splitlines()[-1]}  # fmt: skip
+
+
+def per_scan_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
+    """The #34 replay of one run: every ``every``-th scan asked alone."""
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    bundle = map_of(root, model, out, area, name)
+    bag, origin, _ = bag_of(root, out, area, name, every)
+    dest = out / "replays" / area / f"{name}.per-scan"
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    args = ["localize", "--rosbag", str(bag), "--cloud-topic", "/points", "--per-scan",
+            "--pose-topic", "/ground_truth", "--origin", origin, "--every", "1",
             "--index", str(bundle), "-m", str(model), "--out", str(dest),
             "--no-progress"]  # fmt: skip
     res = CliRunner().invoke(app, args)
@@ -90,9 +131,32 @@ def replay_run(root: Path, model: Path, out: Path, area: str, name: str, every: 
         "verified": len(ver),
         "median_pose_m": float(np.median(pose_err)) if len(pose_err) else float("nan"),
         "wrong_verified": int((pose_err > 5.0).sum()),
-        "median_error_m": float(np.median(errors)) if len(errors) else float("nan"),
         "seconds": seconds,
     }
+
+
+def _f(value: float | None, fmt: str) -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+HEADER = (
+    f"{'area':<12} {'run':<19} {'dir':<4} {'scans':>5} {'fix m':>6} {'fix s':>5} "
+    f"{'verified':>8} {'1m/2deg':>7} {'med m':>6} {'p99 m':>6} {'map med':>7} {'map p99':>7} "
+    f"{'>5 m':>4} {'reloc':>5} {'lost':>4} {'scan/s':>6}"
+)
+
+
+def row_line(f: dict) -> str:
+    s = f["summary"]
+    return (
+        f"{f['area']:<12} {f['run']:<19} {'rev' if f['reverse'] else 'fwd':<4} {s.scans:>5} "
+        f"{_f(s.first_fix_m, '.1f'):>6} {_f(s.first_fix_s, '.1f'):>5} "
+        f"{_f(None if s.verified_share is None else 100 * s.verified_share, '.1f'):>8} "
+        f"{_f(None if s.good_share is None else 100 * s.good_share, '.1f'):>7} "
+        f"{_f(s.median_error_m, '.2f'):>6} {_f(s.p99_error_m, '.2f'):>6} "
+        f"{_f(s.median_map_error_m, '.2f'):>7} {_f(s.p99_map_error_m, '.2f'):>7} "
+        f"{_f(s.wrong, 'd'):>4} {s.relocalisations:>5} {s.lost:>4} {s.scans_per_s:>6.1f}"
+    )
 
 
 def main() -> int:
@@ -100,7 +164,13 @@ def main() -> int:
     ap.add_argument("--root", type=Path, required=True, help="a pnvlad synth tree")
     ap.add_argument("--model", type=Path, required=True, help="a single-scan model")
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--every", type=int, default=10, help="every Nth scan of a run (default 10)")
+    ap.add_argument(
+        "--every",
+        type=int,
+        default=None,
+        help="every Nth scan of a run (default: every scan; 10 with --per-scan)",
+    )
+    ap.add_argument("--per-scan", action="store_true", help="ask with each scan alone (#34)")
     ap.add_argument("--area", action="append", help="only this area (repeatable)")
     ap.add_argument("--run", action="append", help="only this run (repeatable)")
     args = ap.parse_args()
@@ -108,20 +178,47 @@ def main() -> int:
 
     from pnvlad_service.data.tree import BenchmarkTree
 
+    every = args.every or (10 if args.per_scan else 1)
     tree = BenchmarkTree(args.root)
+    names = [(a, n) for a in args.area or tree.datasets for n in tree.runs(a)
+             if not args.run or n in args.run]  # fmt: skip
+    if args.per_scan:
+        return per_scan(args, names, every)
+    print(HEADER, flush=True)
     figures = []
-    for area in args.area or tree.datasets:
-        for name in tree.runs(area):
-            if args.run and name not in args.run:
-                continue
-            f = replay_run(args.root, args.model, args.out, area, name, args.every)
-            figures.append(f)
-            print(
-                f"{area:<12} {name}  {f['within']:3d}/{f['queries']:3d} within 25 m, "
-                f"{f['verified']:3d} verified, verified poses {f['median_pose_m']:.2f} m "
-                f"(median), {f['wrong_verified']} more than 5 m off; {f['seconds']:.0f} s",
-                flush=True,
-            )
+    for area, name in names:
+        f = follow_run(args.root, args.model, args.out, area, name, every)
+        figures.append(f)
+        print(row_line(f), flush=True)
+    runs = [f["summary"] for f in figures]
+    fixed = [s for s in runs if s.first_fix_scan is not None]
+    after = sum(round(s.verified_share * (s.scans - s.first_fix_scan // every)) for s in fixed)
+    scans_after = sum(s.scans - s.first_fix_scan // every for s in fixed)
+    good = sum(round((s.good_share or 0) * (s.scans - s.first_fix_scan // every)) for s in fixed)
+    print(
+        f"all {len(runs)} runs: {len(fixed)} with a fix, the farthest first fix "
+        f"{max((s.first_fix_m or 0.0) for s in fixed) if fixed else float('nan'):.1f} m; "
+        f"{100 * after / max(scans_after, 1):.1f} % of the {scans_after} scans after the fixes "
+        f"verified, {100 * good / max(scans_after, 1):.1f} % within 1 m and 2 deg; "
+        f"{sum(s.wrong or 0 for s in runs)} verified poses more than 5 m off; worst p99 error "
+        f"{max((s.p99_error_m or 0.0) for s in runs):.2f} m; "
+        f"{sum(s.relocalisations for s in runs)} relocalisations, {sum(s.lost for s in runs)} "
+        "losses"
+    )
+    return 0
+
+
+def per_scan(args: argparse.Namespace, names: list[tuple[str, str]], every: int) -> int:
+    figures = []
+    for area, name in names:
+        f = per_scan_run(args.root, args.model, args.out, area, name, every)
+        figures.append(f)
+        print(
+            f"{area:<12} {name}  {f['within']:3d}/{f['queries']:3d} within 25 m, "
+            f"{f['verified']:3d} verified, verified poses {f['median_pose_m']:.2f} m "
+            f"(median), {f['wrong_verified']} more than 5 m off; {f['seconds']:.0f} s",
+            flush=True,
+        )
     q = sum(f["queries"] for f in figures)
     within = sum(f["within"] for f in figures)
     ver = sum(f["verified"] for f in figures)

@@ -1,10 +1,13 @@
-"""`pnvlad localize --rosbag`: replay a bag's scans against the service, a CSV and a PNG out.
+"""`pnvlad localize --rosbag` / `--kitti`: follow a drive against the service, a CSV and a PNG.
 
-Called by `pnvlad localize` (cli/serve.py) when ``--rosbag`` is given: every Nth scan of the
-bag's cloud topic goes as a raw-scan query (``preprocess: true``) to a server (``--url``) or to a
-bundle searched in this process (``--index``); :mod:`pnvlad_service.localization.replay` makes
-the rows, the CSV, the PNG and the summary line. Library imports happen inside the functions so
-that `pnvlad --help` stays fast.
+Called by `pnvlad localize` (cli/serve.py) when ``--rosbag`` or ``--kitti`` is given. By default
+the drive is *followed* (:mod:`pnvlad_service.localization.follow`): every scan goes to a
+:class:`~pnvlad_service.localization.tracking.DriveLocalizer` that searches until a fix is
+confirmed, then tracks (a registration near the pose its odometry predicts), and says when it
+is lost. With ``--per-scan`` every Nth scan is asked alone, as a raw-scan query
+(:mod:`pnvlad_service.localization.replay`). The service is a server (``--url``) or a bundle
+in this process (``--index``). Library imports happen inside the functions so that
+`pnvlad --help` stays fast.
 """
 
 from __future__ import annotations
@@ -34,14 +37,61 @@ YAW = typer.Option(
     rich_help_panel=PANEL,
 )
 EVERY = typer.Option(
-    None, "--every", help="With --rosbag: send every Nth scan (default 10).", rich_help_panel=PANEL
+    None,
+    "--every",
+    help="With --rosbag: use every Nth scan (default: every scan when following, 10 with "
+    "--per-scan).",
+    rich_help_panel=PANEL,
+)
+FOLLOW = typer.Option(
+    True,
+    "--follow/--per-scan",
+    help="With --rosbag or --kitti: follow the drive (search until a fix is confirmed by the "
+    "odometry, then track by registration near the prediction, say when lost; default), or "
+    "ask with every Nth scan alone.",
+    rich_help_panel=PANEL,
+)
+TRUTH_TOPIC = typer.Option(
+    None,
+    "--truth-topic",
+    help="With --rosbag: a pose topic of the drive's true poses (e.g. /ground_truth), for the "
+    "errors; default: the --pose-topic / --tf poses.",
+    rich_help_panel=PANEL,
+)
+ODOMETRY = typer.Option(
+    "auto",
+    "--odometry",
+    help="Following: the motion between scans from 'poses' (--pose-topic / --tf, or the KITTI "
+    "poses), 'kiss-icp' (LiDAR odometry on the scans, extra 'odometry') or 'none' (constant "
+    "velocity); 'auto': poses when given, else kiss-icp when installed, else none.",
+    rich_help_panel=PANEL,
+)
+RADIUS = typer.Option(
+    None,
+    "--radius",
+    help="Following: map entries within this many metres of the predicted pose are registered "
+    "to (default 20).",
+    rich_help_panel=PANEL,
+)
+CONFIRM = typer.Option(
+    None,
+    "--confirm",
+    help="Following: verified answers that must agree with the odometry before a fix is "
+    "accepted (default 2).",
+    rich_help_panel=PANEL,
+)
+FAILURES = typer.Option(
+    None,
+    "--failures",
+    help="Following: failed registrations in a row that make the localiser lost (default 3).",
+    rich_help_panel=PANEL,
 )
 OUT = typer.Option(
     None,
     "--out",
     "-o",
-    help="With --rosbag: write OUT.csv (one row a query) and OUT.png (default: the bag's "
-    "name beside it, e.g. drive.replay.csv).",
+    help="With --rosbag or --kitti: write OUT.csv (one row a scan) and OUT.png (default: the "
+    "drive's name beside it, e.g. drive.follow.csv, or drive.replay.csv with --per-scan).",
     rich_help_panel=PANEL,
 )
 MAP = typer.Option(
@@ -51,12 +101,42 @@ MAP = typer.Option(
     "the PNG (with --index the bundle is used).",
     rich_help_panel=PANEL,
 )
+KITTI = typer.Option(
+    None,
+    "--kitti",
+    help="Follow a KITTI odometry sequence folder (velodyne/*.bin, poses.txt, optional "
+    "times.txt and calib.txt) as a drive: its poses are the odometry and the truth; "
+    "--origin and --yaw place it in UTM.",
+    rich_help_panel=PANEL,
+)
 PLOT = typer.Option(
     True,
     "--plot/--no-plot",
     help="With --rosbag: write the PNG (needs the 'plot' extra).",
     rich_help_panel=PANEL,
 )
+
+
+def check_per_scan(
+    truth_topic: str | None,
+    odometry: str,
+    radius: float | None,
+    confirm: int | None,
+    failures: int | None,
+) -> None:
+    """InputError when an option of following is given with ``--per-scan``."""
+    from pnvlad_service.errors import InputError
+
+    given = {
+        "--truth-topic": truth_topic,
+        "--radius": radius,
+        "--confirm": confirm,
+        "--failures": failures,
+        "--odometry": None if odometry == "auto" else odometry,
+    }
+    for flag, value in given.items():  # fmt: skip
+        if value is not None:
+            raise InputError("applies to following a drive (not with --per-scan)", flag)
 
 
 def parse_origin(text: str | None) -> tuple[float, float]:
@@ -171,3 +251,197 @@ def replay_rosbag(
         written.append(str(png))
     typer.echo(f"wrote {', '.join(written)}")
     typer.echo(summarise(rows).line())
+
+
+@contextmanager
+def _follow_service(
+    url: str | None, index: Path | None, model: Path | None, api_key: str | None, top_n: int
+) -> Iterator[Any]:
+    """``ask(points, prior) -> answer`` (:data:`~pnvlad_service.localization.tracking.Ask`)
+    from a server or from a local bundle."""
+    from pnvlad_service.localization import tracking
+
+    if url is not None:
+        from pnvlad_service.localization.client import LocalizeClient
+
+        with LocalizeClient(url, api_key=api_key) as client:
+            yield tracking.http_ask(client, top_n)
+        return
+    from pnvlad_service.localization.localizer import Localizer
+
+    assert index is not None
+    with Localizer.load(index, model) as loc:
+        yield tracking.local_ask(loc, top_n)
+
+
+def _truth_at(
+    rosbag: Path,
+    cloud_topic: str,
+    truth_topic: str,
+    stamps: Any,
+    origin_ne: tuple[float, float],
+    yaw_deg: float,
+    max_pose_gap: float | None,
+) -> Any:
+    """float64 [T, 4, 4] of ``truth_topic`` at each of the drive's ``stamps`` (NaN where the
+    topic has no pose for that scan)."""
+    import numpy as np
+
+    truth = bag_options.open_drive(
+        rosbag, cloud_topic, truth_topic, None, origin_ne=origin_ne, yaw_deg=yaw_deg,
+        max_pose_gap=max_pose_gap,
+    )  # fmt: skip
+    try:
+        by_stamp = {int(t): p for t, p in zip(truth.timestamps, truth.poses, strict=True)}
+    finally:
+        truth.close()
+    out = np.full((len(stamps), 4, 4), np.nan)
+    for k, t in enumerate(stamps):
+        pose = by_stamp.get(int(t))
+        if pose is not None:
+            out[k] = pose
+    return out
+
+
+def _odometry_choice(choice: str, has_poses: bool) -> str:
+    """``--odometry``: ``auto`` resolved (poses, else KISS-ICP when installed, else none)."""
+    from pnvlad_service.errors import InputError
+
+    if choice not in ("auto", "poses", "kiss-icp", "none"):
+        raise InputError(f"must be auto, poses, kiss-icp or none, got {choice!r}", "--odometry")
+    if choice == "poses" and not has_poses:
+        raise InputError("the drive has no poses: give --pose-topic or --tf, or choose "
+                         "kiss-icp or none", "--odometry")  # fmt: skip
+    if choice != "auto":
+        return choice
+    if has_poses:
+        return "poses"
+    import importlib.util
+
+    return "kiss-icp" if importlib.util.find_spec("kiss_icp") is not None else "none"
+
+
+def follow(
+    *,
+    rosbag: Path | None,
+    kitti: Path | None,
+    cloud_topic: str | None,
+    pose_topic: str | None,
+    tf_frame: str | None,
+    truth_topic: str | None,
+    origin_ne: tuple[float, float],
+    yaw_deg: float,
+    max_pose_gap: float | None,
+    url: str | None,
+    index: Path | None,
+    model: Path | None,
+    api_key: str | None,
+    every: int | None,
+    out: Path | None,
+    map_bundle: Path | None,
+    plot: bool,
+    odometry: str = "auto",
+    radius: float | None = None,
+    confirm: int | None = None,
+    failures: int | None = None,
+    top_n: int = 5,
+    progress: bool = True,
+) -> None:
+    """Follow a bag's or a KITTI sequence's drive: open it, follow it, write OUT.csv and
+    OUT.png, print the summary line and the stages' times."""
+    import time
+    from dataclasses import replace
+
+    import numpy as np
+
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.localization.follow import (
+        follow_drive,
+        map_truth,
+        plot_follow,
+        stage_means,
+        summarise_follow,
+        write_follow_csv,
+    )
+    from pnvlad_service.localization.prior import MapPositions
+    from pnvlad_service.localization.tracking import TrackerConfig
+
+    every = 1 if every is None else every
+    if every < 1:
+        raise InputError(f"must be >= 1, got {every}", "--every")
+    config = TrackerConfig()
+    for flag, name, value in (("--radius", "radius_m", radius), ("--confirm", "confirm", confirm),
+                              ("--failures", "failures", failures)):  # fmt: skip
+        if value is None:
+            continue
+        try:
+            config = replace(config, **{name: value})
+        except ValueError as exc:
+            raise InputError(str(exc), flag) from None
+    if kitti is not None:
+        from pnvlad_service.data.sources.kitti import KittiSequence
+
+        if truth_topic is not None:
+            raise InputError("applies to --rosbag only (a KITTI sequence's poses are its truth)",
+                             "--truth-topic")  # fmt: skip
+        drive: Any = KittiSequence(kitti, origin_ne=origin_ne, yaw_deg=yaw_deg)
+        source = kitti
+    else:
+        assert rosbag is not None
+        source = rosbag
+        if pose_topic is None and tf_frame is None:
+            from pnvlad_service.data.sources.rosbag import RosbagClouds
+
+            if cloud_topic is None:
+                raise InputError("--rosbag needs --cloud-topic (see `pnvlad data prepare "
+                                 "--rosbag BAG --list`)", "--cloud-topic")  # fmt: skip
+            drive = RosbagClouds(rosbag, cloud_topic)
+        else:
+            drive = bag_options.open_drive(
+                rosbag, cloud_topic, pose_topic, tf_frame, origin_ne=origin_ne, yaw_deg=yaw_deg,
+                max_pose_gap=max_pose_gap,
+            )  # fmt: skip
+    try:
+        poses = getattr(drive, "poses", None)
+        how = _odometry_choice(odometry, poses is not None)
+        truth = poses
+        if truth_topic is not None:
+            assert rosbag is not None and cloud_topic is not None
+            truth = _truth_at(rosbag, cloud_topic, truth_topic, drive.timestamps, origin_ne,
+                              yaw_deg, max_pose_gap)  # fmt: skip
+        if out is None:
+            out = source.with_name(f"{drive.name}.follow")
+        bundle = index if index is not None else map_bundle
+        positions = map_ne = known = None
+        if bundle is not None:
+            from pnvlad_service.index.bundle import METADATA_FILE, Metadata
+
+            meta = Metadata.load(Path(bundle) / METADATA_FILE)
+            positions = MapPositions.of_metadata(meta)
+            map_ne = np.c_[meta.northing, meta.easting]
+            known = map_truth(bundle) if truth is not None else None
+        with _follow_service(url, index, model, api_key, top_n) as ask:
+            t0 = time.perf_counter()
+            rows = follow_drive(
+                drive, ask, every=every, odometry=how, truth=truth, config=config,  # type: ignore[arg-type]
+                positions=positions, truth_of_map=known, progress=progress,
+            )  # fmt: skip
+            wall = time.perf_counter() - t0
+    finally:
+        close = getattr(drive, "close", None)
+        if close is not None:
+            close()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    written = [str(write_follow_csv(rows, out.with_name(out.name + ".csv")))]
+    if plot:
+        png = plot_follow(rows, out.with_name(out.name + ".png"), map_ne=map_ne,
+                          title=f"{drive.name}: every scan" if every == 1 else
+                          f"{drive.name}: one scan in {every}")  # fmt: skip
+        written.append(str(png))
+    typer.echo(f"wrote {', '.join(written)}")
+    typer.echo(f"odometry: {how}")
+    for mode, means in stage_means(rows).items():
+        parts = ", ".join(f"{k} {v:.1f}" for k, v in means.items() if k != "scans")
+        what = "searching" if mode == "search" else "tracking"
+        typer.echo(f"stages, {what} ({int(means['scans'])} scans), mean ms: {parts}")
+    typer.echo(summarise_follow(rows, wall).line())

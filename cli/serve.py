@@ -272,12 +272,19 @@ def localize(
         None, "--api-key", envvar="PNVLAD_API_KEY", help="Bearer token of the server."
     ),
     rosbag: Path = bag_options.ROSBAG,
+    kitti: Path = replay_options.KITTI,
     cloud_topic: str = bag_options.CLOUD_TOPIC,
     pose_topic: str = bag_options.POSE_TOPIC,
     tf_frame: str = bag_options.TF_FRAME,
+    truth_topic: str = replay_options.TRUTH_TOPIC,
     max_pose_gap: float = bag_options.MAX_POSE_GAP,
     origin: str = replay_options.ORIGIN,
     yaw: float = replay_options.YAW,
+    follow: bool = replay_options.FOLLOW,
+    odometry: str = replay_options.ODOMETRY,
+    radius: float = replay_options.RADIUS,
+    confirm: int = replay_options.CONFIRM,
+    failures: int = replay_options.FAILURES,
     every: int = replay_options.EVERY,
     out: Path = replay_options.OUT,
     map_bundle: Path = replay_options.MAP,
@@ -292,9 +299,13 @@ def localize(
     re-ranked: the table gives each one's score, then whether the best is verified and the
     scan's pose on the map (for a raw scan, the sensor's).
 
-    With --rosbag, replays a bag instead: every Nth scan of --cloud-topic goes as a raw scan
-    and the answers are written to OUT.csv and OUT.png (the map, the answers, and with
-    --pose-topic or --tf the bag's own trajectory and each answer's error), then a summary line.
+    With --rosbag (or --kitti, a KITTI sequence folder), follows a drive instead: every scan of
+    --cloud-topic goes to a drive localiser that searches until a fix agrees with the odometry
+    (--pose-topic / --tf, else KISS-ICP), then tracks it by registering each scan near the
+    predicted pose, and says when it is lost; OUT.csv gets each scan's state, pose and (with
+    --truth-topic, or the poses) its error, OUT.png the track coloured by state beside the
+    truth, and a summary line the time to the first fix, the share verified, the errors and
+    the speed. --per-scan asks with every Nth scan alone instead.
 
     Examples:
 
@@ -303,7 +314,10 @@ def localize(
       pnvlad localize scan.bin --reader kitti --preprocess --index map.index --json
 
       pnvlad localize --rosbag drive.bag --cloud-topic /points --pose-topic /odom
-      --origin 5735712.8,620084.4 --url http://127.0.0.1:8000 --out replay/drive
+      --truth-topic /ground_truth --origin 5735712.8,620084.4 --url http://127.0.0.1:8000
+      --map map.index --out follow/drive
+
+      pnvlad localize --kitti sequences/00 --index map.index --out follow/kitti00
     """
     from pnvlad_service.errors import InputError
     from pnvlad_service.io.readers import read_points
@@ -313,14 +327,50 @@ def localize(
             raise InputError("give exactly one of --url and --index", "--url")
         bag = {"cloud_topic": cloud_topic, "pose_topic": pose_topic, "tf_frame": tf_frame}
         bag |= {"max_pose_gap": max_pose_gap, "origin": origin, "every": every, "out": out}
-        bag |= {"map": map_bundle}
+        bag |= {"map": map_bundle, "truth_topic": truth_topic, "radius": radius}
+        bag |= {"confirm": confirm, "failures": failures}
+        if rosbag is not None and kitti is not None:
+            raise InputError("give --rosbag or --kitti, not both", "--kitti")
+        if (rosbag is not None or kitti is not None) and (
+            scan is not None or reader is not None or preprocess or as_json
+        ):
+            raise InputError(
+                "a scan file, --reader, --preprocess and --json do not go with --rosbag or "
+                "--kitti (their scans are raw: they are always preprocessed)",
+                "--kitti" if kitti is not None else "--rosbag",
+            )
+        if kitti is not None or (rosbag is not None and follow):
+            if kitti is not None:
+                bag_options.check_unused(None, cloud_topic=cloud_topic, pose_topic=pose_topic,
+                                         tf_frame=tf_frame)  # fmt: skip
+            replay_options.follow(
+                rosbag=rosbag,
+                kitti=kitti,
+                cloud_topic=cloud_topic,
+                pose_topic=pose_topic,
+                tf_frame=tf_frame,
+                truth_topic=truth_topic,
+                origin_ne=replay_options.parse_origin(origin),
+                yaw_deg=yaw,
+                max_pose_gap=max_pose_gap,
+                url=url,
+                index=index,
+                model=model,
+                api_key=api_key,
+                every=every,
+                out=out,
+                map_bundle=map_bundle,
+                plot=plot,
+                odometry=odometry,
+                radius=radius,
+                confirm=confirm,
+                failures=failures,
+                top_n=top_n,
+                progress=progress,
+            )
+            return
         if rosbag is not None:
-            if scan is not None or reader is not None or preprocess or as_json:
-                raise InputError(
-                    "a scan file, --reader, --preprocess and --json do not go with --rosbag "
-                    "(its scans are raw: they are always preprocessed)",
-                    "--rosbag",
-                )
+            replay_options.check_per_scan(truth_topic, odometry, radius, confirm, failures)
             replay_options.replay_rosbag(
                 rosbag=rosbag,
                 cloud_topic=cloud_topic,

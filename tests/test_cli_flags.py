@@ -47,6 +47,7 @@ LONG = {
     "pnvlad data splits",
     "pnvlad data export-pickles",
     "pnvlad data prepare",
+    "pnvlad data import",
     "pnvlad synth",
     "pnvlad train",
     "pnvlad eval",

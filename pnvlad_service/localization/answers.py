@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from pnvlad_service.index.bundle import Match
+from pnvlad_service.localization.prior import PriorFit
 from pnvlad_service.localization.verify import Verification
 
 
@@ -71,6 +72,11 @@ class Answer:
     together with this one. ``query_kind``: what was asked with (a preprocessed ``submap``, a
     raw ``scan`` or an accumulated ``window``); ``map_kind``: what every match is (a
     ``submap`` or a ``keyframe``).
+
+    With ``prior`` (a query that said where it is: :meth:`Localizer.localize` with ``prior``)
+    nothing was embedded: the matches are the map entries near the prior that the scan was
+    registered to, nearest first (the anchor of the pose first), and ``prior`` is that
+    registration (:class:`~.prior.PriorFit`).
     """
 
     matches: tuple[Match, ...]
@@ -80,13 +86,23 @@ class Answer:
     retrieval_ranks: tuple[int, ...] = ()
     query_kind: str = "submap"
     map_kind: str = "submap"
+    prior: PriorFit | None = None
 
     @property
     def verified(self) -> bool | None:
         """Whether the best match is verified; ``None`` when verification did not run."""
+        if self.prior is not None:
+            return self.prior.verified
         return None if self.verification is None else self.verification.verified
 
+    @property
+    def mode(self) -> str:
+        """``search`` (retrieval, then verification) or ``prior`` (registration near a prior)."""
+        return "search" if self.prior is None else "prior"
+
     def to_json(self) -> dict[str, Any]:
+        if self.prior is not None:
+            return self._prior_json(self.prior)
         v = self.verification
         scores = {} if v is None else {c.rank: c.score for c in v.checks}
         ranks = self.retrieval_ranks or tuple(m.rank for m in self.matches)
@@ -97,12 +113,65 @@ class Answer:
             ],
             "query_kind": self.query_kind,
             "map_kind": self.map_kind,
+            "mode": self.mode,
             "verified": self.verified,
-            "pose": None if v is None or v.pose is None else v.pose.to_json(),
+            "pose": None if v is None or v.pose is None else pose_json(v.pose),
             "verification": None if v is None else verification_json(v),
+            "prior": None,
             "batch_size": self.batch_size,
             "timings_ms": self.timings.to_json(),
         }
+
+
+    def _prior_json(self, fit: PriorFit) -> dict[str, Any]:
+        def score(m: Match) -> float | None:  # the fit is the anchor's (rank 1)
+            return fit.fitness if m.rank == 1 and fit.pose is not None else None
+
+        return {
+            "matches": [{**match_json(m, score(m)), "kind": self.map_kind} for m in self.matches],
+            "query_kind": self.query_kind,
+            "map_kind": self.map_kind,
+            "mode": self.mode,
+            "verified": fit.verified,
+            "pose": pose_json(fit.pose, fit) if fit.verified and fit.pose is not None else None,
+            "verification": {
+                "candidates": len(fit.rows),
+                "registered": len(fit.rows) if fit.pose is not None else 0,
+                "threshold": fit.threshold,
+                "best_score": fit.fitness,
+                "confidence": fit.fitness if fit.verified else 0.0,
+                "reason": fit.reason,
+            },
+            "prior": prior_json(fit),
+            "batch_size": self.batch_size,
+            "timings_ms": self.timings.to_json(),
+        }
+
+
+def pose_json(pose: Any, fit: PriorFit | None = None) -> dict[str, Any]:
+    """A verified pose as the answer has it; a pose registered near a prior adds its
+    ``covariance`` (6 x 6: x, y, z, then rotations about them; metres and radians, UTM axes)
+    and ``sigma_m`` (its largest horizontal standard deviation)."""
+    cov = None if fit is None or fit.covariance is None else fit.covariance
+    return {
+        **pose.to_json(),
+        "covariance": None if cov is None else [[float(v) for v in row] for row in cov],
+        "sigma_m": None if fit is None else fit.sigma_m,
+    }
+
+
+def prior_json(fit: PriorFit) -> dict[str, Any]:
+    """What a prior answer says of its registration besides ``verified`` and ``pose``."""
+    return {
+        **fit.prior.to_json(),
+        "submaps": len(fit.rows),
+        "fitness": fit.fitness,
+        "uncertain": fit.uncertain,
+        "constraint": fit.constraint,
+        "sigma_m": fit.sigma_m,
+        "correction_m": fit.correction_m,
+        "correction_yaw_deg": fit.correction_yaw_deg,
+    }
 
 
 def verification_json(v: Verification) -> dict[str, Any]:

@@ -78,17 +78,32 @@ class LocalizeClient:
         verify: bool | None = None,
         scale: float | None = None,
         kind: str | None = None,
+        prior: Any = None,
     ) -> dict[str, Any]:
         """The server's answer for one cloud float [N, 3] (a raw scan with ``preprocess``):
-        ``{"matches": [...], "query_kind", "map_kind", "verified", "pose", "verification",
-        "batch_size", "timings_ms", "model", "index"}``. ``verify``: ask for (true) or skip
-        (false) the verification (default: the server's); ``scale``: metres per unit of a
-        preprocessed cloud; ``kind``: ``submap``, ``scan`` or ``window`` (a scan or window is
-        raw: ``preprocess`` need not be said)."""
+        ``{"matches": [...], "query_kind", "map_kind", "mode", "verified", "pose",
+        "verification", "prior", "batch_size", "timings_ms", "model", "index"}``. ``verify``:
+        ask for (true) or skip (false) the verification (default: the server's); ``scale``:
+        metres per unit of a preprocessed cloud; ``kind``: ``submap``, ``scan`` or ``window`` (a
+        scan or window is raw: ``preprocess`` need not be said). ``prior``: where the raw
+        scan's sensor is thought to be (a :class:`~.prior.Prior`, or a mapping with its
+        ``northing``, ``easting``, ``yaw_deg`` and optional ``height``, ``radius_m`` and
+        ``run``): the
+        server registers the scan to its map near there instead of searching (``mode``
+        ``prior``); the scan is then sent raw."""
         arr = np.asarray(points)
         dtype = "float64" if arr.dtype == np.float64 else "float32"
         body = np.ascontiguousarray(arr, dtype="<f8" if dtype == "float64" else "<f4")
         params: dict[str, Any] = {"top_n": top_n, "dtype": dtype}
+        if prior is not None:
+            values = prior.to_json() if hasattr(prior, "to_json") else dict(prior)
+            for name, value in values.items():
+                if value is not None:
+                    text = value if isinstance(value, str) else repr(float(value))
+                    params[f"prior_{name}"] = text
+            if kind is None:
+                kind = "scan"
+            preprocess = False  # said by the kind
         if kind is None or preprocess:
             params["preprocess"] = str(preprocess).lower()
         if kind is not None:

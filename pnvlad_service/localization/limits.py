@@ -12,12 +12,18 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_POINTS
+
+if TYPE_CHECKING:
+    from pnvlad_service.localization.prior import Prior
+
+#: Longest ``run`` (dataset/run of the map) a prior may name.
+MAX_RUN_CHARS = 256
 
 #: Slack on the submap bound: normalised clouds written by other tools round a little past it.
 BOUND_SLACK = 1e-4
@@ -48,15 +54,95 @@ class Limits:
     min_raw_points: int = 1
     #: Largest ``scale`` (metres per normalised unit) a preprocessed query may give.
     max_scale: float = 1000.0
+    #: Largest radius a prior pose may ask the map to be searched within, metres
+    #: (``PNVLAD_MAX_PRIOR_RADIUS``): the entries within it are registered to the scan.
+    max_prior_radius_m: float = 100.0
+    #: Radius of a prior that gives none, metres (``PNVLAD_PRIOR_RADIUS``; docs/TRACKING.md).
+    default_prior_radius_m: float = 20.0
+    #: Largest |northing| or |easting| of a prior, metres: beyond any UTM coordinate, and it
+    #: keeps overflowing values away from the range search.
+    max_prior_coord: float = 1e8
 
-    def to_json(self) -> dict[str, int]:
-        """The configurable counts and the cloud size, as ``GET /info`` reports them."""
+    def to_json(self) -> dict[str, float]:
+        """The configurable counts, the cloud size and the prior's radii, as ``GET /info``
+        reports them."""
         return {
             "max_raw_points": self.max_raw_points,
             "max_top_n": self.max_top_n,
             "max_batch_queries": self.max_batch_queries,
             "points_per_cloud": self.points_per_cloud,
+            "max_prior_radius_m": self.max_prior_radius_m,
+            "default_prior_radius_m": self.default_prior_radius_m,
         }
+
+    def check_radius(self, radius: Any, field: str = "prior.radius_m") -> float:
+        """A prior's search radius as a float in (0, max_prior_radius_m] (``None``: the
+        default); :class:`InputError` naming ``field`` else."""
+        if radius is None:
+            return self.default_prior_radius_m
+        if isinstance(radius, bool) or not isinstance(radius, int | float):
+            raise InputError(f"expected a number, got {show_value(radius)}", field)
+        if not (math.isfinite(radius) and 0.0 < radius <= self.max_prior_radius_m):
+            raise InputError(
+                f"must be > 0 and <= {self.max_prior_radius_m:g} metres, got {radius}", field
+            )
+        return float(radius)
+
+    def check_prior(
+        self,
+        northing: Any = None,
+        easting: Any = None,
+        yaw_deg: Any = None,
+        height: Any = None,
+        radius_m: Any = None,
+        run: Any = None,
+        field: str = "prior",
+        sep: str = ".",
+    ) -> Prior:
+        """A prior pose (UTM metres, degrees) as a :class:`~.prior.Prior`: each value a finite
+        number, |northing| and |easting| at most ``max_prior_coord``, |yaw_deg| at most 360,
+        |height| at most ``max_raw_coord``, the radius by :meth:`check_radius`, the ``run`` a
+        string (a run the map does not hold is not an error: the nearest entries are taken);
+        :class:`InputError` naming ``field.<name>`` else (a missing one is named too; ``sep``
+        joins the two: ``_`` for the query parameters of a binary body)."""
+        from pnvlad_service.localization.prior import Prior
+
+        bounds = {
+            "northing": self.max_prior_coord,
+            "easting": self.max_prior_coord,
+            "yaw_deg": 360.0,
+            "height": self.max_raw_coord,
+        }
+        values = {"northing": northing, "easting": easting, "yaw_deg": yaw_deg, "height": height}
+        out: dict[str, float | None] = {}
+        for name, value in values.items():
+            where = f"{field}{sep}{name}"
+            if value is None:
+                if name != "height":
+                    raise InputError("field required: a prior is northing, easting and yaw_deg "
+                                     "(height optional)", where)  # fmt: skip
+                out[name] = None
+                continue
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise InputError(f"expected a number, got {show_value(value)}", where)
+            if not (math.isfinite(value) and abs(value) <= bounds[name]):
+                raise InputError(f"must be a number within ±{bounds[name]:g}, got {value}", where)
+            out[name] = float(value)
+        radius = self.check_radius(radius_m, f"{field}{sep}radius_m")
+        if run is not None and not (isinstance(run, str) and 0 < len(run) <= MAX_RUN_CHARS):
+            raise InputError(
+                f"expected the map's dataset/run (1 to {MAX_RUN_CHARS} characters), got "
+                f"{show_value(run)}",
+                f"{field}{sep}run",
+            )
+        return Prior(
+            northing=out["northing"],  # type: ignore[arg-type]
+            easting=out["easting"],  # type: ignore[arg-type]
+            yaw_deg=out["yaw_deg"],  # type: ignore[arg-type]
+            radius_m=radius,
+            height=out["height"],
+            run=run,
+        )
 
     def check_scale(self, scale: Any, field: str = "scale") -> float | None:
         """``scale`` (metres per unit of a preprocessed cloud) as a float in (0, max_scale],

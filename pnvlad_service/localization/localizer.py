@@ -44,6 +44,16 @@ from pnvlad_service.localization.answers import Answer, IndexInfo, LocalizerInfo
 from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
 from pnvlad_service.localization.calibration import CALIBRATION_FILE, read_calibration
 from pnvlad_service.localization.limits import Limits, query_kind
+from pnvlad_service.localization.prior import (
+    NEAR_CACHE_ENTRIES,
+    MapPositions,
+    PositionsOnce,
+    Prior,
+    PriorConfig,
+    PriorFit,
+    no_map_near,
+    register_near,
+)
 from pnvlad_service.localization.verify import (
     PreparedCache,
     QueryCloud,
@@ -64,6 +74,8 @@ __all__ = [
     "Localizer",
     "Match",
     "PreparedCloud",
+    "Prior",
+    "PriorConfig",
     "VerifyConfig",
     "checked_model",
     "set_threads",
@@ -164,6 +176,7 @@ class Localizer:
         on_batch: Callable[[int], None] | None = None,
         verify_config: VerifyConfig | None = None,
         verify_process: bool = False,
+        prior_config: PriorConfig | None = None,
     ) -> None:
         if getattr(encoder, "dim", bundle.dim) != bundle.dim:
             raise InputError(
@@ -176,8 +189,13 @@ class Localizer:
         self.encoder = encoder
         self.identity = identity
         self.verify_config = verify_config or VerifyConfig()
+        self.prior_config = prior_config or PriorConfig()
+        # The map's positions for a prior's range search, made on the first prior.
+        self._positions = PositionsOnce(lambda: MapPositions.of_metadata(bundle.metadata))
         # Candidates' prepared clouds by bundle row (consecutive queries share candidates).
         self._prepared = PreparedCache(self.verify_config.cache_entries)
+        # Targets near priors (entries laid together), by their rows: a few of the latest.
+        self._near = PreparedCache(NEAR_CACHE_ENTRIES if self.verify_config.cache_entries else 0)
         # Verifications in flight: with another one, or the encoder busy, small_gicp runs on
         # VerifyConfig.crowded_threads (the cores are taken).
         self._verifying = 0
@@ -237,6 +255,7 @@ class Localizer:
         runtime: str = "auto",
         threads: int | None = None,
         encoder: Any = None,
+        prior_config: PriorConfig | None = None,
     ) -> Localizer:
         """Load the bundle at ``index`` and ``model`` (default: the one the bundle records),
         after checking that the bundle was built with these weights (:func:`checked_model`);
@@ -248,7 +267,8 @@ class Localizer:
         (:mod:`.calibration`), else ``verify_config``'s. ``runtime``: ``auto``, ``torch`` or
         ``onnx`` (:mod:`pnvlad_service.models.runtimes`), ``threads`` ONNX Runtime's;
         ``encoder``: one already loaded to reuse when it holds these weights (a reload of the
-        bundle with the same model: ``serving.py``)."""
+        bundle with the same model: ``serving.py``); ``prior_config``: how a scan is registered
+        near a prior pose (:class:`~.prior.PriorConfig`)."""
         ident = checked_model(index, model)
         verify_config = verify_config or VerifyConfig()
         source = "given"
@@ -281,6 +301,7 @@ class Localizer:
             on_batch=on_batch,
             verify_config=verify_config,
             verify_process=verify_process,
+            prior_config=prior_config,
         )
 
     def close(self) -> None:
@@ -435,6 +456,95 @@ class Localizer:
             with self._verifying_lock:
                 self._verifying -= 1
 
+    # a query with a prior pose ---------------------------------------------------------
+    def check_prior(self, kind: str, verify: bool | None, field: str = "prior") -> None:
+        """:class:`InputError` naming ``field`` (or ``verify``) when a query of ``kind`` cannot
+        be registered near a prior here: the bundle has no geometry, the query is not raw
+        metres in its sensor's frame (a ``scan`` or ``window``), or it said ``verify: false``
+        (a prior query is nothing but a registration)."""
+        if not self.can_verify:
+            raise InputError(
+                f"the index {self.bundle.path} carries no geometry to register a scan near its "
+                "prior against: build it from a tree with frame sidecars",
+                field,
+            )
+        if kind == "submap":
+            raise InputError(
+                "a prior pose is the sensor's: send the raw scan (kind scan or window, "
+                "preprocess true), not a preprocessed submap",
+                field,
+            )
+        if verify is False:
+            raise InputError("a query with a prior is registered to the map: no verify=false",
+                             "verify")  # fmt: skip
+
+    def positions(self) -> MapPositions:
+        """The range search over the map's positions (built on first use)."""
+        return self._positions.get()
+
+    def register_near(self, prepared: PreparedCloud, prior: Prior) -> PriorFit:
+        """Register a prepared raw scan to the map entries within ``prior.radius_m`` of the
+        prior (:func:`~.prior.register_near`; in the verification process when there is one):
+        its :class:`~.prior.PriorFit`; a prior with no entry near says so (not verified)."""
+        geometry = self.bundle.geometry
+        if geometry is None:
+            raise InputError("the bundle carries no geometry", "prior")
+        config = self.prior_config
+        positions = self.positions()
+        nearby = positions.near(prior, config.max_submaps, config.same_run)
+        if nearby is None:
+            nearest = positions.nearest_m(prior.northing, prior.easting)
+            return no_map_near(prior, nearest, config.min_fitness)
+        query = prepared.query([])
+        with self._verifying_lock:
+            crowded = self._verifying > 0 or (self._batcher is not None and self._batcher.busy)
+            self._verifying += 1
+        try:
+            if crowded and self.verify_config.crowded_threads is not None:
+                reg_config = replace(
+                    config.registration, threads=self.verify_config.crowded_threads
+                )
+                config = replace(config, registration=reg_config)
+            if self._verify_process is not None:
+                try:
+                    return self._verify_process.register_near(query, nearby, prior, config)
+                except BrokenProcessPool:
+                    log.error(
+                        "the verification process died; this query is registered in the "
+                        "server's process, the next one starts a new child"
+                    )
+            return register_near(query, geometry, nearby, prior, config, cache=self._near)
+        finally:
+            with self._verifying_lock:
+                self._verifying -= 1
+
+    def answer_near(
+        self,
+        fit: PriorFit,
+        *,
+        parse_s: float,
+        preprocess_s: float,
+        total_s: float,
+        top_n: int | None = None,
+        query_kind: str = "scan",
+    ) -> Answer:
+        """The :class:`Answer` of a query registered near its prior: the entries registered
+        to as its matches (nearest the prior first, at most ``top_n``), no embedding."""
+        rows = fit.rows[: top_n or len(fit.rows)]
+        nan = np.full((1, len(rows)), np.nan, dtype=np.float32)
+        ids = np.asarray([rows], dtype=np.int64).reshape(1, -1)
+        (matches,) = self.bundle.matches(nan, ids)
+        timings = Timings(
+            parse=parse_s,
+            preprocess=preprocess_s,
+            verify=fit.seconds,
+            total=total_s,
+        )
+        return Answer(
+            tuple(matches), 1, timings, None, tuple(m.rank for m in matches), query_kind,
+            self.map_kind, fit,
+        )  # fmt: skip
+
     def answer(
         self,
         result: BatchResult,
@@ -484,6 +594,7 @@ class Localizer:
         verify: bool | None = None,
         scale: float | None = None,
         kind: str | None = None,
+        prior: Prior | None = None,
     ) -> Answer:
         """The ``top_n`` map places nearest to one cloud: exactly 4096 points in [-1, 1]
         float [4096, 3], or with ``preprocess`` a raw scan float [N, 3] in metres (checked
@@ -491,16 +602,39 @@ class Localizer:
         ``window`` (:func:`~.limits.query_kind`; told by ``preprocess`` when absent).
         ``verify``: register the top candidates and re-rank them (default: when the bundle
         carries geometry); ``scale``: metres per unit of a preprocessed cloud, for a metric
-        pose (estimated when not given)."""
+        pose (estimated when not given). ``prior``: where the raw scan's sensor is thought to
+        be (:class:`~.prior.Prior`, checked against ``limits``): the scan is registered to the
+        map entries near it instead of searched for (:meth:`register_near`)."""
         t0 = time.perf_counter()
         limits = limits or Limits()
+        if prior is not None and kind is None and preprocess is None:
+            preprocess = True  # a prior is a sensor's pose: the cloud is its raw scan
         kind, preprocess = query_kind(kind, preprocess)
         self.check_kind(kind)
+        if prior is not None:
+            self.check_prior(kind, verify)
+            prior = limits.check_prior(
+                prior.northing, prior.easting, prior.yaw_deg, prior.height, prior.radius_m,
+                prior.run,
+            )  # fmt: skip
         pts = limits.check_points(np.asarray(points), preprocess, "points")
         top_n = limits.check_top_n(top_n)
         scale = limits.check_scale(scale)
         if preprocess and scale is not None:
             raise InputError("a raw scan (preprocess) is in metres already: no scale", "scale")
+        if prior is not None:
+            t1 = time.perf_counter()
+            prepared = self.prepare(pts, True)
+            t2 = time.perf_counter()
+            fit = self.register_near(prepared, prior)
+            return self.answer_near(
+                fit,
+                parse_s=t1 - t0,
+                preprocess_s=t2 - t1,
+                total_s=time.perf_counter() - t0,
+                top_n=top_n,
+                query_kind=kind,
+            )
         verify = self.wants_verify(verify)
         t1 = time.perf_counter()
         prepared = self.prepare(pts, preprocess, scale)

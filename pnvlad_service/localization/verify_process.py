@@ -31,6 +31,14 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
+from pnvlad_service.localization.prior import (
+    NEAR_CACHE_ENTRIES,
+    Nearby,
+    Prior,
+    PriorConfig,
+    PriorFit,
+    register_near,
+)
 from pnvlad_service.localization.verify import (
     PreparedCache,
     QueryCloud,
@@ -48,13 +56,14 @@ SPINCOUNT_MARK = "PNVLAD_SERVE_SET_GOMP_SPINCOUNT"
 # The child's state, set by _start (one bundle per child).
 _GEOMETRY: Any = None
 _CACHE: PreparedCache | None = None
+_NEAR: PreparedCache | None = None
 _GOMP_BEFORE: bool | None = None
 
 
 def _start(bundle_dir: str, cache_entries: int) -> None:
     """The child's initialiser: map the geometry of ``bundle_dir`` (the parent checked the
     bundle's files at its own start-up; the size check runs again)."""
-    global _GEOMETRY, _CACHE, _GOMP_BEFORE
+    global _GEOMETRY, _CACHE, _NEAR, _GOMP_BEFORE
     # small_gicp's OpenMP runtime (libgomp) lets a thread that reaches a barrier first spin
     # there. While the parent embeds on the other core, the thread it waits for has no core,
     # and each call stalls for scheduler slices: preparing a query on 2 threads took 40-61 ms
@@ -79,6 +88,7 @@ def _start(bundle_dir: str, cache_entries: int) -> None:
         raise RuntimeError(f"{bundle_dir} carries no geometry")
     _GEOMETRY = BundleGeometry.open(bundle_dir, manifest.geometry, verify=False)
     _CACHE = PreparedCache(cache_entries)
+    _NEAR = PreparedCache(NEAR_CACHE_ENTRIES if cache_entries else 0)
 
 
 def _gomp_loaded() -> bool:
@@ -109,6 +119,12 @@ def _ready() -> int:
 
 def _verify(query: QueryCloud, ids: list[int], config: VerifyConfig) -> Verification:
     return verify(query, bundle_candidates(_GEOMETRY, ids), config, cache=_CACHE)
+
+
+def _register_near(
+    query: QueryCloud, nearby: Nearby, prior: Prior, config: PriorConfig
+) -> PriorFit:
+    return register_near(query, _GEOMETRY, nearby, prior, config, cache=_NEAR)
 
 
 class VerifyProcess:
@@ -157,9 +173,19 @@ class VerifyProcess:
     def verify(self, query: QueryCloud, ids: Sequence[int], config: VerifyConfig) -> Verification:
         """:func:`~.verify.verify` of ``query`` against the bundle rows ``ids`` (retrieval
         order), run in the child."""
+        return self._call(_verify, query, [int(i) for i in ids], config)
+
+    def register_near(
+        self, query: QueryCloud, nearby: Nearby, prior: Prior, config: PriorConfig
+    ) -> PriorFit:
+        """:func:`~.prior.register_near` of ``query`` to the bundle rows ``nearby`` from
+        ``prior``, run in the child."""
+        return self._call(_register_near, query, nearby, prior, config)
+
+    def _call(self, fn: Any, *args: Any) -> Any:
         pool = self._started()
         try:
-            return pool.submit(_verify, query, [int(i) for i in ids], config).result()
+            return pool.submit(fn, *args).result()
         except BrokenProcessPool:
             with self._lock:
                 if self._pool is pool:

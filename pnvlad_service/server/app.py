@@ -74,6 +74,7 @@ def load_localizer(
         runtime=settings.runtime,
         threads=settings.threads or settings.torch_threads,
         encoder=encoder,
+        prior_config=settings.prior_config(),
     )
 
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.limits import query_kind
-from pnvlad_service.server.contract import SCALE_RAW, BatchQueries, Contract, Query
+from pnvlad_service.server.contract import PRIOR_RAW, SCALE_RAW, BatchQueries, Contract, Query
 
 JSON = "application/json"
 OCTET = "application/octet-stream"
@@ -65,21 +65,35 @@ def read_query(
     verify: bool | None = None,
     scale: float | None = None,
     kind: str | None = None,
+    prior: dict[str, float | None] | None = None,
 ) -> Query:
     """The cloud of a ``/localize`` body of content type ``ctype`` (JSON, raw xyz or .npy);
-    ``top_n``, ``preprocess``, ``dtype``, ``verify``, ``scale`` and ``kind`` are the query's,
-    for binary bodies (a ``scan`` or ``window`` is raw without saying ``preprocess``)."""
+    ``top_n``, ``preprocess``, ``dtype``, ``verify``, ``scale``, ``kind`` and the ``prior``'s
+    values (``northing``, ``easting``, ``yaw_deg``, ``height``, ``radius_m``: the query
+    parameters ``prior_<name>``) are the query's, for binary bodies (a ``scan`` or ``window``
+    is raw without saying ``preprocess``)."""
     if ctype == JSON:
+        if prior and any(v is not None for v in prior.values()):
+            raise InputError("with a JSON body the prior is its 'prior' object", "prior_northing")
         return contract.parse_query(body)
     limits = contract.limits
     kind, pre = query_kind(kind, preprocess)
+    given = {k: v for k, v in (prior or {}).items() if v is not None}
+    pose = None
+    if given:
+        if not pre:
+            raise InputError(PRIOR_RAW, "prior_northing")
+        if verify is False:
+            raise InputError("a query with a prior is registered to the map: no verify=false",
+                             "verify")  # fmt: skip
+        pose = limits.check_prior(**given, field="prior", sep="_")
     raw = parse_npy(body, 2) if ctype == NPY else parse_binary_points(body, dtype)
     points = limits.check_points(raw, pre, "body")
     scale = limits.check_scale(scale)
     if pre and scale is not None:
         raise InputError(SCALE_RAW, "scale")
     n = top_n if top_n is not None else limits.default_top_n
-    return Query(points, pre, n, verify, scale, kind)
+    return Query(points, pre, n, verify, scale, kind, pose)
 
 
 def read_batch(

@@ -33,7 +33,8 @@ from pydantic import (
 )
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.limits import Limits, query_kind, show_value
+from pnvlad_service.localization.limits import MAX_RUN_CHARS, Limits, query_kind, show_value
+from pnvlad_service.localization.prior import Prior
 
 
 class MalformedJSON(InputError):
@@ -49,6 +50,17 @@ Point = Annotated[
 ]
 
 SCALE_RAW = "scale is for preprocessed clouds; a raw scan (preprocess=true) is in metres already"
+
+PRIOR_RAW = (
+    "a prior pose is the sensor's: send the raw scan (preprocess true, kind scan or window), not "
+    "a preprocessed submap"
+)
+
+PRIOR_DOC = (
+    "Where the sensor is thought to be (the last fix moved on by odometry): the scan is then "
+    "registered to the map entries within radius_m of it, with no retrieval, and the answer is "
+    "its pose (mode 'prior'). Raw scans only."
+)
 
 POINTS_DOC = (
     "Exactly 4096 preprocessed points in the benchmark's normalised frame ([-1, 1]), or with "
@@ -68,6 +80,7 @@ class Query:
     verify: bool | None = None
     scale: float | None = None
     kind: str = "submap"
+    prior: Prior | None = None
 
 
 @dataclass(frozen=True)
@@ -90,7 +103,9 @@ class Contract:
             req = self.query_model.model_validate_json(_utf8(body))
         except ValidationError as exc:
             raise _query_error(exc.errors(), self.limits) from None
-        return Query(req._array, req.preprocess, req.top_n, req.verify, req.scale, req._kind)
+        return Query(
+            req._array, req.preprocess, req.top_n, req.verify, req.scale, req._kind, req._prior
+        )
 
     def parse_batch(self, body: bytes) -> BatchQueries:
         """``{"queries": [{"points": ..., "preprocess": false}, ...], "top_n": 5}``."""
@@ -184,11 +199,66 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
             "carries geometry; true with an index without it is refused).",
         )
 
+    class PriorIn(BaseModel):
+        """A prior pose of the sensor."""
+
+        model_config = ConfigDict(extra="forbid", strict=True)
+
+        northing: float = Field(
+            ..., ge=-limits.max_prior_coord, le=limits.max_prior_coord, description="UTM metres."
+        )
+        easting: float = Field(
+            ..., ge=-limits.max_prior_coord, le=limits.max_prior_coord, description="UTM metres."
+        )
+        yaw_deg: float = Field(
+            ...,
+            ge=-360.0,
+            le=360.0,
+            description="Heading of the sensor's x axis, degrees counter-clockwise from east.",
+        )
+        height: float | None = Field(
+            None,
+            ge=-limits.max_raw_coord,
+            le=limits.max_raw_coord,
+            description="Metres, as the map's poses have it (default: the map entry's there).",
+        )
+        radius_m: float | None = Field(
+            None,
+            gt=0.0,
+            le=limits.max_prior_radius_m,
+            description=f"Map entries within this of the prior are registered to (at most "
+            f"{limits.max_prior_radius_m:g}; default {limits.default_prior_radius_m:g}).",
+        )
+        run: str | None = Field(
+            None,
+            min_length=1,
+            max_length=MAX_RUN_CHARS,
+            description="The map's drive (dataset/run, as a match's submap_id begins) to register "
+            "to when it has entries within the radius: the last answer's, so that consecutive "
+            "poses are in one drive's frame. Default (or a drive not there): the nearest entry's.",
+        )
+
     class LocalizeRequest(Cloud):
         """One query cloud."""
 
         top_n: int = top_n_field()
         verify: bool | None = verify_field()
+        prior: PriorIn | None = Field(None, description=PRIOR_DOC)
+        _prior: Prior | None = PrivateAttr(None)
+
+        @model_validator(mode="after")
+        def _check_prior(self) -> LocalizeRequest:
+            p = self.prior
+            if p is None:
+                return self
+            if not self.preprocess:
+                raise InputError(PRIOR_RAW, "prior")
+            if self.verify is False:
+                raise InputError("a query with a prior is registered to the map: no verify=false",
+                                 "verify")  # fmt: skip
+            self._prior = limits.check_prior(p.northing, p.easting, p.yaw_deg, p.height,
+                                              p.radius_m, p.run)  # fmt: skip
+            return self
 
     class BatchQuery(Cloud):
         """One cloud of a batch."""
@@ -223,6 +293,8 @@ def cloud_variants(schema: dict[str, Any], limits: Limits) -> None:
         form["properties"]["preprocess"]["enum"] = [flag]
     del raw["properties"]["preprocess"]["default"]
     del raw["properties"]["scale"]  # a raw scan is in metres
+    if "prior" in pre["properties"]:  # a prior is a sensor's pose: raw scans only
+        pre["properties"]["prior"] = {"type": "null", "description": "Raw scans only."}
     raw["required"] = [*schema.get("required", []), "preprocess"]
     schema.clear()
     schema.update(head, oneOf=[pre, raw])
@@ -259,7 +331,7 @@ def _cloud_rank(err: dict[str, Any], loc: Loc) -> tuple[Any, ...]:
     kind = err["type"]
     if not loc:
         return (7,) if kind == "value_error" else (1,)
-    if kind == "extra_forbidden":
+    if kind == "extra_forbidden" and len(loc) == 1:
         return (2,)
     if loc[0] == "points":
         if len(loc) == 1:
@@ -267,7 +339,14 @@ def _cloud_rank(err: dict[str, Any], loc: Loc) -> tuple[Any, ...]:
         if len(loc) == 2:
             return (6, loc[1], 0, 0)
         return (6, loc[1], int(kind == "float_type"), loc[2])
-    ranks = {"top_n": (4,), "preprocess": (5,), "verify": (5, 1), "scale": (5, 2), "kind": (5, 3)}
+    ranks = {
+        "top_n": (4,),
+        "preprocess": (5,),
+        "verify": (5, 1),
+        "scale": (5, 2),
+        "kind": (5, 3),
+        "prior": (5, 4),
+    }
     return ranks.get(loc[0], (8,))
 
 
@@ -291,6 +370,8 @@ def _cloud_error(
         return InputError(str(inner), where)
     if not loc:
         return InputError(f"expected a JSON object, got {type(value).__name__}", where)
+    if loc[0] == "prior":
+        return _prior_error(err, loc, limits)
     if kind == "extra_forbidden":
         extra = sorted(str(e["loc"][-1]) for e in errors if e["type"] == "extra_forbidden")
         return InputError(f"unknown fields {extra}; allowed: {allowed}", where)
@@ -325,6 +406,44 @@ def _cloud_error(
     return InputError(err.get("msg", "invalid value"), ".".join(map(str, loc)))
 
 
+def _prior_error(err: dict[str, Any], loc: Loc, limits: Limits) -> InputError:
+    """A ``prior`` field's error as the library's check words it."""
+    kind, value = err["type"], err.get("input")
+    if len(loc) == 1:
+        return InputError(
+            f"expected an object {{northing, easting, yaw_deg, height?, radius_m?, run?}}, got "
+            f"{show_value(value)}",
+            "prior",
+        )
+    name = str(loc[1])
+    field = f"prior.{name}"
+    if kind == "extra_forbidden":
+        return InputError(
+            "unknown field; allowed: ['easting', 'height', 'northing', 'radius_m', 'run', "
+            "'yaw_deg']",
+            field,
+        )
+    if kind == "missing":
+        return InputError("field required: a prior is northing, easting and yaw_deg (height "
+                          "optional)", field)  # fmt: skip
+    if name == "radius_m":
+        try:
+            limits.check_radius(value, field)
+        except InputError as exc:
+            return exc
+    if name == "run":
+        try:
+            limits.check_prior(0.0, 0.0, 0.0, run=value)
+        except InputError as exc:
+            return exc
+    probe = {"northing": 0.0, "easting": 0.0, "yaw_deg": 0.0, name: value}
+    try:
+        limits.check_prior(**probe)
+    except InputError as exc:
+        return exc
+    return InputError(err.get("msg", "invalid value"), field)
+
+
 def _json_error(errors: list[dict[str, Any]]) -> MalformedJSON | None:
     for e in errors:
         if e["type"] == "json_invalid":
@@ -351,7 +470,7 @@ def _query_error(errors: list[dict[str, Any]], limits: Limits) -> InputError:
     if loc == ("top_n",):
         return _top_n_error(err.get("input"), limits)
     top = [e for e in errors if len(e["loc"]) == 1]
-    allowed = ["kind", "points", "preprocess", "scale", "top_n", "verify"]
+    allowed = ["kind", "points", "preprocess", "prior", "scale", "top_n", "verify"]
     return _cloud_error(err, loc, top, "body", "", allowed, limits)
 
 

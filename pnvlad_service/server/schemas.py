@@ -67,6 +67,17 @@ class PoseOut(BaseModel):
         description="How evenly the registration pins the translation: the smallest over the "
         "largest eigenvalue of its translational Hessian (near 0: free along a direction).",
     )
+    covariance: list[list[float]] | None = Field(
+        None,
+        description="With a prior: 6x6 covariance of the pose, x (easting), y (northing), z "
+        "(height) in metres, then rotations about x, y, z in radians (UTM axes, about the "
+        "sensor; as ROS's PoseWithCovariance), from the point-to-plane residuals; null else.",
+    )
+    sigma_m: float | None = Field(
+        None,
+        description="With a prior: the largest horizontal standard deviation of the "
+        "covariance, metres.",
+    )
 
 
 class VerificationOut(BaseModel):
@@ -84,6 +95,32 @@ class VerificationOut(BaseModel):
     reason: str | None = Field(None, description="Why nothing could be verified, if so.")
 
 
+class PriorOut(BaseModel):
+    """A query with a prior pose: the prior as given and what registering near it found."""
+
+    northing: float = Field(..., description="UTM metres, as given.")
+    easting: float = Field(..., description="UTM metres, as given.")
+    yaw_deg: float = Field(..., description="Heading of the sensor's x axis from east, as given.")
+    height: float | None = Field(None, description="Metres, as given (null: the map's).")
+    radius_m: float = Field(..., description="The map entries within this were searched.")
+    run: str | None = Field(None, description="The map's drive asked for, as given.")
+    submaps: int = Field(..., description="Map entries (of one drive) registered to.")
+    fitness: float = Field(..., description="Share of the scan's points on the map after it.")
+    uncertain: bool = Field(
+        False,
+        description="The scan fits the map there, but the pose is too uncertain along some "
+        "direction to be verified (a street that leaves the shift along it free).",
+    )
+    constraint: float = Field(..., description="As the pose's.")
+    sigma_m: float | None = Field(
+        None, description="Largest horizontal standard deviation of the pose, metres."
+    )
+    correction_m: float | None = Field(
+        None, description="How far the registration moved the sensor from the prior, metres."
+    )
+    correction_yaw_deg: float | None = Field(None, description="... and turned it, degrees.")
+
+
 #: ``Timings.to_json``: milliseconds per stage.
 Timings = _json_model(answers.Timings, "Timings", "Milliseconds spent per stage.")
 ModelOut = _json_model(answers.ModelInfo, "ModelOut", arch=None)
@@ -94,17 +131,27 @@ _QUERY_KIND = Field(
     "submap", description="What the query was asked as: a submap, a raw scan or a window."
 )
 _MAP_KIND = Field("submap", description="What the map's entries are: submaps or keyframes.")
+_MODE = Field(
+    "search",
+    description="search: the cloud was embedded, searched for and verified; prior: it was "
+    "registered to the map near the prior pose it gave (no embedding).",
+)
+_PRIOR = Field(None, description="With a prior pose: that registration; null else.")
 
 
 class LocalizeResponse(BaseModel):
     matches: list[MatchOut]
     query_kind: Literal["submap", "scan", "window"] = _QUERY_KIND
     map_kind: Literal["submap", "keyframe"] = _MAP_KIND
+    mode: Literal["search", "prior"] = _MODE
     verified: bool | None = Field(
-        None, description="Whether the best match is verified; null when verification was off."
+        None,
+        description="Whether the best match is verified (with a prior: whether the scan "
+        "registered to the map near it); null when verification was off.",
     )
     pose: PoseOut | None = None
     verification: VerificationOut | None = None
+    prior: PriorOut | None = _PRIOR
     timings_ms: Timings
     batch_size: int = Field(..., description="Clouds embedded together with this one.")
     model: ModelOut
@@ -115,9 +162,11 @@ class BatchItem(BaseModel):
     matches: list[MatchOut]
     query_kind: Literal["submap", "scan", "window"] = _QUERY_KIND
     map_kind: Literal["submap", "keyframe"] = _MAP_KIND
+    mode: Literal["search", "prior"] = _MODE
     verified: bool | None = None
     pose: PoseOut | None = None
     verification: VerificationOut | None = None
+    prior: PriorOut | None = _PRIOR
     timings_ms: Timings
     batch_size: int
 

@@ -15,6 +15,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from pnvlad_service.io.submap import SUBMAP_POINTS
 from pnvlad_service.localization.batching import Batching
 from pnvlad_service.localization.limits import Limits
+from pnvlad_service.localization.prior import PriorConfig
 from pnvlad_service.localization.verify import DEFAULT_CANDIDATES, VerifyConfig
 
 
@@ -156,6 +157,47 @@ class ServerSettings(BaseSettings):
         "server's process a registration stops the threads that embed and answer.",
     )
 
+    max_prior_radius: float = Field(
+        Limits.max_prior_radius_m,
+        gt=0.0,
+        le=1000.0,
+        description="Largest radius (metres) a request with a prior pose may ask the map to "
+        "be searched within.",
+    )
+    prior_radius: float = Field(
+        Limits.default_prior_radius_m,
+        gt=0.0,
+        le=1000.0,
+        description="Radius (metres) of a prior pose that gives none (docs/TRACKING.md).",
+    )
+    prior_min_fitness: float = Field(
+        PriorConfig.min_fitness,
+        ge=0.0,
+        le=1.0,
+        description="Share of a scan's points on the map after registration near a prior at "
+        "or above which its pose is verified (docs/TRACKING.md).",
+    )
+    prior_max_sigma: float = Field(
+        PriorConfig.max_sigma_m or 0.0,
+        ge=0.0,
+        description="Largest horizontal standard deviation (metres) of a pose registered near "
+        "a prior that is still verified (0: not checked).",
+    )
+    prior_max_submaps: int = Field(
+        PriorConfig.max_submaps,
+        ge=1,
+        le=64,
+        description="Map entries near a prior (of one drive) laid together and registered to.",
+    )
+
+    def prior_config(self) -> PriorConfig:
+        """How a scan is registered near a prior pose."""
+        return PriorConfig(
+            max_submaps=self.prior_max_submaps,
+            min_fitness=self.prior_min_fitness,
+            max_sigma_m=self.prior_max_sigma or None,
+        )
+
     def verify_config(self) -> VerifyConfig:
         """How candidates are verified, but for the threshold: ``Localizer.load`` takes
         ``verify_threshold``, else the model's calibration (see :func:`..app.load_localizer`)."""
@@ -173,6 +215,8 @@ class ServerSettings(BaseSettings):
             max_raw_points=self.max_raw_points,
             max_top_n=self.max_top_n,
             max_batch_queries=self.max_batch_queries,
+            max_prior_radius_m=self.max_prior_radius,
+            default_prior_radius_m=min(self.prior_radius, self.max_prior_radius),
         )
 
     def batching(self) -> Batching:

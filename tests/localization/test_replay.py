@@ -211,7 +211,7 @@ def test_replay_a_bag_against_a_real_server(city: dict, tmp_path: Path) -> None:
     try:
         out = tmp_path / "replay" / "run0"
         args = ["localize", "--rosbag", str(city["bag"]), "--cloud-topic", "/points",
-                "--pose-topic", "/odom", "--origin", city["origin"], "--every", "5",
+                "--per-scan", "--pose-topic", "/odom", "--origin", city["origin"], "--every", "5",
                 "--url", f"http://127.0.0.1:{port}", "--map", str(city["bundle"]),
                 "--out", str(out)]  # fmt: skip
         res = CliRunner().invoke(app, args)
@@ -254,7 +254,7 @@ def test_replay_without_poses_and_bad_options(city: dict, tmp_path: Path) -> Non
     from pnvlad_cli.main import app
 
     out = tmp_path / "noposes"
-    base = ["localize", "--rosbag", str(city["bag"]), "--index", str(city["bundle"])]
+    base = ["localize", "--rosbag", str(city["bag"]), "--index", str(city["bundle"]), "--per-scan"]
     res = CliRunner().invoke(app, [*base, "--cloud-topic", "/points", "--every", "12",
                                    "--out", str(out), "--no-plot"])  # fmt: skip
     assert res.exit_code == 0, res.output

@@ -33,6 +33,7 @@ TYPES = {
     "integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
     "boolean": lambda v: isinstance(v, bool),
     "string": lambda v: isinstance(v, str),
+    "null": lambda v: v is None,
 }
 
 
@@ -40,10 +41,13 @@ def valid(schema: dict[str, Any], v: Any) -> bool:
     """Whether ``v`` (a ``json.loads`` value) is valid against ``schema``."""
     unknown = set(schema) - IGNORED - {
         "type", "properties", "required", "additionalProperties", "items", "minItems",
-        "maxItems", "minimum", "maximum", "enum", "oneOf",
+        "maxItems", "minimum", "maximum", "enum", "oneOf", "anyOf", "exclusiveMinimum",
+        "minLength", "maxLength",
     }  # fmt: skip
     assert not unknown, f"the test's validator does not know {unknown}"
     if "oneOf" in schema and sum(valid(s, v) for s in schema["oneOf"]) != 1:
+        return False
+    if "anyOf" in schema and not any(valid(s, v) for s in schema["anyOf"]):
         return False
     if "type" in schema and not TYPES[schema["type"]](v):
         return False
@@ -54,6 +58,12 @@ def valid(schema: dict[str, Any], v: Any) -> bool:
     number = isinstance(v, (int, float)) and not isinstance(v, bool)
     lo, hi = schema.get("minimum", -math.inf), schema.get("maximum", math.inf)
     if number and (math.isnan(v) or not lo <= v <= hi):
+        return False
+    if number and "exclusiveMinimum" in schema and not v > schema["exclusiveMinimum"]:
+        return False
+    if isinstance(v, str) and not schema.get("minLength", 0) <= len(v) <= schema.get(
+        "maxLength", math.inf
+    ):
         return False
     if isinstance(v, list):
         if not schema.get("minItems", 0) <= len(v) <= schema.get("maxItems", math.inf):
@@ -229,12 +239,48 @@ def clouds(draw: st.DrawFn, top: bool) -> Any:
     doc: dict[str, Any] = {"points": pts}
     if pre != "absent":
         doc["preprocess"] = pre
+    if top and draw(st.integers(0, 3)) == 0:
+        doc["prior"] = draw(priors())
     if top and draw(st.booleans()):
         doc["top_n"] = draw(
             st.integers(-1, SMALL.max_top_n + 1) | st.sampled_from([2.0, True, "3"])
         )
     if draw(st.integers(0, 9)) == 0:
         doc[draw(st.sampled_from(["extra", "top_n" if not top else "queries"]))] = 1
+    return doc
+
+
+@st.composite
+def priors(draw: st.DrawFn) -> Any:
+    """A prior pose near its limits: values at and past each bound, odd types, a field
+    missing, an extra one; sometimes not an object."""
+    if draw(st.integers(0, 15)) == 0:
+        return draw(st.sampled_from([None, [], "here", 3]))
+    doc: dict[str, Any] = {"northing": 5735000.0, "easting": 620000.0, "yaw_deg": 10.0}
+    odd = draw(st.sampled_from(["northing", "easting", "yaw_deg", "height", "radius_m", "run",
+                                "extra", None, None]))  # fmt: skip
+    values = {
+        "northing": [SMALL.max_prior_coord, SMALL.max_prior_coord * 1.01, "1", True],
+        "easting": [-SMALL.max_prior_coord, None, 1e300],
+        "yaw_deg": [360.0, -360.5, 720.0, None],
+        "height": [None, 0.0, SMALL.max_raw_coord, SMALL.max_raw_coord + 1.0, "0"],
+        "radius_m": [
+            None,
+            0.0,
+            -1.0,
+            1e-9,
+            SMALL.max_prior_radius_m,
+            SMALL.max_prior_radius_m + 0.5,
+            "5",
+            True,
+        ],
+        "run": [None, "", "business/run", "x" * 256, "x" * 257, 3],
+        "extra": [1],
+    }
+    if odd is not None:
+        doc[odd] = draw(st.sampled_from(values[odd]))
+    if draw(st.integers(0, 9)) == 0:
+        del doc[draw(st.sampled_from(["northing", "easting", "yaw_deg"]))]
     return doc
 
 

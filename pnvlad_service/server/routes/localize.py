@@ -19,6 +19,7 @@ from fastapi.responses import JSONResponse, Response
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.answers import milliseconds
+from pnvlad_service.localization.limits import MAX_RUN_CHARS
 from pnvlad_service.localization.localizer import Localizer, PreparedCloud
 from pnvlad_service.server import problems, schemas
 from pnvlad_service.server.bodies import JSON, NPY, OCTET, read_batch, read_query
@@ -71,23 +72,26 @@ async def localize_one(
     params: tuple[Any, ...],
 ) -> Response:
     """``POST /localize``; ``params``: the query's ``top_n``, ``preprocess``, ``dtype``,
-    ``verify``, ``scale`` and ``kind``."""
+    ``verify``, ``scale``, ``kind`` and ``prior`` (a dict of the prior's query parameters)."""
     t0 = time.perf_counter()
     ctype = _content_type(request, (JSON, OCTET, NPY))
     body = await request.body()
-    top_n, preprocess, dtype, verify, scale, kind = params
+    top_n, preprocess, dtype, verify, scale, kind, prior = params
     dtype = dtype or request.headers.get("x-points-dtype", "float32")
     with loc.announce():
         cloud = await run_in_threadpool(
-            read_query, contract, ctype, body, top_n, preprocess, dtype, verify, scale, kind
+            read_query, contract, ctype, body, top_n, preprocess, dtype, verify, scale, kind, prior
         )
         loc.check_kind(cloud.kind)
-        parse_s = time.perf_counter() - t0
-        wants = loc.wants_verify(cloud.verify)
-        t1 = time.perf_counter()
-        prepared = await _prepare(loc, cloud, "points")
-        preprocess_s = time.perf_counter() - t1
-        future = loc.submit(prepared, loc.search_k(cloud.top_n, wants))
+        if cloud.prior is None:
+            parse_s = time.perf_counter() - t0
+            wants = loc.wants_verify(cloud.verify)
+            t1 = time.perf_counter()
+            prepared = await _prepare(loc, cloud, "points")
+            preprocess_s = time.perf_counter() - t1
+            future = loc.submit(prepared, loc.search_k(cloud.top_n, wants))
+    if cloud.prior is not None:
+        return await localize_near(loc, metrics, cloud, t0)
     result = await asyncio.wrap_future(future)
     verification = await _verified(loc, prepared, result, wants)
     answer = loc.answer(
@@ -97,6 +101,26 @@ async def localize_one(
         total_s=time.perf_counter() - t0,
         top_n=cloud.top_n,
         verification=verification,
+        query_kind=cloud.kind,
+    )
+    metrics.observe(answer.timings.seconds())
+    return JSONResponse({**answer.to_json(), **loc.info.to_json()})
+
+
+async def localize_near(loc: Localizer, metrics: Metrics, cloud: Cloud, t0: float) -> Response:
+    """``POST /localize`` with a prior pose: G, then the registration to the map near the
+    prior (in the thread pool; in the verification process when the server has one)."""
+    loc.check_prior(cloud.kind, cloud.verify)
+    parse_s = time.perf_counter() - t0
+    prepared = await _prepare(loc, cloud, "points")
+    preprocess_s = time.perf_counter() - t0 - parse_s
+    fit = await run_in_threadpool(loc.register_near, prepared, cloud.prior)
+    answer = loc.answer_near(
+        fit,
+        parse_s=parse_s,
+        preprocess_s=preprocess_s,
+        total_s=time.perf_counter() - t0,
+        top_n=cloud.top_n,
         query_kind=cloud.kind,
     )
     metrics.observe(answer.timings.seconds())
@@ -161,6 +185,49 @@ def _post(r: APIRouter, path: str, summary: str, answer: type, content: dict[str
     )
 
 
+def _prior_params(contract: Contract) -> dict[str, Any]:
+    """The ``prior_*`` query parameters of binary bodies, by the field they fill."""
+    radius = contract.limits.max_prior_radius_m
+    coord = contract.limits.max_prior_coord
+    return {
+        "northing": Query(
+            None,
+            ge=-coord,
+            le=coord,
+            description="Prior pose of the sensor (binary bodies), UTM metres: with "
+            "prior_easting and prior_yaw_deg the scan is registered to the map entries near it, "
+            "no retrieval (mode 'prior'; raw scans only).",
+        ),
+        "easting": Query(None, ge=-coord, le=coord, description="Prior pose: UTM metres."),
+        "yaw_deg": Query(
+            None,
+            ge=-360.0,
+            le=360.0,
+            description="Prior pose: heading of the sensor's x axis, degrees from east.",
+        ),
+        "height": Query(
+            None,
+            ge=-contract.limits.max_raw_coord,
+            le=contract.limits.max_raw_coord,
+            description="Prior pose: metres (default: the map's).",
+        ),
+        "radius_m": Query(
+            None,
+            gt=0.0,
+            le=radius,
+            description=f"Prior pose: map entries within this many metres are registered to "
+            f"(at most {radius:g}; default {contract.limits.default_prior_radius_m:g}).",
+        ),
+        "run": Query(
+            None,
+            min_length=1,
+            max_length=MAX_RUN_CHARS,
+            description="Prior pose: the map's drive (dataset/run) to register to when it has "
+            "entries within the radius (the last answer's).",
+        ),
+    }
+
+
 class _Params(NamedTuple):
     """The query parameters of binary bodies, as FastAPI declares them (their descriptions are
     the OpenAPI document's)."""
@@ -171,6 +238,7 @@ class _Params(NamedTuple):
     scale: Any
     kind: Any
     dtype: Any
+    prior: dict[str, Any]
 
 
 def _params(contract: Contract) -> _Params:
@@ -210,6 +278,7 @@ def _params(contract: Contract) -> _Params:
             description="Element type of an application/octet-stream body (default float32; "
             "or the header X-Points-Dtype).",
         ),
+        prior=_prior_params(contract),
     )
 
 
@@ -237,6 +306,12 @@ def router(contract: Contract) -> APIRouter:
         verify: bool | None = q.verify,
         scale: float | None = q.scale,
         kind: str | None = q.kind,
+        prior_northing: float | None = q.prior["northing"],
+        prior_easting: float | None = q.prior["easting"],
+        prior_yaw_deg: float | None = q.prior["yaw_deg"],
+        prior_height: float | None = q.prior["height"],
+        prior_radius_m: float | None = q.prior["radius_m"],
+        prior_run: str | None = q.prior["run"],
         loc: Localizer = Depends(get_localizer),
         metrics: Metrics = Depends(get_metrics),
     ) -> Response:
@@ -249,8 +324,22 @@ def router(contract: Contract) -> APIRouter:
         false`` skips it; ``scale``: metres per unit of a preprocessed cloud). Binary bodies:
         ``application/octet-stream`` (little-endian xyz, float32 unless ``dtype=float64``) or
         ``application/x-npy`` ([N, 3]); then ``top_n`` and ``preprocess`` are query parameters.
+
+        With a prior pose (``"prior": {"northing", "easting", "yaw_deg", "height",
+        "radius_m"}``, or the ``prior_*`` query parameters) a raw scan is not searched for:
+        it is registered to the map entries within the radius of the prior, and the answer
+        (``mode: "prior"``) gives its pose with a covariance when it fits
+        (docs/TRACKING.md).
         """
-        params = (top_n, preprocess, dtype, verify, scale, kind)
+        prior = {
+            "northing": prior_northing,
+            "easting": prior_easting,
+            "yaw_deg": prior_yaw_deg,
+            "height": prior_height,
+            "radius_m": prior_radius_m,
+            "run": prior_run,
+        }
+        params = (top_n, preprocess, dtype, verify, scale, kind, prior)
         return await localize_one(request, contract, loc, metrics, params)
 
     @_post(

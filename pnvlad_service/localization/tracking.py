@@ -1,0 +1,453 @@
+"""Following a drive: a verified pose for every scan, place recognition only to start and to
+recover, and an honest "lost".
+
+A robot asking once per scan trusts each answer alone; a localisation stack *tracks*: once it
+has a fix it predicts the next pose with its odometry and confirms it by registering the new
+scan to the map around the prediction (koide3/hdl_localization's predict / correct split), and
+it asks place recognition again only when tracking fails. :class:`DriveLocalizer` is that loop,
+on the caller's side: the server stays stateless (a query with a prior pose is just a
+registration near it, :mod:`.prior`), so a fleet scales by replicas.
+
+The localiser consumes scans in time order (:class:`DriveScan`: points, timestamp and, when the
+caller has it, an odometry pose) and knows nothing of where they come from (a bag, a KITTI
+folder, a live sensor), nor of where the answers come from: ``ask(points, prior)`` is a server
+(:func:`http_ask`) or a bundle in this process (:func:`local_ask`), ``prior`` ``None`` for a
+search. States:
+
+- ``searching``: each scan is searched for (retrieval and verification). A verified answer is a
+  *candidate* fix; it is accepted only when ``confirm`` candidates agree with the odometry
+  between them (the motion from one to the next within ``agree_m`` and ``agree_deg`` of what
+  the odometry says), so one ambiguous street cannot throw the robot elsewhere. Then: tracking.
+- ``tracking``: the pose is predicted (the last pose moved by the odometry's motion, or at
+  constant velocity without odometry) and the scan registered near the prediction. A
+  registration that fits (the server's ``verified``) and moves the prediction by at most
+  ``gate_m`` / ``gate_deg`` is the scan's verified pose; otherwise the prediction is kept,
+  unverified, and the failure counted.
+- ``lost``: ``failures`` in a row; the scan that makes it says so, and the next one searches.
+
+A scan out of time order, a gap of more than ``max_gap_s`` between scans, or odometry that
+moves faster than a vehicle can (``max_speed_mps``, ``max_turn_dps``) sends the localiser back
+to searching with a line saying why; nothing raises. Every :class:`Step` says its state, its
+pose, how sure it is (the fit's fitness and standard deviation, or the search's confidence) and
+why it changed state. Measured choices (``confirm``, ``failures``, the gates, the radius):
+docs/TRACKING.md.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from pnvlad_service.errors import InputError
+from pnvlad_service.localization.prior import DEFAULT_RADIUS_M, Prior
+
+SEARCHING = "searching"
+TRACKING = "tracking"
+LOST = "lost"
+STATES = (SEARCHING, TRACKING, LOST)
+
+#: ``ask(points, prior) -> answer``: the service's JSON answer of a raw scan, searched for
+#: (``prior`` None) or registered near ``prior``.
+Ask = Callable[[np.ndarray, Prior | None], dict[str, Any]]
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """The localiser's rules; distances in metres, angles in degrees, times in seconds.
+
+    ``radius_m``: the map entries within this of a prediction are registered to;
+    ``confirm``: verified search answers that must agree with the odometry between them before
+    a fix is accepted (1: the first verified answer); ``agree_m`` / ``agree_share`` /
+    ``agree_deg``: they agree when the motion between them differs from the odometry's by at
+    most ``agree_m`` plus ``agree_share`` of the distance driven, and ``agree_deg``;
+    ``confirm_within_s``: candidates older than this are dropped; ``failures``: tracking
+    failures in a row that make the localiser lost; ``gate_m`` / ``gate_deg``: a registration
+    that moves the prediction by more is a failure; ``max_gap_s``: a longer gap between two
+    scans starts a search; ``max_speed_mps`` / ``max_turn_dps``: odometry moving faster
+    jumped (a search starts, and its motion is not used).
+    """
+
+    radius_m: float = DEFAULT_RADIUS_M
+    confirm: int = 2
+    agree_m: float = 3.0
+    agree_share: float = 0.05
+    agree_deg: float = 5.0
+    confirm_within_s: float = 30.0
+    failures: int = 3
+    gate_m: float = 3.0
+    gate_deg: float = 5.0
+    max_gap_s: float = 2.0
+    max_speed_mps: float = 50.0
+    max_turn_dps: float = 180.0
+
+    def __post_init__(self) -> None:
+        if self.confirm < 1 or self.failures < 1:
+            raise ValueError("confirm and failures must be at least 1")
+        for name in ("radius_m", "agree_m", "agree_deg", "gate_m", "gate_deg", "max_gap_s",
+                     "max_speed_mps", "max_turn_dps", "confirm_within_s"):  # fmt: skip
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class DriveScan:
+    """One scan of a drive: its ``index`` in the drive, ``timestamp`` (µs), ``points`` float
+    [N, 3] (sensor frame, metres) and ``odometry`` float [4, 4] (sensor -> the odometry's own
+    frame, any origin; ``None`` when the caller has none)."""
+
+    index: int
+    timestamp: int
+    points: np.ndarray
+    odometry: np.ndarray | None = None
+
+
+@dataclass
+class Step:
+    """What the localiser made of one scan.
+
+    ``state`` after the scan (``searching``, ``tracking`` or ``lost``); ``verified``: this
+    scan's ``pose`` (sensor -> UTM, float64 [4, 4]) was confirmed by the map (a registration
+    near the prediction, or an accepted fix); ``how``: ``fix`` (search answers that agree),
+    ``registered`` (tracking), ``predicted`` (the prediction kept after a failed registration,
+    unverified) or ``None`` (no pose); ``fitness`` / ``sigma_m``: the registration's fit and
+    largest horizontal standard deviation; ``confidence``: a search answer's; ``anchor``: the
+    map entry (``submap_id``) the pose was registered to; ``event``: ``fix`` (the first),
+    ``relocalised`` (a later fix), ``lost`` or ``reset`` (bad input: searching again);
+    ``reason``: why the state changed or why the scan has no verified pose; ``answer``: the
+    service's answer (its timings), ``None`` when none was asked; ``seconds``: wall time.
+    """
+
+    scan: int
+    timestamp: int
+    state: str
+    verified: bool = False
+    pose: np.ndarray | None = None
+    how: str | None = None
+    fitness: float | None = None
+    sigma_m: float | None = None
+    confidence: float | None = None
+    anchor: str | None = None
+    event: str | None = None
+    reason: str | None = None
+    answer: dict[str, Any] | None = field(default=None, repr=False)
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """A verified search answer waiting for others that agree with it."""
+
+    timestamp: int
+    pose: np.ndarray
+    odometry: np.ndarray | None
+    anchor: str | None
+
+
+def yaw_of(pose: np.ndarray) -> float:
+    """Heading of a pose's x axis, degrees counter-clockwise from east."""
+    return math.degrees(math.atan2(pose[1, 0], pose[0, 0]))
+
+
+def wrap_deg(a: float) -> float:
+    return (a + 180.0) % 360.0 - 180.0
+
+
+def answer_pose(answer: dict[str, Any]) -> np.ndarray | None:
+    """The verified pose of a service answer as float64 [4, 4], or ``None``."""
+    pose = answer.get("pose") if answer.get("verified") else None
+    if not pose:
+        return None
+    return np.asarray(pose["transform"], dtype=np.float64)
+
+
+def scaled_motion(delta: np.ndarray, factor: float) -> np.ndarray:
+    """A planar motion float [4, 4] scaled by ``factor`` (its translation and its yaw): the
+    constant-velocity prediction over another time step."""
+    yaw = math.atan2(delta[1, 0], delta[0, 0]) * factor
+    out = np.eye(4)
+    c, s = math.cos(yaw), math.sin(yaw)
+    out[:2, :2] = [[c, -s], [s, c]]
+    out[:3, 3] = delta[:3, 3] * factor
+    return out
+
+
+class DriveLocalizer:
+    """Follows a drive scan by scan (see the module doc): :meth:`step` each scan in time order.
+
+    ``ask``: the service (:data:`Ask`); ``config``: :class:`TrackerConfig`; ``initial_pose``
+    (sensor -> UTM [4, 4]): start tracking there, as hdl_localization's initial pose (a wrong
+    one fails ``failures`` times and the localiser searches)."""
+
+    def __init__(
+        self,
+        ask: Ask,
+        config: TrackerConfig | None = None,
+        initial_pose: np.ndarray | None = None,
+    ) -> None:
+        self.ask = ask
+        self.config = config or TrackerConfig()
+        self.state = SEARCHING
+        self._pose: np.ndarray | None = None  # the last pose, verified or predicted ...
+        self._stamp_of_pose: int | None = None  # ... of the scan at this time
+        self._before: tuple[int, np.ndarray] | None = None  # the one before, for velocity
+        self._stamp: int | None = None
+        self._odometry: np.ndarray | None = None
+        self._failures = 0
+        self._run: str | None = None  # the map's drive the last pose was registered to
+        self._candidates: deque[_Candidate] = deque()
+        self.fixes = 0  # fixes accepted (the first and each relocalisation)
+        if initial_pose is not None:
+            self.state = TRACKING
+            self._pose = np.asarray(initial_pose, dtype=np.float64)
+            self._stamp_of_pose = None  # set by the first scan's time (below)
+
+    # -- the loop ------------------------------------------------------------------------------
+
+    def step(self, scan: DriveScan) -> Step:
+        """The :class:`Step` of one scan (never raises on bad input: it says why)."""
+        t0 = time.perf_counter()
+        step = self._step(scan)
+        step.seconds = time.perf_counter() - t0
+        return step
+
+    def _step(self, scan: DriveScan) -> Step:
+        cfg = self.config
+        odo = None if scan.odometry is None else np.asarray(scan.odometry, dtype=np.float64)
+        reset: str | None = None
+        dt = None
+        if self._stamp is not None:
+            dt = (scan.timestamp - self._stamp) / 1e6
+            if dt <= 0:
+                # Not used: the previous scan stays the reference for the next one.
+                why = (
+                    f"scan {scan.index} is {-dt:.3f} s older than the one before: out of time "
+                    "order, skipped; searching again"
+                )
+                self._reset()
+                return Step(scan.index, scan.timestamp, SEARCHING, event="reset", reason=why)
+            if dt > cfg.max_gap_s:
+                reset = f"a gap of {dt:.1f} s since the scan before (more than {cfg.max_gap_s:g} s)"
+        motion = None
+        if reset is None and odo is not None and self._odometry is not None and dt is not None:
+            motion = np.linalg.inv(self._odometry) @ odo
+            moved = float(np.linalg.norm(motion[:2, 3]))
+            turned = abs(yaw_of(motion))
+            if moved > cfg.max_speed_mps * dt + 1.0 or turned > cfg.max_turn_dps * dt + 5.0:
+                reset = (
+                    f"odometry jumped {moved:.1f} m and {turned:.0f} deg in {dt:.2f} s (more "
+                    f"than {cfg.max_speed_mps:g} m/s or {cfg.max_turn_dps:g} deg/s)"
+                )
+                motion = None
+        self._stamp = scan.timestamp
+        self._odometry = odo
+        if reset is not None:
+            self._reset()
+        step = self._track(scan, motion) if self.state == TRACKING else self._search(scan)
+        if reset is not None:
+            step.event = step.event or "reset"
+            step.reason = f"{reset}: searching again" + (f"; {step.reason}" if step.reason else "")
+        return step
+
+    def _reset(self) -> None:
+        self.state = SEARCHING
+        self._pose = None
+        self._stamp_of_pose = None
+        self._before = None
+        self._failures = 0
+        self._run = None
+        self._candidates.clear()
+
+    def _set_pose(self, stamp: int, pose: np.ndarray) -> None:
+        if self._pose is not None and self._stamp_of_pose is not None:
+            self._before = (self._stamp_of_pose, self._pose)
+        self._pose = pose
+        self._stamp_of_pose = stamp
+
+    # -- tracking ------------------------------------------------------------------------------
+
+    def _predict(self, stamp: int, motion: np.ndarray | None) -> np.ndarray:
+        assert self._pose is not None
+        if motion is not None:
+            return self._pose @ motion
+        if self._before is not None and self._stamp_of_pose is not None:
+            t_before, before = self._before
+            span = (self._stamp_of_pose - t_before) / 1e6
+            if span > 0:
+                delta = np.linalg.inv(before) @ self._pose
+                return self._pose @ scaled_motion(delta, (stamp - self._stamp_of_pose) / 1e6 / span)
+        return self._pose.copy()
+
+    def _track(self, scan: DriveScan, motion: np.ndarray | None) -> Step:
+        cfg = self.config
+        predicted = self._predict(scan.timestamp, motion)
+        prior = Prior.of_matrix(predicted, cfg.radius_m, run=self._run)
+        try:
+            answer = self.ask(scan.points, prior)
+        except InputError as exc:
+            answer, why = None, f"refused: {getattr(exc, 'detail', None) or exc}"
+        else:
+            why = None
+        step = Step(scan.index, scan.timestamp, TRACKING, answer=answer)
+        fit = (answer or {}).get("prior") or {}
+        step.fitness = fit.get("fitness")
+        step.sigma_m = fit.get("sigma_m")
+        pose = None if answer is None else answer_pose(answer)
+        if answer is not None and pose is None:
+            why = (answer.get("verification") or {}).get("reason") or "not verified"
+        elif pose is not None:
+            off = float(np.linalg.norm(pose[:2, 3] - predicted[:2, 3]))
+            turn = abs(wrap_deg(yaw_of(pose) - yaw_of(predicted)))
+            if off > cfg.gate_m or turn > cfg.gate_deg:
+                why = (
+                    f"the registration moved the prediction {off:.1f} m and {turn:.1f} deg "
+                    f"(more than {cfg.gate_m:g} m or {cfg.gate_deg:g} deg)"
+                )
+                pose = None
+        if pose is not None:
+            self._failures = 0
+            self._set_pose(scan.timestamp, pose)
+            step.verified, step.pose, step.how = True, pose, "registered"
+            step.anchor = _anchor(answer)
+            self._run = _group(step.anchor) or self._run
+            return step
+        self._set_pose(scan.timestamp, predicted)
+        step.pose, step.how = predicted, "predicted"
+        if fit.get("uncertain"):
+            # The scan fits the map around the prediction, but not precisely enough along some
+            # direction for a verified pose: the odometry carries the pose on, unverified; not
+            # a failure (a long street of facades is not being lost).
+            step.reason = f"uncertain, the prediction kept: {why}"
+            return step
+        self._failures += 1
+        if self._failures >= cfg.failures:
+            step.state, step.event = LOST, "lost"
+            step.reason = (
+                f"tracking failed {self._failures} times in a row ({why}): searching again"
+            )
+            self._reset()
+        else:
+            step.reason = f"tracking failure {self._failures} of {cfg.failures}: {why}"
+        return step
+
+    # -- searching -----------------------------------------------------------------------------
+
+    def _search(self, scan: DriveScan) -> Step:
+        cfg = self.config
+        self.state = SEARCHING
+        while self._candidates and (
+            (scan.timestamp - self._candidates[0].timestamp) / 1e6 > cfg.confirm_within_s
+        ):
+            self._candidates.popleft()
+        step = Step(scan.index, scan.timestamp, SEARCHING)
+        try:
+            answer = self.ask(scan.points, None)
+        except InputError as exc:
+            step.reason = f"refused: {getattr(exc, 'detail', None) or exc}"
+            return step
+        step.answer = answer
+        step.confidence = (answer.get("verification") or {}).get("confidence")
+        pose = answer_pose(answer)
+        if pose is None:
+            v = answer.get("verification") or {}
+            step.reason = v.get("reason") or (
+                "not verified"
+                if answer.get("verified") is False
+                else "the service does not verify (a bundle without geometry?)"
+            )
+            return step
+        odo = None if self._odometry is None else self._odometry.copy()
+        cand = _Candidate(scan.timestamp, pose, odo, _anchor(answer))
+        agree = [c for c in self._candidates if self._agree(c, cand)]
+        if len(agree) + 1 < cfg.confirm:
+            self._candidates.append(cand)
+            need = cfg.confirm - 1 - len(agree)
+            step.reason = (
+                f"a verified answer; waiting for {need} more that agree"
+                f"{'s' if need == 1 else ''} with the odometry"
+            )
+            return step
+        self.state = TRACKING
+        self._failures = 0
+        self._candidates.clear()
+        self._before = None
+        self._set_pose(scan.timestamp, pose)
+        step.state, step.verified, step.pose, step.how = TRACKING, True, pose, "fix"
+        step.anchor = cand.anchor
+        self._run = _group(cand.anchor)
+        step.event = "fix" if self.fixes == 0 else "relocalised"
+        self.fixes += 1
+        step.reason = (
+            "fix: the first verified answer"
+            if cfg.confirm == 1
+            else f"fix: {len(agree) + 1} verified answers agree with the odometry between them"
+        )
+        return step
+
+    def _agree(self, a: _Candidate, b: _Candidate) -> bool:
+        """Whether fix ``b`` is where fix ``a`` moved by the odometry between them puts it."""
+        cfg = self.config
+        if a.odometry is None or b.odometry is None:
+            # No odometry: only how far apart they may be.
+            dt = (b.timestamp - a.timestamp) / 1e6
+            gap = float(np.linalg.norm(b.pose[:2, 3] - a.pose[:2, 3]))
+            return gap <= cfg.max_speed_mps * dt + cfg.agree_m
+        motion = np.linalg.inv(a.odometry) @ b.odometry
+        expected = a.pose @ motion
+        off = float(np.linalg.norm(expected[:2, 3] - b.pose[:2, 3]))
+        turn = abs(wrap_deg(yaw_of(expected) - yaw_of(b.pose)))
+        driven = float(np.linalg.norm(motion[:2, 3]))
+        return off <= cfg.agree_m + cfg.agree_share * driven and turn <= cfg.agree_deg
+
+
+def _group(submap_id: str | None) -> str | None:
+    """The map's drive (``dataset/run``) of a ``submap_id`` (``dataset/run/timestamp``)."""
+    if not submap_id or submap_id.count("/") < 2:
+        return None
+    return submap_id.rsplit("/", 1)[0]
+
+
+def _anchor(answer: dict[str, Any] | None) -> str | None:
+    matches = (answer or {}).get("matches") or []
+    return matches[0].get("submap_id") if matches else None
+
+
+def follow(scans: Any, ask: Ask, config: TrackerConfig | None = None, **kw: Any) -> list[Step]:
+    """Every :class:`DriveScan` of ``scans`` through one :class:`DriveLocalizer`."""
+    loc = DriveLocalizer(ask, config, **kw)
+    return [loc.step(s) for s in scans]
+
+
+# -- services ----------------------------------------------------------------------------------
+
+
+def local_ask(localizer: Any, top_n: int = 5) -> Ask:
+    """:data:`Ask` of a :class:`~.localizer.Localizer` in this process (a raw scan is bounded by
+    the bundle, not by a server's request limits)."""
+    from pnvlad_service.localization.limits import Limits
+
+    def ask(points: np.ndarray, prior: Prior | None) -> dict[str, Any]:
+        limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)))
+        if prior is not None:
+            limits = replace(limits, max_prior_radius_m=max(limits.max_prior_radius_m,
+                                                            prior.radius_m))  # fmt: skip
+        answer = localizer.localize(
+            points, preprocess=True, top_n=top_n, limits=limits, kind="scan", prior=prior
+        )
+        return answer.to_json()
+
+    return ask
+
+
+def http_ask(client: Any, top_n: int = 5) -> Ask:
+    """:data:`Ask` of a :class:`~.client.LocalizeClient` (a server)."""
+
+    def ask(points: np.ndarray, prior: Prior | None) -> dict[str, Any]:
+        return client.localize(points, top_n, kind="scan", prior=prior)
+
+    return ask
