@@ -153,7 +153,8 @@ def follow_drive(
     (:class:`~pnvlad_service.data.sources.odometry.LidarOdometry` on the scans, extra
     ``odometry``) or ``none`` (constant velocity); ``truth``: float64 [T, 4, 4] sensor -> UTM
     of every scan of ``drive`` (errors); ``positions``: the map's
-    :class:`~.prior.MapPositions` (``off_map_m``); ``truth_of_map``: :func:`map_truth` (``map_error_m``)."""
+    :class:`~.prior.MapPositions` (``off_map_m``); ``truth_of_map``: :func:`map_truth`
+    (``map_error_m``)."""
     from pnvlad_service.progress import tqdm
 
     if every < 1:
