@@ -66,6 +66,14 @@ ODOMETRY = typer.Option(
     "velocity); 'auto': poses when given, else kiss-icp when installed, else none.",
     rich_help_panel=PANEL,
 )
+WINDOW = typer.Option(
+    None,
+    "--window",
+    help="With --per-scan: ask with the last METRES of driving laid together (kind window, the "
+    "way pnvlad data prepare lays a submap), posed by --pose-topic / --tf or, with --odometry "
+    "kiss-icp, by LiDAR odometry; for a map of submaps.",
+    rich_help_panel=PANEL,
+)
 RADIUS = typer.Option(
     None,
     "--radius",
@@ -123,16 +131,22 @@ def check_per_scan(
     radius: float | None,
     confirm: int | None,
     failures: int | None,
+    window: float | None = None,
 ) -> None:
-    """InputError when an option of following is given with ``--per-scan``."""
+    """InputError when an option of following is given with ``--per-scan`` (``--odometry
+    kiss-icp`` goes with ``--window``)."""
     from pnvlad_service.errors import InputError
 
+    if window is not None and not window > 0:
+        raise InputError(f"must be a positive number of metres, got {window}", "--window")
+    if window is not None and odometry not in ("auto", "poses", "kiss-icp"):
+        raise InputError("a window is posed by the bag's poses or kiss-icp", "--odometry")
     given = {
         "--truth-topic": truth_topic,
         "--radius": radius,
         "--confirm": confirm,
         "--failures": failures,
-        "--odometry": None if odometry == "auto" else odometry,
+        "--odometry": None if odometry == "auto" or window is not None else odometry,
     }
     for flag, value in given.items():  # fmt: skip
         if value is not None:
@@ -152,12 +166,13 @@ def parse_origin(text: str | None) -> tuple[float, float]:
 def _service(
     url: str | None, index: Path | None, model: Path | None, api_key: str | None, top_n: int
 ) -> Iterator[Callable[[Any], dict[str, Any]]]:
-    """``ask(points) -> answer`` for raw scans, from a server or from a local bundle."""
+    """``ask(points, kind="scan") -> answer`` for raw scans (or windows), from a server or
+    from a local bundle."""
     if url is not None:
         from pnvlad_service.localization.client import LocalizeClient
 
         with LocalizeClient(url, api_key=api_key) as client:
-            yield lambda points: client.localize(points, top_n, preprocess=True)
+            yield lambda points, kind="scan": client.localize(points, top_n, kind=kind)
         return
     from pnvlad_service.localization.limits import Limits
     from pnvlad_service.localization.localizer import Localizer
@@ -165,10 +180,10 @@ def _service(
     assert index is not None
     with Localizer.load(index, model) as loc:
 
-        def ask(points: Any) -> dict[str, Any]:
+        def ask(points: Any, kind: str = "scan") -> dict[str, Any]:
             # A local query is bounded by the bundle, not by the server's request limits.
             limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)))
-            return loc.localize(points, preprocess=True, top_n=top_n, limits=limits).to_json()
+            return loc.localize(points, kind=kind, top_n=top_n, limits=limits).to_json()
 
         yield ask
 
@@ -204,11 +219,15 @@ def replay_rosbag(
     plot: bool,
     top_n: int = 5,
     progress: bool = True,
+    window: float | None = None,
+    odometry: str = "auto",
 ) -> None:
-    """The whole replay: open the bag, ask, write OUT.csv and OUT.png, print the summary."""
+    """The whole replay: open the bag, ask, write OUT.csv and OUT.png, print the summary;
+    with ``window``, each query the last ``window`` metres of the drive (:class:`Windows`)."""
     from pnvlad_service.data.sources.rosbag import RosbagClouds
     from pnvlad_service.errors import InputError
     from pnvlad_service.localization.replay import (
+        Windows,
         plot_replay,
         replay,
         summarise,
@@ -232,8 +251,13 @@ def replay_rosbag(
         out = rosbag.with_name(f"{drive.name}.replay")
     try:
         map_ne = _map_positions(index if index is not None else map_bundle)
+        windows = None
+        if window is not None:
+            posed = odometry == "kiss-icp" or (odometry == "auto" and pose_topic is None
+                                               and tf_frame is None)  # fmt: skip
+            windows = Windows(window, odometry=posed)
         with _service(url, index, model, api_key, top_n) as ask:
-            rows = replay(drive, ask, every=every, progress=progress)
+            rows = replay(drive, ask, every=every, progress=progress, window=windows)
     finally:
         drive.close()
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -246,7 +270,8 @@ def replay_rosbag(
             out.with_name(out.name + ".png"),
             map_ne=map_ne,
             trajectory_ne=None if poses is None else poses[:, [1, 0], 3],
-            title=f"{drive.name}: {cloud_topic}, one scan in {every}",
+            title=f"{drive.name}: {cloud_topic}, one scan in {every}"
+            + ("" if window is None else f", the last {window:g} m a query"),
         )
         written.append(str(png))
     typer.echo(f"wrote {', '.join(written)}")

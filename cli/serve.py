@@ -282,6 +282,7 @@ def localize(
     yaw: float = replay_options.YAW,
     follow: bool = replay_options.FOLLOW,
     odometry: str = replay_options.ODOMETRY,
+    window: float = replay_options.WINDOW,
     radius: float = replay_options.RADIUS,
     confirm: int = replay_options.CONFIRM,
     failures: int = replay_options.FAILURES,
@@ -340,6 +341,9 @@ def localize(
                 "--kitti" if kitti is not None else "--rosbag",
             )
         if kitti is not None or (rosbag is not None and follow):
+            if window is not None:
+                raise InputError("goes with --per-scan (a drive followed asks scan by scan)",
+                                 "--window")  # fmt: skip
             if kitti is not None:
                 bag_options.check_unused(None, cloud_topic=cloud_topic, pose_topic=pose_topic,
                                          tf_frame=tf_frame)  # fmt: skip
@@ -370,7 +374,7 @@ def localize(
             )
             return
         if rosbag is not None:
-            replay_options.check_per_scan(truth_topic, odometry, radius, confirm, failures)
+            replay_options.check_per_scan(truth_topic, odometry, radius, confirm, failures, window)
             replay_options.replay_rosbag(
                 rosbag=rosbag,
                 cloud_topic=cloud_topic,
@@ -389,8 +393,12 @@ def localize(
                 plot=plot,
                 top_n=top_n,
                 progress=progress,
+                window=window,
+                odometry=odometry,
             )
             return
+        if window is not None:
+            raise InputError("applies to --rosbag --per-scan only", "--window")
         bag_options.check_unused(None, **bag)
         if yaw != 0.0:
             raise InputError("applies to --rosbag only", "--yaw")

@@ -115,6 +115,13 @@ class LocalizeClient:
         query = urllib.parse.urlencode(params)
         return self.call("POST", f"/localize?{query}", body.tobytes(), "application/octet-stream")
 
+    def localize_window(self, window: Any, top_n: int = 5, **options: Any) -> dict[str, Any]:
+        """The server's answer for the last stretch of a drive: ``window`` a
+        :class:`~pnvlad_service.data.accumulate.WindowAccumulator` the caller feeds its scans
+        and poses (the code ``pnvlad data prepare`` lays submaps with), sent as ``kind=window``
+        in its newest scan's axes; ``options`` as :meth:`localize` takes them."""
+        return self.localize(window.cloud(), top_n, kind="window", **options)
+
     def ready(self) -> bool:
         """Whether the server answers ``GET /readyz`` with 200 (False when unreachable)."""
         try:

@@ -76,8 +76,12 @@ def replay(
     every: int = 10,
     refused: tuple[type[BaseException], ...] = (InputError,),
     progress: bool = True,
+    window: Any = None,
 ) -> list[ReplayRow]:
     """Ask ``ask`` about scans 0, ``every``, 2 * ``every``, ... of ``drive``.
+
+    With ``window`` (:class:`Windows`) every scan is taken into it and each query is the last
+    stretch of the drive laid together, asked as ``ask(points, "window")``.
 
     ``ask(points)`` returns the service's answer (``{"matches": [{"timestamp", "run",
     "northing", "easting", "distance", ...}, ...], "verified", "verification": {"confidence",
@@ -95,7 +99,7 @@ def replay(
     poses = getattr(drive, "poses", None)
     rows = []
     indices = range(0, len(stamps), every)
-    bar = tqdm(indices, desc="replay", unit="query", disable=None if progress else True)
+    bar = tqdm(indices, desc="replay", unit="query", disable=not progress)
     for i in bar:
         row = ReplayRow(scan=i, timestamp=int(stamps[i]), time_s=float(stamps[i] - stamps[0]) / 1e6)
         if poses is not None:
@@ -103,7 +107,10 @@ def replay(
             row.true_easting = float(poses[i, 0, 3])
             row.true_yaw_deg = math.degrees(math.atan2(poses[i, 1, 0], poses[i, 0, 0]))
         try:
-            answer = ask(drive.scan(i))
+            if window is None:
+                answer = ask(drive.scan(i))
+            else:
+                answer = ask(window.through(drive, i), "window")
         except refused as exc:
             row.status = f"refused: {getattr(exc, 'detail', None) or exc}"
             rows.append(row)
@@ -114,6 +121,40 @@ def replay(
             bar.set_postfix(error=f"{row.error_m:.1f} m", refresh=False)
     bar.close()
     return rows
+
+
+class Windows:
+    """The windows of a replay with accumulated queries: every scan of the drive up to the one
+    asked about goes into a :class:`~pnvlad_service.data.accumulate.WindowAccumulator` of
+    ``window_m`` metres (the code ``pnvlad data prepare`` lays submaps with), posed by the
+    drive's ``poses`` (a pose topic, /tf) or, with ``odometry``, by LiDAR odometry on the scans
+    (KISS-ICP, extra ``odometry``); the window is asked about in the newest scan's axes."""
+
+    def __init__(self, window_m: float, odometry: bool = False) -> None:
+        from pnvlad_service.data.accumulate import WindowAccumulator
+
+        self.accumulator = WindowAccumulator(window_m=window_m, frame="sensor")
+        self.odometry: Any = None
+        if odometry:
+            from pnvlad_service.data.sources.odometry import LidarOdometry
+
+            self.odometry = LidarOdometry()
+        self.taken = 0
+
+    def through(self, drive: Any, i: int) -> np.ndarray:
+        """Take scans up to ``i`` (in order; each once) and return the window's points."""
+        poses = getattr(drive, "poses", None)
+        if self.odometry is None and poses is None:
+            raise InputError(
+                "accumulated queries need poses: a pose topic or /tf, or odometry",
+                getattr(drive, "name", "drive"),
+            )
+        for j in range(self.taken, i + 1):
+            pts = drive.scan(j)
+            pose = poses[j] if self.odometry is None else self.odometry.update(pts)
+            self.accumulator.add(pts, pose)
+        self.taken = i + 1
+        return self.accumulator.cloud()
 
 
 def _wrap_deg(a: float) -> float:

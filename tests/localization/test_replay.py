@@ -289,3 +289,40 @@ def test_replay_without_poses_and_bad_options(city: dict, tmp_path: Path) -> Non
         errors = [line for line in res.output.splitlines() if line.startswith("error: ")]
         assert len(errors) == 1 and message in errors[0], (args, res.output)
     assert not list(tmp_path.glob("bad*"))
+
+
+def test_replay_with_windows_asks_with_the_last_stretch(city: dict, tmp_path: Path) -> None:
+    """--per-scan --window 20: every scan goes into the window, each query is the last 20 m
+    laid with the bag's poses (kind window): a map of submaps answers them, a map of keyframes
+    refuses them (a window is not a single scan), each refusal a row, not the end."""
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+    from pnvlad_service.index import build as ix
+
+    base = ["localize", "--rosbag", str(city["bag"]), "--cloud-topic", "/points",
+            "--pose-topic", "/odom", "--origin", city["origin"], "--per-scan", "--every", "8",
+            "--window", "20", "-m", str(city["ckpt"]), "--no-plot", "--no-progress"]  # fmt: skip
+    out = tmp_path / "subs"
+    res = CliRunner().invoke(app, [*base, "--index", str(city["bundle"]), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    rows = read_rows(Path(f"{out}.csv"))
+    assert [int(r["scan"]) for r in rows] == [0, 8, 16]
+    assert all(r["status"] == "ok" and r["kind"] == "submap" for r in rows)
+    keys = tmp_path / "keys.index"
+    ix.build_bundle(keys, city["ckpt"], city["base"] / "tree", layout="keyframe", progress=False)
+    out = tmp_path / "keys"
+    res = CliRunner().invoke(app, [*base, "--index", str(keys), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    rows = read_rows(Path(f"{out}.csv"))
+    assert len(rows) == 3 and all(r["status"].startswith("refused") for r in rows)
+    assert "keyframe" in rows[0]["status"]
+    # A window without poses cannot be laid; --window does not go with following.
+    res = CliRunner().invoke(app, ["localize", "--rosbag", str(city["bag"]), "--cloud-topic",
+                                   "/points", "--per-scan", "--window", "20", "--odometry",
+                                   "none", "--index", str(keys), "--out", str(tmp_path / "x")])  # fmt: skip
+    assert res.exit_code == 2 and "--odometry" in res.output
+    res = CliRunner().invoke(app, ["localize", "--rosbag", str(city["bag"]), "--cloud-topic",
+                                   "/points", "--pose-topic", "/odom", "--window", "20",
+                                   "--index", str(keys), "--out", str(tmp_path / "y")])  # fmt: skip
+    assert res.exit_code == 2 and "--window" in res.output
