@@ -318,11 +318,10 @@ def test_replay_with_windows_asks_with_the_last_stretch(city: dict, tmp_path: Pa
     assert len(rows) == 3 and all(r["status"].startswith("refused") for r in rows)
     assert "keyframe" in rows[0]["status"]
     # A window without poses cannot be laid; --window does not go with following.
-    res = CliRunner().invoke(app, ["localize", "--rosbag", str(city["bag"]), "--cloud-topic",
-                                   "/points", "--per-scan", "--window", "20", "--odometry",
-                                   "none", "--index", str(keys), "--out", str(tmp_path / "x")])  # fmt: skip
+    bag = ["localize", "--rosbag", str(city["bag"]), "--cloud-topic", "/points"]
+    res = CliRunner().invoke(app, [*bag, "--per-scan", "--window", "20", "--odometry", "none",
+                                   "--index", str(keys), "--out", str(tmp_path / "x")])  # fmt: skip
     assert res.exit_code == 2 and "--odometry" in res.output
-    res = CliRunner().invoke(app, ["localize", "--rosbag", str(city["bag"]), "--cloud-topic",
-                                   "/points", "--pose-topic", "/odom", "--window", "20",
+    res = CliRunner().invoke(app, [*bag, "--pose-topic", "/odom", "--window", "20",
                                    "--index", str(keys), "--out", str(tmp_path / "y")])  # fmt: skip
     assert res.exit_code == 2 and "--window" in res.output
