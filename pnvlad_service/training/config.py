@@ -90,6 +90,13 @@ class TrainSection(BaseModel):
         description="Hold each training submap whole and draw its model.num_points afresh each "
         "time it is embedded (False: one fixed subset a submap, as the published code).",
     )
+    turned_negatives: bool = Field(
+        False,
+        description="In-batch mining: each member embedded a second time, turned by a random "
+        "quarter turn, and those copies added to the other members' negatives: for models "
+        "whose map holds four turns of every entry (model.canonical_heading), so that a place "
+        "turned a quarter does not pass for another.",
+    )
     augment: AugmentSection = Field(
         default_factory=AugmentSection,
         description="Perturbations of each training cloud (training/augment.py); off by default.",

@@ -262,6 +262,23 @@ def pair_masks(ts: TrainingSet, members: np.ndarray) -> tuple[np.ndarray, np.nda
     return pos, neg
 
 
+def with_turned_copies(pos: np.ndarray, neg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """bool [2M, 2M] masks of a batch whose M members are followed by a turned copy of each
+    (``train.turned_negatives``): a copy of a member's negative is its negative too; a copy is
+    no one's positive (a place turned is still the place: not a negative of its own either)
+    and no anchor (its rows hold negatives only, for :func:`in_batch_tuples`' other
+    negative)."""
+    m = len(pos)
+    pos2 = np.zeros((2 * m, 2 * m), dtype=bool)
+    neg2 = np.zeros((2 * m, 2 * m), dtype=bool)
+    pos2[:m, :m] = pos
+    neg2[:m, :m] = neg
+    neg2[:m, m:] = neg
+    neg2[m:, :m] = neg
+    neg2[m:, m:] = neg
+    return pos2, neg2
+
+
 def in_batch_tuples(
     desc: np.ndarray, pos: np.ndarray, neg: np.ndarray, negatives: int
 ) -> TupleBatch | None:

@@ -176,12 +176,18 @@ StepOut = tuple["torch.Tensor", int, np.ndarray]
 
 
 def _embed(
-    state: TrainState, clouds: torch.Tensor, idx: np.ndarray, rt: Runtime, cfg: TrainConfig
+    state: TrainState,
+    clouds: torch.Tensor,
+    idx: np.ndarray,
+    rt: Runtime,
+    cfg: TrainConfig,
+    quarter: bool = False,
 ) -> torch.Tensor:
     """float32 [len(idx), D]: one forward pass (training mode, autocast) over ``clouds[idx]``,
     each cloud cut to ``model.num_points`` when it is held whole (``train.resample_points``) and
     augmented when the config asks (the seeds drawn from the tuple RNG, so a resumed run
-    repeats the subsets and the augmentation)."""
+    repeats the subsets and the augmentation); ``quarter``: each also turned by a random
+    quarter turn (the turned negatives' copies)."""
     import torch
 
     net = state.net
@@ -195,6 +201,12 @@ def _embed(
     if cfg.train.augment.active:
         seed = int(state.tuple_rng.integers(0, 2**62))
         x = augment(x, cfg.train.augment, seed)
+    if quarter:  # each cloud a random 1, 2 or 3 quarter turns (train.turned_negatives)
+        k = torch.from_numpy(state.tuple_rng.integers(1, 4, len(idx))).to(x.device)
+        c = torch.cos(k * (math.pi / 2)).round().to(x.dtype)[:, None]
+        s = torch.sin(k * (math.pi / 2)).round().to(x.dtype)[:, None]
+        xy = torch.stack([c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1]], -1)
+        x = torch.cat([xy, x[..., 2:]], dim=-1)
     with torch.autocast(rt.device.type, dtype=rt.amp_dtype, enabled=rt.amp_dtype is not None):
         emb = net(x)
     return emb.float()
@@ -252,6 +264,10 @@ def in_batch_step(
     )
     emb = _embed(state, data.clouds, members, rt, cfg)
     pos_m, neg_m = mining.pair_masks(data.training_set, members)
+    if cfg.train.turned_negatives:
+        turned = _embed(state, data.clouds, members, rt, cfg, quarter=True)
+        emb = torch.cat([emb, turned])
+        pos_m, neg_m = mining.with_turned_copies(pos_m, neg_m)
     tb = mining.in_batch_tuples(emb.detach().cpu().numpy(), pos_m, neg_m, data.negatives)
     if tb is None:
         return emb.sum() * 0.0, len(members), members

@@ -232,3 +232,18 @@ def test_fit_negatives_refuses_a_set_without_room_for_a_tuple() -> None:
     with pytest.raises(InputError, match="too small for tuple mining") as err:
         mining.fit_negatives(ts, ts.anchors(), 18, 10)
     assert err.value.source == "train.mining" and "--mining in_batch" in str(err.value)
+
+
+def test_turned_copies_are_negatives_of_the_negatives_and_nobodys_positive() -> None:
+    pos = np.array([[False, True, False], [True, False, False], [False, False, False]])
+    neg = np.array([[False, False, True], [False, False, True], [True, True, False]])
+    pos2, neg2 = mining.with_turned_copies(pos, neg)
+    assert pos2.shape == neg2.shape == (6, 6)
+    assert not pos2[3:].any() and not pos2[:, 3:].any()  # a copy: no one's positive, no anchor
+    np.testing.assert_array_equal(neg2[:3, 3:], neg)  # member 0's copy of 2 is its negative...
+    assert not neg2[0, 4] and not neg2[0, 3]  # ...its positive's and its own copies are not
+    desc = np.random.default_rng(0).normal(size=(6, 4)).astype(np.float32)
+    tb = mining.in_batch_tuples(desc, pos2, neg2, negatives=2)
+    assert tb is not None and set(tb.anchors.tolist()) <= {0, 1}
+    for a, ns in zip(tb.anchors, tb.negatives, strict=True):
+        assert all(neg2[a, n] for n in ns)
