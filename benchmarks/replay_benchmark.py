@@ -46,6 +46,32 @@ class EveryNth:
         return self.drive.scan(int(self.index[i]))
 
 
+class MemoEncoder:
+    """The model's encoder, each cloud's descriptor kept by the cloud's bytes: an area's maps
+    (each its runs but one) embed every keyframe once, not once a map."""
+
+    def __init__(self, model: Path) -> None:
+        from pnvlad_service.index.build import load_encoder
+
+        self.encoder = load_encoder(model)
+        self.dim = self.encoder.dim
+        self.memo: dict[bytes, np.ndarray] = {}
+
+    def embed(self, points: np.ndarray) -> np.ndarray:
+        import hashlib
+
+        x = np.ascontiguousarray(points, dtype=np.float32)
+        keys = [hashlib.blake2b(c.tobytes(), digest_size=16).digest() for c in x]
+        todo = [k for k, key in enumerate(keys) if key not in self.memo]
+        if todo:
+            for k, d in zip(todo, self.encoder.embed(x[todo]), strict=True):
+                self.memo[keys[k]] = d
+        return np.stack([self.memo[key] for key in keys])
+
+
+_ENCODERS: dict[Path, MemoEncoder] = {}
+
+
 def map_of(root: Path, model: Path, out: Path, area: str, name: str) -> Path:
     """The keyframe bundle of the area's runs but ``name`` (built once)."""
     from pnvlad_service.data.tree import BenchmarkTree
@@ -54,8 +80,11 @@ def map_of(root: Path, model: Path, out: Path, area: str, name: str) -> Path:
     bundle = out / "maps" / area / f"{name}.index"
     if not (bundle / "manifest.json").is_file():
         others = [r for r in BenchmarkTree(root).runs(area) if r != name]
+        if model not in _ENCODERS:
+            _ENCODERS[model] = MemoEncoder(model)
+        encoder = _ENCODERS[model]
         build_bundle(bundle, model, root, datasets=[area], runs=others, layout="keyframe",
-                     progress=False)  # fmt: skip
+                     progress=False, encoder=encoder)  # fmt: skip
     return bundle
 
 
