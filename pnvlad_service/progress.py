@@ -55,9 +55,19 @@ class tqdm(_tqdm):  # lower case: the name of the class it stands in for
         **kwargs: Any,
     ) -> None:  # fmt: skip
         stream = sys.stderr if file is None else file
-        if not is_terminal(stream):
+        self._log = not is_terminal(stream)
+        if self._log:
             stream = _Lines(stream)
             # ncols 0: tqdm's figures without the bar; one line every LOG_INTERVAL_S at most.
             kwargs |= {"ncols": 0, "dynamic_ncols": False}
             kwargs |= {"mininterval": LOG_INTERVAL_S, "maxinterval": LOG_INTERVAL_S}
         super().__init__(iterable, *args, file=stream, disable=bool(disable), **kwargs)
+
+    def set_postfix(self, ordered_dict: Any = None, refresh: bool = True, **kwargs: Any) -> None:
+        """tqdm's, but in a log the postfix waits for the next line: a refresh would write one
+        line an update (a training loop sets its loss every step)."""
+        super().set_postfix(ordered_dict, refresh=refresh and not self._log, **kwargs)
+
+    def set_description(self, desc: str | None = None, refresh: bool = True) -> None:
+        """As :meth:`set_postfix`: in a log the description waits for the next line."""
+        super().set_description(desc, refresh=refresh and not self._log)

@@ -38,6 +38,18 @@ def test_lines_follow_the_interval(monkeypatch: pytest.MonkeyPatch) -> None:
     assert got == ["bag: 0scan", "bag: 1scan", "bag: 2scan", "bag: 3scan", "bag: 3scan"]
 
 
+def test_a_postfix_set_every_step_does_not_write_a_line_each() -> None:
+    log = io.StringIO()
+    with tqdm(total=50, desc="train", unit="step", file=log) as bar:
+        for step in range(50):
+            bar.update()
+            bar.set_postfix(loss=f"{1 / (step + 1):.4f}")
+            bar.set_description("train")
+    lines = log.getvalue().splitlines()
+    assert len(lines) == 2, lines
+    assert lines[-1].startswith("train: 100% 50/50") and "loss=0.0200" in lines[-1]
+
+
 def test_a_bar_that_does_not_stay_leaves_only_its_first_line() -> None:
     log = io.StringIO()
     with tqdm(total=4, desc="load", file=log, leave=False) as bar:
