@@ -62,6 +62,14 @@ def scan_pose_line(answer: dict, true_pose: np.ndarray | None) -> str:
     return line
 
 
+def verified_line(verified: int, wrong: int) -> str:
+    """The summary's verdict: how many answers were verified, and how many of those wrongly
+    (their top-1 not within the radius: a wrong place the registration accepted)."""
+    if not wrong:
+        return f"{verified} verified with a pose, all at the right place"
+    return f"{verified} verified with a pose, {wrong} of them at a WRONG place"
+
+
 def report(q: Any, answer: dict, radius: float, pose: str, kind: str = "submap") -> bool:
     """Print one query's matches and ``pose`` (its verdict line); whether its top-1 lies
     within ``radius`` metres of it. ``q``: a :class:`Submap` or a raw scan (``run`` and
@@ -125,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     step = max(len(submaps) // args.count, 1)
     chosen = submaps[::step][: args.count]
 
-    hits = verified = 0
+    hits = verified = wrong = 0
     with LocalizeClient(args.url, timeout=60) as client:
         for q in chosen:
             pts = read_points(args.root / q.path, reader="benchmark").astype(np.float64)
@@ -137,11 +145,13 @@ def main(argv: list[str] | None = None) -> int:
             except PnvladError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return 1
-            hits += report(q, answer, args.radius, pose_line(answer, frame))
+            hit = report(q, answer, args.radius, pose_line(answer, frame))
+            hits += hit
             verified += bool(answer.get("verified"))
+            wrong += bool(answer.get("verified")) and not hit
     print(
         f"\n{hits}/{len(chosen)} queries localised within {args.radius:g} m by their top-1 match; "
-        f"{verified} verified with a pose."
+        f"{verified_line(verified, wrong)}."
     )
     return 0
 
@@ -163,7 +173,7 @@ def localize_scans(args: argparse.Namespace) -> int:
         print(f"no raw scans for {args.dataset}/{args.run} under {args.root}", file=sys.stderr)
         return 2
     chosen = scans[:: max(len(scans) // args.count, 1)][: args.count]
-    hits = verified = 0
+    hits = verified = wrong = 0
     with LocalizeClient(args.url, timeout=60) as client:
         for s in chosen:
             pts = read_points(s.path, reader="kitti")
@@ -176,11 +186,13 @@ def localize_scans(args: argparse.Namespace) -> int:
                 run=args.run, timestamp=s.timestamp, northing=s.northing, easting=s.easting
             )
             print(f"\n{len(pts):,} points in the sensor's frame, matched to {answer['map_kind']}s:")
-            hits += report(q, answer, args.radius, scan_pose_line(answer, s.true_pose), "scan")
+            hit = report(q, answer, args.radius, scan_pose_line(answer, s.true_pose), "scan")
+            hits += hit
             verified += bool(answer.get("verified"))
+            wrong += bool(answer.get("verified")) and not hit
     print(
         f"\n{hits}/{len(chosen)} single scans localised within {args.radius:g} m by their top-1 "
-        f"match; {verified} verified with a pose."
+        f"match; {verified_line(verified, wrong)}."
     )
     return 0
 
