@@ -104,11 +104,27 @@ def bag_of(root: Path, out: Path, area: str, name: str, every: int) -> tuple[Pat
     return bag, f"{north!r},{east!r}", drive
 
 
-def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
-    """Map, bag and the followed drive of one run; its figures."""
+def invoke(args: list[str], what: str):
+    """``pnvlad ARGS`` in this process (the model and maps stay loaded); the logging the
+    command set up on the runner's captured stderr is pointed back at ours afterwards (the
+    runner closes that stream: later log lines would fail)."""
+    import logging
+    import sys
+
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
+
+    res = CliRunner().invoke(app, args)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
+                        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")  # fmt: skip
+    if res.exit_code != 0:
+        raise SystemExit(f"{what} failed:\n{res.output}")
+    return res
+
+
+def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
+    """Map, bag and the followed drive of one run; its figures."""
     from pnvlad_service.localization.follow import read_follow_csv, summarise_follow
 
     bundle = map_of(root, model, out, area, name)
@@ -119,9 +135,7 @@ def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: 
             "--truth-topic", "/ground_truth", "--origin", origin, "--index", str(bundle),
             "-m", str(model), "--out", str(dest), "--no-progress"]  # fmt: skip
     t0 = time.perf_counter()
-    res = CliRunner().invoke(app, args)
-    if res.exit_code != 0:
-        raise SystemExit(f"following {area}/{name} failed:\n{res.output}")
+    res = invoke(args, f"following {area}/{name}")
     wall = time.perf_counter() - t0
     s = summarise_follow(read_follow_csv(f"{dest}.csv"), wall)
     return {"area": area, "run": name, "reverse": bool(drive.reverse), "summary": s,
@@ -130,10 +144,6 @@ def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: 
 
 def per_scan_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
     """The #34 replay of one run: every ``every``-th scan asked alone."""
-    from typer.testing import CliRunner
-
-    from pnvlad_cli.main import app
-
     bundle = map_of(root, model, out, area, name)
     bag, origin, _ = bag_of(root, out, area, name, every)
     dest = out / "replays" / area / f"{name}.per-scan"
@@ -143,9 +153,7 @@ def per_scan_run(root: Path, model: Path, out: Path, area: str, name: str, every
             "--pose-topic", "/ground_truth", "--origin", origin, "--every", "1",
             "--index", str(bundle), "-m", str(model), "--out", str(dest),
             "--no-progress"]  # fmt: skip
-    res = CliRunner().invoke(app, args)
-    if res.exit_code != 0:
-        raise SystemExit(f"replay of {area}/{name} failed:\n{res.output}")
+    invoke(args, f"replay of {area}/{name}")
     seconds = time.perf_counter() - t0
     with open(f"{dest}.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))

@@ -91,12 +91,14 @@ def test_shipped_configs_load() -> None:
     assert bev.model == ModelConfig.bev() and bev.data == cpu.data
     assert bev.train == cpu.train.model_copy(update={"margin1": 1.0, "margin2": 0.5})
     # bev_scan / cpu_scan: those recipes for single scans, each cloud turned to its own
-    # dominant direction, trained with turns of up to 5 degrees.
+    # dominant direction, trained with turns of up to 5 degrees; bev_scan (run 42) with
+    # quarter-turned in-batch negatives for 10 epochs.
+    extra = {"bev_scan": {"epochs": 10, "turned_negatives": True}, "cpu_scan": {}}
     for name, base in (("bev_scan", bev), ("cpu_scan", cpu)):
         scan = TrainConfig.preset(name)
         assert scan.model == base.model.model_copy(update={"canonical_heading": True})
         augment = base.train.augment.model_copy(update={"yaw_deg": 5.0})
-        assert scan.train == base.train.model_copy(update={"augment": augment})
+        assert scan.train == base.train.model_copy(update={"augment": augment, **extra[name]})
     with pytest.raises(InputError, match="bev, bev_scan, compact, cpu, cpu_scan, paper"):
         TrainConfig.preset("gpu")
 
