@@ -375,57 +375,18 @@ def follow(
     """Follow a bag's or a KITTI sequence's drive: open it, follow it, write OUT.csv and
     OUT.png, print the summary line and the stages' times."""
     import time
-    from dataclasses import replace
-
-    import numpy as np
 
     from pnvlad_service.errors import InputError
-    from pnvlad_service.localization.follow import (
-        follow_drive,
-        map_truth,
-        plot_follow,
-        stage_means,
-        summarise_follow,
-        write_follow_csv,
-    )
-    from pnvlad_service.localization.prior import MapPositions
-    from pnvlad_service.localization.tracking import TrackerConfig
+    from pnvlad_service.localization.follow import follow_drive
 
     every = 1 if every is None else every
     if every < 1:
         raise InputError(f"must be >= 1, got {every}", "--every")
-    config = TrackerConfig()
-    for flag, name, value in (("--radius", "radius_m", radius), ("--confirm", "confirm", confirm),
-                              ("--failures", "failures", failures)):  # fmt: skip
-        if value is None:
-            continue
-        try:
-            config = replace(config, **{name: value})
-        except ValueError as exc:
-            raise InputError(str(exc), flag) from None
-    if kitti is not None:
-        from pnvlad_service.data.sources.kitti import KittiSequence
-
-        if truth_topic is not None:
-            raise InputError("applies to --rosbag only (a KITTI sequence's poses are its truth)",
-                             "--truth-topic")  # fmt: skip
-        drive: Any = KittiSequence(kitti, origin_ne=origin_ne, yaw_deg=yaw_deg)
-        source = kitti
-    else:
-        assert rosbag is not None
-        source = rosbag
-        if pose_topic is None and tf_frame is None:
-            from pnvlad_service.data.sources.rosbag import RosbagClouds
-
-            if cloud_topic is None:
-                raise InputError("--rosbag needs --cloud-topic (see `pnvlad data prepare "
-                                 "--rosbag BAG --list`)", "--cloud-topic")  # fmt: skip
-            drive = RosbagClouds(rosbag, cloud_topic)
-        else:
-            drive = bag_options.open_drive(
-                rosbag, cloud_topic, pose_topic, tf_frame, origin_ne=origin_ne, yaw_deg=yaw_deg,
-                max_pose_gap=max_pose_gap,
-            )  # fmt: skip
+    config = _tracker_config(radius, confirm, failures)
+    drive, source = _open_followed(
+        rosbag, kitti, cloud_topic, pose_topic, tf_frame, truth_topic, origin_ne, yaw_deg,
+        max_pose_gap,
+    )  # fmt: skip
     try:
         poses = getattr(drive, "poses", None)
         how = _odometry_choice(odometry, poses is not None)
@@ -437,14 +398,7 @@ def follow(
         if out is None:
             out = source.with_name(f"{drive.name}.follow")
         bundle = index if index is not None else map_bundle
-        positions = map_ne = known = None
-        if bundle is not None:
-            from pnvlad_service.index.bundle import METADATA_FILE, Metadata
-
-            meta = Metadata.load(Path(bundle) / METADATA_FILE)
-            positions = MapPositions.of_metadata(meta)
-            map_ne = np.c_[meta.northing, meta.easting]
-            known = map_truth(bundle) if truth is not None else None
+        positions, map_ne, known = _followed_map(bundle, truth is not None)
         with _follow_service(url, index, model, api_key, top_n) as ask:
             t0 = time.perf_counter()
             rows = follow_drive(
@@ -456,12 +410,102 @@ def follow(
         close = getattr(drive, "close", None)
         if close is not None:
             close()
+    _report_followed(rows, wall, out, how, plot=plot, map_ne=map_ne,
+                     title=f"{drive.name}: every scan" if every == 1 else
+                     f"{drive.name}: one scan in {every}")  # fmt: skip
+
+
+def _tracker_config(radius: float | None, confirm: int | None, failures: int | None) -> Any:
+    """The :class:`~pnvlad_service.localization.tracking.TrackerConfig` with ``--radius``,
+    ``--confirm`` and ``--failures`` where given (InputError naming the flag it refuses)."""
+    from dataclasses import replace
+
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.localization.tracking import TrackerConfig
+
+    config = TrackerConfig()
+    for flag, name, value in (("--radius", "radius_m", radius), ("--confirm", "confirm", confirm),
+                              ("--failures", "failures", failures)):  # fmt: skip
+        if value is None:
+            continue
+        try:
+            config = replace(config, **{name: value})
+        except ValueError as exc:
+            raise InputError(str(exc), flag) from None
+    return config
+
+
+def _open_followed(
+    rosbag: Path | None,
+    kitti: Path | None,
+    cloud_topic: str | None,
+    pose_topic: str | None,
+    tf_frame: str | None,
+    truth_topic: str | None,
+    origin_ne: tuple[float, float],
+    yaw_deg: float,
+    max_pose_gap: float | None,
+) -> tuple[Any, Path]:
+    """(the drive to follow, the file or folder it came from): the KITTI sequence, or the bag's
+    clouds with the poses of ``pose_topic`` / ``tf_frame`` when given."""
+    from pnvlad_service.errors import InputError
+
+    if kitti is not None:
+        from pnvlad_service.data.sources.kitti import KittiSequence
+
+        if truth_topic is not None:
+            raise InputError("applies to --rosbag only (a KITTI sequence's poses are its truth)",
+                             "--truth-topic")  # fmt: skip
+        return KittiSequence(kitti, origin_ne=origin_ne, yaw_deg=yaw_deg), kitti
+    assert rosbag is not None
+    if pose_topic is None and tf_frame is None:
+        from pnvlad_service.data.sources.rosbag import RosbagClouds
+
+        if cloud_topic is None:
+            raise InputError("--rosbag needs --cloud-topic (see `pnvlad data prepare "
+                             "--rosbag BAG --list`)", "--cloud-topic")  # fmt: skip
+        return RosbagClouds(rosbag, cloud_topic), rosbag
+    drive = bag_options.open_drive(
+        rosbag, cloud_topic, pose_topic, tf_frame, origin_ne=origin_ne, yaw_deg=yaw_deg,
+        max_pose_gap=max_pose_gap,
+    )  # fmt: skip
+    return drive, rosbag
+
+
+def _followed_map(bundle: Path | None, with_truth: bool) -> tuple[Any, Any, Any]:
+    """(the map's positions, float [M, 2] northing and easting of its entries, its own truth
+    when the drive has truth) of the bundle at ``bundle``; ``None`` for each without one."""
+    if bundle is None:
+        return None, None, None
+    import numpy as np
+
+    from pnvlad_service.index.bundle import METADATA_FILE, Metadata
+    from pnvlad_service.localization.follow import map_truth
+    from pnvlad_service.localization.prior import MapPositions
+
+    meta = Metadata.load(Path(bundle) / METADATA_FILE)
+    positions = MapPositions.of_metadata(meta)
+    map_ne = np.c_[meta.northing, meta.easting]
+    known = map_truth(bundle) if with_truth else None
+    return positions, map_ne, known
+
+
+def _report_followed(
+    rows: Any, wall: float, out: Path, how: str, *, plot: bool, map_ne: Any, title: str
+) -> None:
+    """Write OUT.csv (and OUT.png), print the odometry, the stages' mean times and the
+    summary line."""
+    from pnvlad_service.localization.follow_report import (
+        plot_follow,
+        stage_means,
+        summarise_follow,
+        write_follow_csv,
+    )
+
     out.parent.mkdir(parents=True, exist_ok=True)
     written = [str(write_follow_csv(rows, out.with_name(out.name + ".csv")))]
     if plot:
-        png = plot_follow(rows, out.with_name(out.name + ".png"), map_ne=map_ne,
-                          title=f"{drive.name}: every scan" if every == 1 else
-                          f"{drive.name}: one scan in {every}")  # fmt: skip
+        png = plot_follow(rows, out.with_name(out.name + ".png"), map_ne=map_ne, title=title)
         written.append(str(png))
     typer.echo(f"wrote {', '.join(written)}")
     typer.echo(f"odometry: {how}")

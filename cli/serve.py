@@ -321,7 +321,6 @@ def localize(
       pnvlad localize --kitti sequences/00 --index map.index --out follow/kitti00
     """
     from pnvlad_service.errors import InputError
-    from pnvlad_service.io.readers import read_points
 
     with user_errors():
         if (url is None) == (index is None):
@@ -330,16 +329,14 @@ def localize(
         bag |= {"max_pose_gap": max_pose_gap, "origin": origin, "every": every, "out": out}
         bag |= {"map": map_bundle, "truth_topic": truth_topic, "radius": radius}
         bag |= {"confirm": confirm, "failures": failures}
-        if rosbag is not None and kitti is not None:
-            raise InputError("give --rosbag or --kitti, not both", "--kitti")
-        if (rosbag is not None or kitti is not None) and (
-            scan is not None or reader is not None or preprocess or as_json
-        ):
-            raise InputError(
-                "a scan file, --reader, --preprocess and --json do not go with --rosbag or "
-                "--kitti (their scans are raw: they are always preprocessed)",
-                "--kitti" if kitti is not None else "--rosbag",
-            )
+        _check_drive_source(rosbag, kitti, scan, reader, preprocess, as_json)
+        # What following a drive and asking with every Nth scan of a bag both take.
+        drive: dict[str, Any] = {
+            "rosbag": rosbag, "cloud_topic": cloud_topic, "pose_topic": pose_topic,
+            "tf_frame": tf_frame, "yaw_deg": yaw, "max_pose_gap": max_pose_gap, "url": url,
+            "index": index, "model": model, "api_key": api_key, "every": every, "out": out,
+            "map_bundle": map_bundle, "plot": plot, "top_n": top_n, "progress": progress,
+        }  # fmt: skip
         if kitti is not None or (rosbag is not None and follow):
             if window is not None:
                 raise InputError("goes with --per-scan (a drive followed asks scan by scan)",
@@ -348,51 +345,21 @@ def localize(
                 bag_options.check_unused(None, cloud_topic=cloud_topic, pose_topic=pose_topic,
                                          tf_frame=tf_frame)  # fmt: skip
             replay_options.follow(
-                rosbag=rosbag,
+                **drive,
                 kitti=kitti,
-                cloud_topic=cloud_topic,
-                pose_topic=pose_topic,
-                tf_frame=tf_frame,
                 truth_topic=truth_topic,
                 origin_ne=replay_options.parse_origin(origin),
-                yaw_deg=yaw,
-                max_pose_gap=max_pose_gap,
-                url=url,
-                index=index,
-                model=model,
-                api_key=api_key,
-                every=every,
-                out=out,
-                map_bundle=map_bundle,
-                plot=plot,
                 odometry=odometry,
                 radius=radius,
                 confirm=confirm,
                 failures=failures,
-                top_n=top_n,
-                progress=progress,
             )
             return
         if rosbag is not None:
             replay_options.check_per_scan(truth_topic, odometry, radius, confirm, failures, window)
             replay_options.replay_rosbag(
-                rosbag=rosbag,
-                cloud_topic=cloud_topic,
-                pose_topic=pose_topic,
-                tf_frame=tf_frame,
+                **drive,
                 origin_ne=replay_options.parse_origin(origin),
-                yaw_deg=yaw,
-                max_pose_gap=max_pose_gap,
-                url=url,
-                index=index,
-                model=model,
-                api_key=api_key,
-                every=every,
-                out=out,
-                map_bundle=map_bundle,
-                plot=plot,
-                top_n=top_n,
-                progress=progress,
                 window=window,
                 odometry=odometry,
             )
@@ -402,23 +369,65 @@ def localize(
         bag_options.check_unused(None, **bag)
         if yaw != 0.0:
             raise InputError("applies to --rosbag only", "--yaw")
-        if scan is None:
-            raise InputError("give a scan file (or --rosbag BAG to replay a bag)", "SCAN")
-        points = read_points(scan, reader)
-        if url is not None:
-            from pnvlad_service.localization.client import LocalizeClient
-
-            if rerank is not None:
-                raise InputError(
-                    "applies to --index; the server sets its own (--rerank)", "--rerank"
-                )
-            with LocalizeClient(url, api_key=api_key) as client:
-                answer = client.localize(points, top_n, preprocess, verify=verify, scale=scale)
-        else:
-            check = {"verify": verify, "scale": scale, "rerank": rerank}
-            answer = _localize_here(index, model, points, preprocess, top_n, check)
+        check = {"verify": verify, "scale": scale, "rerank": rerank}
+        answer = _localize_scan(scan, reader, url, index, model, api_key, preprocess, top_n, check)
     if as_json:
         json.dump(answer, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         typer.echo(format_matches(answer))
+
+
+def _check_drive_source(
+    rosbag: Path | None,
+    kitti: Path | None,
+    scan: Path | None,
+    reader: str | None,
+    preprocess: bool,
+    as_json: bool,
+) -> None:
+    """InputError for --rosbag with --kitti, or either with a scan file's options."""
+    from pnvlad_service.errors import InputError
+
+    if rosbag is not None and kitti is not None:
+        raise InputError("give --rosbag or --kitti, not both", "--kitti")
+    if (rosbag is not None or kitti is not None) and (
+        scan is not None or reader is not None or preprocess or as_json
+    ):
+        raise InputError(
+            "a scan file, --reader, --preprocess and --json do not go with --rosbag or "
+            "--kitti (their scans are raw: they are always preprocessed)",
+            "--kitti" if kitti is not None else "--rosbag",
+        )
+
+
+def _localize_scan(
+    scan: Path | None,
+    reader: str | None,
+    url: str | None,
+    index: Path | None,
+    model: Path | None,
+    api_key: str | None,
+    preprocess: bool,
+    top_n: int,
+    check: dict[str, Any],
+) -> dict[str, Any]:
+    """The answer for one scan file, from the server at ``url`` or the bundle at ``index``.
+    ``check``: ``verify``, ``scale`` and ``rerank`` as the command line gave them."""
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.io.readers import read_points
+
+    if scan is None:
+        raise InputError("give a scan file (or --rosbag BAG to replay a bag)", "SCAN")
+    points = read_points(scan, reader)
+    if url is None:
+        assert index is not None
+        return _localize_here(index, model, points, preprocess, top_n, check)
+    from pnvlad_service.localization.client import LocalizeClient
+
+    if check["rerank"] is not None:
+        raise InputError("applies to --index; the server sets its own (--rerank)", "--rerank")
+    with LocalizeClient(url, api_key=api_key) as client:
+        return client.localize(
+            points, top_n, preprocess, verify=check["verify"], scale=check["scale"]
+        )

@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -38,11 +38,11 @@ import numpy as np
 from pnvlad_service.errors import InputError, NotReadyError
 from pnvlad_service.index.build import load_encoder
 from pnvlad_service.index.bundle import IndexBundle, Match
-from pnvlad_service.index.manifest import Manifest
 from pnvlad_service.io.submap import SUBMAP_POINTS
 from pnvlad_service.localization.answers import Answer, IndexInfo, LocalizerInfo, ModelInfo, Timings
 from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
 from pnvlad_service.localization.calibration import CALIBRATION_FILE, read_calibration
+from pnvlad_service.localization.compatibility import checked_model
 from pnvlad_service.localization.limits import Limits, query_kind
 from pnvlad_service.localization.prior import (
     NEAR_CACHE_ENTRIES,
@@ -54,9 +54,10 @@ from pnvlad_service.localization.prior import (
     no_map_near,
     register_near,
 )
+from pnvlad_service.localization.threads import faiss_threads_here, set_threads
 from pnvlad_service.localization.verify import (
     PreparedCache,
-    QueryCloud,
+    PreparedCloud,
     Verification,
     VerifyConfig,
     bundle_candidates,
@@ -64,8 +65,7 @@ from pnvlad_service.localization.verify import (
 )
 from pnvlad_service.localization.verify_process import VerifyProcess
 from pnvlad_service.models.runtimes import describe as describe_runtime
-from pnvlad_service.models.runtimes import torch_installed
-from pnvlad_service.models.store import ModelIdentity, model_identity
+from pnvlad_service.models.store import ModelIdentity
 
 log = logging.getLogger(__name__)
 
@@ -80,84 +80,6 @@ __all__ = [
     "checked_model",
     "set_threads",
 ]
-
-
-@dataclass(frozen=True)
-class PreparedCloud:
-    """The encoder's input float32 [4096, 3] and what is known of its metres: for a raw scan
-    G's ``centre`` and ``scale`` (sensor frame); for a preprocessed cloud the caller's
-    ``scale`` or ``None``."""
-
-    cloud: np.ndarray
-    centre: np.ndarray | None = None
-    scale: float | None = None
-    sensor: bool = False
-
-    def query(self, candidate_scales: list[float]) -> QueryCloud:
-        """The query's points in metres (:meth:`QueryCloud.from_normalised`)."""
-        return QueryCloud.from_normalised(
-            self.cloud,
-            centre=self.centre,
-            scale=self.scale,
-            candidate_scales=candidate_scales,
-            sensor=self.sensor,
-        )
-
-
-# --------------------------------------------------------------------------------------------
-# The compatibility check
-# --------------------------------------------------------------------------------------------
-
-
-def checked_model(index: str | Path, model: str | Path | None = None) -> ModelIdentity:
-    """The model to load with the bundle at ``index``: ``model`` (a model directory or a
-    training run), else the one the bundle records. :class:`InputError` naming both files when
-    the bundle was built with other weights (``Manifest.check_model``)."""
-    manifest = Manifest.read(index)
-    if model is None:
-        model = manifest.model.checkpoint
-        if not model:
-            raise InputError(
-                "the bundle records no model; pass one (-m/--model, or PNVLAD_CHECKPOINT)", index
-            )
-    identity = model_identity(model)
-    manifest.check_model(identity)
-    return identity
-
-
-# --------------------------------------------------------------------------------------------
-# The localiser
-# --------------------------------------------------------------------------------------------
-
-
-# FAISS's OpenMP thread count is per thread in libgomp: set in the main thread at start-up,
-# it left the server's lanes, which search, on every core (measured: 1 in the main thread, 2
-# in a new one). set_threads records it; each searching thread applies it once.
-_faiss_threads: int | None = None
-_faiss_applied = threading.local()
-
-
-def set_threads(torch_threads: int | None = None, faiss_threads: int | None = None) -> None:
-    """Process-wide thread counts of torch (intra-op) and FAISS (OpenMP); ``None``: as is.
-    FAISS's count also reaches the threads that search later (:func:`faiss_threads_here`)."""
-    global _faiss_threads
-    if torch_threads and torch_installed():  # a server on ONNX Runtime may have no torch
-        import torch
-
-        torch.set_num_threads(torch_threads)
-    if faiss_threads:
-        _faiss_threads = faiss_threads
-        faiss_threads_here()
-
-
-def faiss_threads_here() -> None:
-    """Give the calling thread the FAISS thread count of :func:`set_threads` (once a thread)."""
-    if _faiss_threads is None or getattr(_faiss_applied, "n", None) == _faiss_threads:
-        return
-    import faiss
-
-    faiss.omp_set_num_threads(_faiss_threads)
-    _faiss_applied.n = _faiss_threads
 
 
 class Localizer:

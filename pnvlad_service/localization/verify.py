@@ -148,6 +148,29 @@ class QueryCloud:
 
 
 @dataclass(frozen=True)
+class PreparedCloud:
+    """The encoder's input float32 [4096, 3] and what is known of its metres: for a raw scan
+    G's ``centre`` and ``scale`` (sensor frame); for a preprocessed cloud the caller's
+    ``scale`` or ``None`` (:meth:`~.localizer.Localizer.prepare` makes it; :meth:`query` is
+    the :class:`QueryCloud` verification registers)."""
+
+    cloud: np.ndarray
+    centre: np.ndarray | None = None
+    scale: float | None = None
+    sensor: bool = False
+
+    def query(self, candidate_scales: list[float]) -> QueryCloud:
+        """The query's points in metres (:meth:`QueryCloud.from_normalised`)."""
+        return QueryCloud.from_normalised(
+            self.cloud,
+            centre=self.centre,
+            scale=self.scale,
+            candidate_scales=candidate_scales,
+            sensor=self.sensor,
+        )
+
+
+@dataclass(frozen=True)
 class Candidate:
     """One retrieved database submap to verify: its retrieval rank (1 = nearest descriptor),
     its points in metres (local frame) or a function that reads them (called only when the

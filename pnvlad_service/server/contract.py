@@ -148,6 +148,51 @@ def _utf8(body: bytes) -> bytes | str:
 @functools.cache
 def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
     """``(LocalizeRequest, BatchRequest)`` for ``limits`` (built once per ``Limits``)."""
+    # Local names: pydantic resolves the fields' annotations in this function's namespace.
+    Cloud = _cloud_model(limits)
+    PriorIn = _prior_model(limits)
+
+    class LocalizeRequest(Cloud):
+        """One query cloud."""
+
+        top_n: int = _top_n_field(limits)
+        verify: bool | None = _verify_field()
+        prior: PriorIn | None = Field(None, description=PRIOR_DOC)
+        _prior: Prior | None = PrivateAttr(None)
+
+        @model_validator(mode="after")
+        def _check_prior(self) -> LocalizeRequest:
+            p = self.prior
+            if p is None:
+                return self
+            if not self.preprocess:
+                raise InputError(PRIOR_RAW, "prior")
+            if self.verify is False:
+                raise InputError("a query with a prior is registered to the map: no verify=false",
+                                 "verify")  # fmt: skip
+            self._prior = limits.check_prior(p.northing, p.easting, p.yaw_deg, p.height,
+                                              p.radius_m, p.run)  # fmt: skip
+            return self
+
+    class BatchQuery(Cloud):
+        """One cloud of a batch."""
+
+    class BatchRequest(BaseModel):
+        """Several clouds, embedded as one batch."""
+
+        model_config = ConfigDict(extra="forbid", strict=True)
+
+        queries: list[BatchQuery] = Field(..., min_length=1, max_length=limits.max_batch_queries)
+        top_n: int = _top_n_field(limits)
+        verify: bool | None = _verify_field()
+
+    return LocalizeRequest, BatchRequest
+
+
+def _cloud_model(limits: Limits) -> type[BaseModel]:
+    """The fields of one cloud and their checks (``Limits.check_points``), which a
+    ``/localize`` body and each query of a batch share; its schema is split into the cloud's
+    two forms (:func:`cloud_variants`)."""
 
     def split(schema: dict[str, Any]) -> None:
         cloud_variants(schema, limits)
@@ -184,20 +229,28 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
                 raise InputError(SCALE_RAW, "scale")
             return self
 
-    def top_n_field() -> Any:
-        return Field(
-            limits.default_top_n,
-            ge=1,
-            le=limits.max_top_n,
-            description=f"Matches to return (at most {limits.max_top_n}).",
-        )
+    return Cloud
 
-    def verify_field() -> Any:
-        return Field(
-            None,
-            description="Register the top candidates and re-rank them (default: when the index "
-            "carries geometry; true with an index without it is refused).",
-        )
+
+def _top_n_field(limits: Limits) -> Any:
+    return Field(
+        limits.default_top_n,
+        ge=1,
+        le=limits.max_top_n,
+        description=f"Matches to return (at most {limits.max_top_n}).",
+    )
+
+
+def _verify_field() -> Any:
+    return Field(
+        None,
+        description="Register the top candidates and re-rank them (default: when the index "
+        "carries geometry; true with an index without it is refused).",
+    )
+
+
+def _prior_model(limits: Limits) -> type[BaseModel]:
+    """A prior pose's fields, bounded by ``limits``."""
 
     class PriorIn(BaseModel):
         """A prior pose of the sensor."""
@@ -238,41 +291,7 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
             "poses are in one drive's frame. Default (or a drive not there): the nearest entry's.",
         )
 
-    class LocalizeRequest(Cloud):
-        """One query cloud."""
-
-        top_n: int = top_n_field()
-        verify: bool | None = verify_field()
-        prior: PriorIn | None = Field(None, description=PRIOR_DOC)
-        _prior: Prior | None = PrivateAttr(None)
-
-        @model_validator(mode="after")
-        def _check_prior(self) -> LocalizeRequest:
-            p = self.prior
-            if p is None:
-                return self
-            if not self.preprocess:
-                raise InputError(PRIOR_RAW, "prior")
-            if self.verify is False:
-                raise InputError("a query with a prior is registered to the map: no verify=false",
-                                 "verify")  # fmt: skip
-            self._prior = limits.check_prior(p.northing, p.easting, p.yaw_deg, p.height,
-                                              p.radius_m, p.run)  # fmt: skip
-            return self
-
-    class BatchQuery(Cloud):
-        """One cloud of a batch."""
-
-    class BatchRequest(BaseModel):
-        """Several clouds, embedded as one batch."""
-
-        model_config = ConfigDict(extra="forbid", strict=True)
-
-        queries: list[BatchQuery] = Field(..., min_length=1, max_length=limits.max_batch_queries)
-        top_n: int = top_n_field()
-        verify: bool | None = verify_field()
-
-    return LocalizeRequest, BatchRequest
+    return PriorIn
 
 
 def cloud_variants(schema: dict[str, Any], limits: Limits) -> None:

@@ -1,6 +1,6 @@
 """A stand-in drive and service for the drive localiser's tests (test_tracking.py,
-test_follow.py): a street with a turn, the robot's odometry in a frame of its own, and a
-service whose answers are set scan by scan."""
+test_follow.py, test_follow_report.py): a street with a turn, the robot's odometry in a frame of
+its own, a service whose answers are set scan by scan, and the rows of the drive followed."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.prior import Prior
+from pnvlad_service.localization.follow import follow_drive
+from pnvlad_service.localization.prior import MapPositions, Prior
 from pnvlad_service.localization.tracking import DriveScan
 
 ORIGIN = np.array([620000.0, 5735000.0, 40.0])
@@ -102,3 +103,37 @@ def scans(n: int, start: int = 0, odo: bool = True) -> list[DriveScan]:
         DriveScan(i, 1_000_000_000 + DT_US * i, cloud(i), odometry(i) if odo else None)
         for i in range(start, start + n)
     ]
+
+
+N = 44
+
+
+class StandInDrive:
+    """``N`` scans: ``poses`` the odometry (in its own frame), the points name the scan."""
+
+    name = "stand-in"
+
+    def __init__(self, n: int = N) -> None:
+        self.timestamps = np.array([1_000_000_000 + DT_US * i for i in range(n)], dtype=np.int64)
+        self.poses = np.stack([odometry(i) for i in range(n)])
+
+    def scan(self, i: int) -> np.ndarray:
+        return cloud(i)
+
+
+def true_poses(n: int = N) -> np.ndarray:
+    return np.stack([truth(i) for i in range(n)])
+
+
+def map_without(hole: range, n: int = N) -> MapPositions:
+    """A map of an entry at every scan's true place but those of ``hole``, and a far one."""
+    keep = [i for i in range(n) if i not in hole]
+    ne = np.array([[truth(i)[1, 3], truth(i)[0, 3]] for i in keep] + [[0.0, 0.0]])
+    return MapPositions(ne[:, 0], ne[:, 1], np.array(["city/a"] * len(ne)))
+
+
+def followed(**kw) -> tuple[list, Service]:
+    svc = Service(right={2, 3, 30, 31}, off_map=set(range(18, 27)))
+    rows = follow_drive(StandInDrive(), svc, truth=true_poses(), progress=False,
+                        positions=map_without(range(18, 27)), **kw)  # fmt: skip
+    return rows, svc

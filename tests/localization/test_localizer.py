@@ -1,11 +1,11 @@
 """The localisation library with no HTTP: typed, frozen answers equal to a plain search and to
-the server's, raw scans through the bundle's filter G, the compatibility check, many threads
-through the micro-batcher, and no web framework imported."""
+the server's, raw scans through the bundle's filter G, many threads through the micro-batcher,
+and no web framework imported (the compatibility check: test_compatibility.py; the thread
+counts: test_threads.py)."""
 
 from __future__ import annotations
 
 import dataclasses
-import shutil
 import subprocess
 import sys
 import threading
@@ -18,8 +18,8 @@ from pnvlad_service.errors import InputError, NotReadyError
 from pnvlad_service.index import build as ix
 from pnvlad_service.index.bundle import IndexBundle
 from pnvlad_service.localization.answers import Answer
-from pnvlad_service.localization.localizer import Batching, Localizer, Match, checked_model
-from tests.index.helpers import PER_RUN, make_checkpoint, read_cloud
+from pnvlad_service.localization.localizer import Batching, Localizer, Match
+from tests.index.helpers import PER_RUN, read_cloud
 
 
 @pytest.fixture(scope="module")
@@ -145,22 +145,6 @@ def test_bad_clouds_raise_the_librarys_errors_naming_the_field(loc) -> None:
     assert info.value.source == "top_n"
 
 
-def test_checked_model_takes_a_run_directory_and_refuses_other_weights(world, tmp_path) -> None:
-    bundle = world["bundle"]
-    recorded = checked_model(bundle)
-    assert recorded.checkpoint == str(world["ckpt"].resolve())
-    run = tmp_path / "run"
-    shutil.copytree(world["ckpt"], run / "model")
-    via_run = checked_model(bundle, run)
-    assert via_run.checkpoint == str((run / "model").resolve())
-    assert via_run.weights_sha256 == recorded.weights_sha256
-    other = make_checkpoint(tmp_path / "other", seed=3)
-    with pytest.raises(InputError, match="other weights") as info:
-        Localizer.load(bundle, other)
-    assert str(bundle / "manifest.json") in str(info.value)
-    assert str(other.resolve() / "model.safetensors") in str(info.value)
-
-
 def test_a_closed_localizer_is_not_ready(world) -> None:
     loc = Localizer.load(world["bundle"], batching=Batching())
     pts = cloud(world, 1)
@@ -204,33 +188,6 @@ def test_the_library_imports_no_web_framework() -> None:
         "assert not bad, bad\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
-
-
-def test_the_faiss_thread_count_reaches_the_threads_that_search() -> None:
-    """libgomp keeps the count per thread: set in one thread, a new thread still had every
-    core. set_threads' count is applied in each searching thread (as the lanes search)."""
-    faiss = pytest.importorskip("faiss")
-    from pnvlad_service.localization import localizer as loc
-
-    before = loc._faiss_threads
-    try:
-        loc.set_threads(faiss_threads=1)
-        seen: list[int] = []
-
-        def search_like_a_lane() -> None:
-            fresh = faiss.omp_get_max_threads()  # what the thread starts with
-            loc.faiss_threads_here()
-            seen.extend([fresh, faiss.omp_get_max_threads()])
-
-        t = threading.Thread(target=search_like_a_lane)
-        t.start()
-        t.join()
-        default = seen[0]
-        assert seen[1] == 1
-        if default == 1:
-            pytest.skip("one CPU: a new thread has one FAISS thread anyway")
-    finally:
-        loc._faiss_threads = before
 
 
 def test_warm_up_embeds_each_batch_size_once_and_changes_no_answer(world, loc, plain) -> None:
