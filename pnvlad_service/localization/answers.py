@@ -122,7 +122,6 @@ class Answer:
             "timings_ms": self.timings.to_json(),
         }
 
-
     def _prior_json(self, fit: PriorFit) -> dict[str, Any]:
         def score(m: Match) -> float | None:  # the fit is the anchor's (rank 1)
             return fit.fitness if m.rank == 1 and fit.pose is not None else None
