@@ -23,25 +23,38 @@ runpy.run_path(script, run_name="__main__")
 
 
 @pytest.mark.parametrize(
-    ("script", "args", "feature"),
+    ("script", "args", "feature", "package", "extra"),
     [
-        ("make_rosbag.py", ["--out", "{tmp}/city.bag", "--preset", "tiny"], "Writing ROS bags"),
-        ("bench_rosbag.py", ["--work", "{tmp}"], "Writing and reading ROS bags"),
+        (
+            "make_rosbag.py",
+            ["--out", "{tmp}/city.bag", "--preset", "tiny"],
+            "Writing ROS bags",
+            "rosbags",
+            "rosbag",
+        ),
+        (
+            "bench_rosbag.py",
+            ["--work", "{tmp}"],
+            "Writing and reading ROS bags",
+            "rosbags",
+            "rosbag",
+        ),
+        ("realism.py", ["--png", "{tmp}/r.png"], "The realism figure", "matplotlib", "plot"),
     ],
 )
 def test_a_missing_extra_is_one_line_and_status_2(
-    tmp_path: Path, script: str, args: list[str], feature: str
+    tmp_path: Path, script: str, args: list[str], feature: str, package: str, extra: str
 ) -> None:
     argv = [a.format(tmp=tmp_path) for a in args]
     done = subprocess.run(
-        [sys.executable, "-c", WITHOUT, "rosbags", str(BENCHMARKS / script), *argv],
+        [sys.executable, "-c", WITHOUT, package, str(BENCHMARKS / script), *argv],
         capture_output=True,
         text=True,
         timeout=120,
     )
     assert done.returncode == 2, done.stderr
     assert done.stderr == (
-        f"error: {feature} needs the 'rosbags' package, which is not installed. "
-        "Install it with: pip install 'pnvlad[rosbag]'\n"
+        f"error: {feature} needs the '{package}' package, which is not installed. "
+        f"Install it with: pip install 'pnvlad[{extra}]'\n"
     )
     assert list(tmp_path.iterdir()) == []  # it stopped before writing anything
