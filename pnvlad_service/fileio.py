@@ -8,11 +8,13 @@ fsync'ed and then renamed over the final path, which is atomic on POSIX file sys
 from __future__ import annotations
 
 import contextlib
+import csv
 import hashlib
+import io
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import IO
 
@@ -73,6 +75,32 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     with atomic_open(path, "w", encoding="utf-8", newline="") as fh:
         fh.write(text)
+
+
+def csv_cell(value: object, digits: int | None = None) -> str:
+    """A CSV cell of a report's row: empty for None, ``true``/``false``, a float's repr (rounded
+    to ``digits`` places when given)."""
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value if digits is None else round(value, digits))
+    return str(value)
+
+
+def atomic_write_rows(
+    rows: Iterable[object], columns: Sequence[str], path: str | Path, digits: int | None = None
+) -> Path:
+    """Rows (objects with an attribute a column) as a CSV with a header, written atomically."""
+    buf = io.StringIO()
+    out = csv.writer(buf, lineterminator="\n")
+    out.writerow(columns)
+    for r in rows:
+        out.writerow(csv_cell(getattr(r, c), digits) for c in columns)
+    path = Path(path)
+    atomic_write_text(path, buf.getvalue())
+    return path
 
 
 @contextlib.contextmanager

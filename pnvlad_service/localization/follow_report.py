@@ -7,7 +7,6 @@ too (docs/TRACKING.md)."""
 from __future__ import annotations
 
 import csv
-import io
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -17,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError, MissingDependencyError
-from pnvlad_service.fileio import atomic_write_text
+from pnvlad_service.fileio import atomic_write_rows
 from pnvlad_service.localization.tracking import LOST, SEARCHING, TRACKING
 
 #: A verified pose farther than this from the truth is a wrong one.
@@ -82,26 +81,9 @@ class FollowRow:
 COLUMNS = tuple(c for c in FollowRow.__dataclass_fields__ if c != "stages_ms")
 
 
-def _cell(value: Any) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return repr(round(value, 6))
-    return str(value)
-
-
 def write_follow_csv(rows: Sequence[FollowRow], path: str | Path) -> Path:
     """The rows as a CSV (atomically), one column a :class:`FollowRow` field (:data:`COLUMNS`)."""
-    buf = io.StringIO()
-    out = csv.writer(buf, lineterminator="\n")
-    out.writerow(COLUMNS)
-    for r in rows:
-        out.writerow(_cell(getattr(r, c)) for c in COLUMNS)
-    path = Path(path)
-    atomic_write_text(path, buf.getvalue())
-    return path
+    return atomic_write_rows(rows, COLUMNS, path, digits=6)
 
 
 def read_follow_csv(path: str | Path) -> list[FollowRow]:

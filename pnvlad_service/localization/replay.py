@@ -13,7 +13,6 @@ reason, not the end of the replay.
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -23,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError, MissingDependencyError
-from pnvlad_service.fileio import atomic_write_text
+from pnvlad_service.fileio import atomic_write_rows
 
 #: Errors beyond this many metres are counted apart in the summary (a wrong place).
 FAR_M = 25.0
@@ -194,29 +193,10 @@ def fill_row(row: ReplayRow, answer: dict[str, Any]) -> None:
             row.pose_yaw_error_deg = abs(_wrap_deg(row.pose_yaw_deg - row.true_yaw_deg))
 
 
-def _cell(value: Any) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return repr(value)
-    return str(value)
-
-
 def write_replay_csv(rows: Sequence[ReplayRow], path: str | Path) -> Path:
     """The rows as a CSV (atomically), one column a :class:`ReplayRow` field (:data:`COLUMNS`):
     the scan, the top-1 match, ``verified``, ``confidence``, the pose, the truth, the errors."""
-    import io
-
-    buf = io.StringIO()
-    out = csv.writer(buf, lineterminator="\n")
-    out.writerow(COLUMNS)
-    for r in rows:
-        out.writerow(_cell(getattr(r, c)) for c in COLUMNS)
-    path = Path(path)
-    atomic_write_text(path, buf.getvalue())
-    return path
+    return atomic_write_rows(rows, COLUMNS, path)
 
 
 @dataclass(frozen=True)
