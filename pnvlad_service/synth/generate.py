@@ -457,6 +457,19 @@ def generate(
     return summary
 
 
+def preset_of_tree(root: Path, missing: str) -> tuple[SynthPreset, int]:
+    """The preset and seed a ``pnvlad synth`` tree was made with, from its ``synth.json``;
+    :class:`InputError` naming the file (``missing``: why the tree needs one) otherwise."""
+    meta = Path(root) / "synth.json"
+    if not meta.is_file():
+        raise InputError(f"no synth.json: {missing}", root)
+    try:
+        doc = json.loads(meta.read_text(encoding="utf-8"))
+        return SynthPreset.model_validate(doc["preset"]), int(doc["seed"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"cannot read the preset and seed: {exc}", meta) from None
+
+
 def refresh_truth(
     out: str | Path, *, trajectories: str | Path | None = None, progress: bool = True
 ) -> int:
@@ -469,15 +482,7 @@ def refresh_truth(
     from pnvlad_service.progress import tqdm
 
     out = Path(out)
-    meta = out / "synth.json"
-    if not meta.is_file():
-        raise InputError("no synth.json: not a pnvlad synth tree", out)
-    try:
-        doc = json.loads(meta.read_text(encoding="utf-8"))
-        spec = SynthPreset.model_validate(doc["preset"])
-        seed = int(doc["seed"])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"cannot read the preset and seed: {exc}", meta) from None
+    spec, seed = preset_of_tree(out, "not a pnvlad synth tree")
     traj = _trajectory_files(spec, trajectories)
     jobs = [
         job

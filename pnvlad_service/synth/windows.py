@@ -16,7 +16,6 @@ submaps have) or in the newest scan's axes (``frame="sensor"``, for odometry's o
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import replace
@@ -28,7 +27,12 @@ import numpy as np
 from pnvlad_service.data.accumulate import WindowAccumulator
 from pnvlad_service.data.scans import RawScan, write_scan
 from pnvlad_service.errors import InputError
-from pnvlad_service.synth.generate import SynthPreset, run_name, simulated_drive
+from pnvlad_service.synth.generate import (
+    SynthPreset,
+    preset_of_tree,
+    run_name,
+    simulated_drive,
+)
 
 log = logging.getLogger(__name__)
 
@@ -45,15 +49,7 @@ ODOMETRY_WARM_UP_M = 10.0
 def drives_of(root: Path) -> dict[tuple[str, str], tuple[SynthPreset, int, int, int]]:
     """(area, run folder) -> (preset, area index, run index, seed) of a ``pnvlad synth`` tree,
     from its ``synth.json``. :class:`InputError` for a tree ``pnvlad synth`` did not make."""
-    meta = Path(root) / "synth.json"
-    if not meta.is_file():
-        raise InputError("no synth.json: windows are cast again from a pnvlad synth tree", root)
-    try:
-        doc = json.loads(meta.read_text(encoding="utf-8"))
-        spec = SynthPreset.model_validate(doc["preset"])
-        seed = int(doc["seed"])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"cannot read the preset and seed: {exc}", meta) from None
+    spec, seed = preset_of_tree(root, "windows are cast again from a pnvlad synth tree")
     return {
         (area.name, run_name(a, k, seed)[0]): (spec, a, k, seed)
         for a, area in enumerate(spec.areas)
