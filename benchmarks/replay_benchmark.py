@@ -108,16 +108,13 @@ def invoke(args: list[str], what: str):
     """``pnvlad ARGS`` in this process (the model and maps stay loaded); the logging the
     command set up on the runner's captured stderr is pointed back at ours afterwards (the
     runner closes that stream: later log lines would fail)."""
-    import logging
-    import sys
-
     from typer.testing import CliRunner
 
+    from pnvlad_cli.common import setup_logging
     from pnvlad_cli.main import app
 
     res = CliRunner().invoke(app, args)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
-                        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")  # fmt: skip
+    setup_logging(0)  # the command's own set-up, on this process's stderr again
     if res.exit_code != 0:
         raise SystemExit(f"{what} failed:\n{res.output}")
     return res
