@@ -17,6 +17,7 @@ import numpy as np
 
 from pnvlad_service.errors import InputError, MissingDependencyError
 from pnvlad_service.fileio import atomic_write_rows
+from pnvlad_service.localization.replay import save_track_figure, style_track_axes
 from pnvlad_service.localization.tracking import LOST, SEARCHING, TRACKING
 
 #: A verified pose farther than this from the truth is a wrong one.
@@ -423,12 +424,7 @@ def plot_follow(
     if lost:
         ax.scatter([r.true_easting for r in lost], [r.true_northing for r in lost], s=80,
                    facecolors="none", edgecolors="k", label="lost", zorder=5)  # fmt: skip
-    ax.set_xlabel("easting (m)")
-    ax.set_ylabel("northing (m)")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.ticklabel_format(useOffset=False, style="plain")
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(title or "follow")
+    style_track_axes(ax, title or "follow")
     if has_truth:
         ax2 = axes[0, 1]
         for label, colour, _, pick in groups:
@@ -452,13 +448,7 @@ def plot_follow(
         ax2.set_xlabel("time in the drive (s); red bands: searching, black: lost")
         ax2.set_ylabel("pose error (m)")
         ax2.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_track_figure(fig, plt, path)
 
 
 def stage_means(rows: Sequence[FollowRow]) -> dict[str, dict[str, float]]:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError, MissingDependencyError
-from pnvlad_service.fileio import atomic_write_rows
+from pnvlad_service.fileio import atomic_open, atomic_write_rows
 
 #: Errors beyond this many metres are counted apart in the summary (a wrong place).
 FAR_M = 25.0
@@ -259,6 +259,26 @@ def summarise(rows: Sequence[ReplayRow], far_m: float = FAR_M) -> ReplaySummary:
     )
 
 
+def style_track_axes(ax: Any, title: str) -> None:
+    """A drive's map panel (replay and follow figures): metres east and north, equal scales."""
+    ax.set_xlabel("easting (m)")
+    ax.set_ylabel("northing (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title)
+
+
+def save_track_figure(fig: Any, plt: Any, path: str | Path) -> Path:
+    """Lay out, write as PNG (atomically) and close a replay or follow figure."""
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_open(path, "wb") as fh:
+        fig.savefig(fh, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
 def plot_replay(
     rows: Sequence[ReplayRow],
     path: str | Path,
@@ -317,12 +337,7 @@ def plot_replay(
         e = [r.easting for r in sel]
         n = [r.northing for r in sel]
         ax.scatter(e, n, s=18, c=colour, label=f"{label} ({len(sel)})", zorder=4)
-    ax.set_xlabel("easting (m)")
-    ax.set_ylabel("northing (m)")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.ticklabel_format(useOffset=False, style="plain")
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(title or "replay")
+    style_track_axes(ax, title or "replay")
     if has_errors:
         ax2 = axes[0, 1]
         for label, colour, pick in groups:
@@ -342,10 +357,4 @@ def plot_replay(
             else "errors"
         )
         ax2.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_track_figure(fig, plt, path)
