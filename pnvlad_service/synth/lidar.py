@@ -12,24 +12,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, Field
 
-from pnvlad_service.synth.world import Boxes, Cylinders, Ellipsoids, Ground, Scene
+from pnvlad_service.synth.sensors import LidarConfig
+from pnvlad_service.synth.world import (
+    KIND_BUILDING,
+    KIND_CAR,
+    Boxes,
+    Cylinders,
+    Ellipsoids,
+    Ground,
+    Scene,
+)
 
-
-class LidarConfig(BaseModel):
-    """The spinning sensor. Defaults: a Velodyne HDL-64E (64 beams from +2° to -24.8°, one
-    turn every 0.1 s, about 100 m range, 2 cm range noise, a few % dropouts)."""
-
-    beams: int = Field(64, ge=1, description="laser channels")
-    elevation_max_deg: float = Field(2.0, description="top beam elevation, degrees")
-    elevation_min_deg: float = Field(-24.8, description="bottom beam elevation, degrees")
-    columns: int = Field(1800, ge=8, description="azimuth steps per turn (0.2°)")
-    max_range: float = Field(100.0, gt=0, description="metres")
-    min_range: float = Field(2.5, ge=0, description="metres; closer returns are dropped")
-    range_noise: float = Field(0.02, ge=0, description="range noise std, metres")
-    dropout: float = Field(0.05, ge=0, lt=1, description="share of returns lost")
-    mount_height: float = Field(1.9, description="sensor height above the ground, metres")
+__all__ = ["LidarConfig", "RayBundle", "cast_scan", "ray_bundle"]
 
 
 @dataclass
@@ -44,7 +39,7 @@ class RayBundle:
 
 def ray_bundle(cfg: LidarConfig) -> RayBundle:
     """The sensor's rays, beam-major."""
-    el = np.deg2rad(np.linspace(cfg.elevation_max_deg, cfg.elevation_min_deg, cfg.beams))
+    el = np.deg2rad(cfg.elevations())
     az = np.arange(cfg.columns) * (2 * np.pi / cfg.columns)
     ce = np.cos(el)[:, None]
     d = np.stack(
@@ -113,8 +108,12 @@ def _pairs(
     return idx[p2], ray
 
 
-def _hit_boxes(b: Boxes, prim: np.ndarray, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Entry distance of rays ``d`` [M,3] from ``o`` into boxes ``prim`` [M]; inf if none."""
+def _hit_boxes(
+    b: Boxes, prim: np.ndarray, o: np.ndarray, d: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Entry distance of rays ``d`` [M,3] from ``o`` into boxes ``prim`` [M] (inf if none),
+    the cosine of the incidence on the face entered, and where on a side face it is entered:
+    metres along the face (from the box's corner), nan on the top or bottom."""
     c, s = np.cos(b.yaw[prim]), np.sin(b.yaw[prim])
     rx = o[0] - b.center[prim, 0]
     ry = o[1] - b.center[prim, 1]
@@ -128,18 +127,25 @@ def _hit_boxes(b: Boxes, prim: np.ndarray, o: np.ndarray, d: np.ndarray) -> np.n
         tx1, tx2 = (-hx - ox) * ix, (hx - ox) * ix
         ty1, ty2 = (-hy - oy) * iy, (hy - oy) * iy
         tz1, tz2 = (b.z[prim, 0] - o[2]) * iz, (b.z[prim, 1] - o[2]) * iz
-        tn = np.maximum(
-            np.maximum(np.minimum(tx1, tx2), np.minimum(ty1, ty2)), np.minimum(tz1, tz2)
-        )
+        enter = np.stack([np.minimum(tx1, tx2), np.minimum(ty1, ty2), np.minimum(tz1, tz2)])
+        tn = enter.max(0)
         tf = np.minimum(
             np.minimum(np.maximum(tx1, tx2), np.maximum(ty1, ty2)), np.maximum(tz1, tz2)
         )
     hit = (tn <= tf) & (tn > 0)
-    return np.where(hit, tn, np.inf)
+    face = enter.argmax(0)
+    cos = np.abs(np.choose(face, [dx, dy, d[:, 2]]))
+    with np.errstate(invalid="ignore"):  # misses: inf times a zero direction
+        along = np.where(
+            face == 0, oy + tn * dy + hy, np.where(face == 1, ox + tn * dx + hx, np.nan)
+        )
+    return np.where(hit, tn, np.inf), cos, along
 
 
-def _hit_cylinders(cy: Cylinders, prim: np.ndarray, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Distance to the side of vertical cylinders; inf if missed."""
+def _hit_cylinders(
+    cy: Cylinders, prim: np.ndarray, o: np.ndarray, d: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distance to the side of vertical cylinders (inf if missed) and the incidence cosine."""
     rx = o[0] - cy.center[prim, 0]
     ry = o[1] - cy.center[prim, 1]
     a = d[:, 0] ** 2 + d[:, 1] ** 2
@@ -148,15 +154,25 @@ def _hit_cylinders(cy: Cylinders, prim: np.ndarray, o: np.ndarray, d: np.ndarray
     disc = bb * bb - a * cc
     with np.errstate(invalid="ignore", divide="ignore"):
         t = (-bb - np.sqrt(disc)) / a
+        # the radial normal at the hit: (o + t d - c) / r, horizontal
+        cos = np.abs((rx + t * d[:, 0]) * d[:, 0] + (ry + t * d[:, 1]) * d[:, 1])
+        cos = cos / cy.radius[prim]
     z = o[2] + t * d[:, 2]
     hit = (disc > 0) & (t > 0) & (z >= cy.z[prim, 0]) & (z <= cy.z[prim, 1])
-    return np.where(hit, t, np.inf)
+    return np.where(hit, t, np.inf), np.nan_to_num(cos, nan=1.0)
 
 
 def _hit_ellipsoids(
-    e: Ellipsoids, prim: np.ndarray, o: np.ndarray, d: np.ndarray, rng: np.random.Generator
+    e: Ellipsoids,
+    prim: np.ndarray,
+    o: np.ndarray,
+    d: np.ndarray,
+    rng: np.random.Generator,
+    depth_m: float = 0.0,
 ) -> np.ndarray:
-    """Distance to ellipsoids; a hit survives with the crown's density (foliage gaps)."""
+    """Distance to ellipsoids; a hit survives with the crown's density (foliage gaps). With
+    ``depth_m`` > 0 the ray returns from inside the crown, an exponential depth of that mean
+    past its surface (at most its far side): leaves scattered through the crown's volume."""
     r = e.radii[prim]
     oc = (o[None, :] - e.center[prim]) / r
     dd = d / r
@@ -165,8 +181,12 @@ def _hit_ellipsoids(
     cc = (oc * oc).sum(1) - 1.0
     disc = bb * bb - a * cc
     with np.errstate(invalid="ignore"):
-        t = (-bb - np.sqrt(disc)) / a
+        root = np.sqrt(disc)
+        t = (-bb - root) / a
     hit = (disc > 0) & (t > 0) & (rng.random(len(prim)) < e.density[prim])
+    if depth_m > 0:
+        chord = np.where(hit, 2.0 * root / a, 0.0)
+        t = t + np.minimum(rng.exponential(depth_m, len(prim)), chord)
     return np.where(hit, t, np.inf)
 
 
@@ -194,6 +214,27 @@ def _hit_ground(
     return t
 
 
+#: What a return hit, for the sensor's failures: the ground, a building's side, a vehicle,
+#: foliage, anything else.
+MAT_GROUND, MAT_FACADE, MAT_VEHICLE, MAT_FOLIAGE, MAT_OTHER = 0, 1, 2, 3, 4
+#: Facade windows: a bay every WINDOW_BAY_M along a building's side, a floor every
+#: WINDOW_FLOOR_M, the glass the middle WINDOW_SHARE of each (none below WINDOW_SILL_M).
+WINDOW_BAY_M, WINDOW_FLOOR_M, WINDOW_SHARE, WINDOW_SILL_M = 3.0, 3.3, 0.6, 1.0
+
+
+def _windows(along: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """Whether points on a facade (metres along it, above its foot) fall on a window's glass."""
+    lo = (1.0 - WINDOW_SHARE) / 2
+    u = np.mod(along, WINDOW_BAY_M) / WINDOW_BAY_M
+    v = np.mod(height, WINDOW_FLOOR_M) / WINDOW_FLOOR_M
+    return (u > lo) & (u < 1 - lo) & (v > lo) & (v < 1 - lo) & (height > WINDOW_SILL_M)
+
+
+def _winners(depth: np.ndarray, ray: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Which candidate hits (ray, t) are their ray's nearest surface."""
+    return np.isfinite(t) & (t == depth[ray])
+
+
 def cast_scan(
     scene: Scene,
     ground: Ground,
@@ -202,9 +243,11 @@ def cast_scan(
     cfg: LidarConfig,
     rng: np.random.Generator,
     rays: RayBundle | None = None,
+    motion: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
     """Simulate one full turn of the sensor at ``position`` (local metres, float64 [3]) with
-    heading ``yaw`` (radians from east, sensor level).
+    heading ``yaw`` (radians from east, sensor level), the vehicle moving at ``motion`` =
+    (forward speed m/s, yaw rate rad/s) at that moment (used when ``cfg.deskewed`` is False).
 
     Returns the points in the *sensor* frame (x forward, y left, z up), float32 [N,3], metres,
     with range noise and dropouts applied and rays without a return in range removed.
@@ -218,20 +261,35 @@ def cast_scan(
     world[:, 2] = flat[:, 2]
     o = np.asarray(position, dtype=np.float64)
     depth = _hit_ground(ground, o, world, cfg.max_range)
+    real = cfg.realistic
+    hits = []  # (material, ray, t, cos, glass) of each primitive kind, for the failures
 
     bx = scene.boxes
     if len(bx):
         rad = np.hypot(bx.half[:, 0], bx.half[:, 1])
         prim, ray = _pairs(bx.center, rad, bx.z[:, 0], bx.z[:, 1], o, yaw, rays, cfg.max_range)
         if len(prim):
-            np.minimum.at(depth, ray, _hit_boxes(bx, prim, o, world[ray]))
+            t, cos, along = _hit_boxes(bx, prim, o, world[ray])
+            np.minimum.at(depth, ray, t)
+            if real:
+                kind = bx.kind[prim]
+                mat = np.where(kind == KIND_CAR, MAT_VEHICLE, MAT_OTHER)
+                facade = (kind == KIND_BUILDING) & np.isfinite(along)
+                mat = np.where(facade, MAT_FACADE, mat)
+                height = o[2] + np.where(np.isfinite(t), t, 0.0) * world[ray, 2] - bx.z[prim, 0]
+                glass = facade & _windows(np.nan_to_num(along), height)
+                glass &= cfg.glass_loss > 0
+                hits.append((mat, ray, t, cos, glass))
     cy = scene.cylinders
     if len(cy):
         prim, ray = _pairs(
             cy.center, cy.radius, cy.z[:, 0], cy.z[:, 1], o, yaw, rays, cfg.max_range
         )
         if len(prim):
-            np.minimum.at(depth, ray, _hit_cylinders(cy, prim, o, world[ray]))
+            t, cos = _hit_cylinders(cy, prim, o, world[ray])
+            np.minimum.at(depth, ray, t)
+            if real:
+                hits.append((np.full(len(t), MAT_OTHER), ray, t, cos, np.zeros(len(t), bool)))
     el = scene.ellipsoids
     if len(el):
         zc, rz = el.center[:, 2], el.radii[:, 2]
@@ -239,11 +297,70 @@ def cast_scan(
             el.center[:, :2], el.radii[:, 0], zc - rz, zc + rz, o, yaw, rays, cfg.max_range
         )
         if len(prim):
-            np.minimum.at(depth, ray, _hit_ellipsoids(el, prim, o, world[ray], rng))
+            t = _hit_ellipsoids(el, prim, o, world[ray], rng, cfg.foliage_depth)
+            np.minimum.at(depth, ray, t)
+            if real:
+                ones = np.ones(len(t))
+                hits.append((np.full(len(t), MAT_FOLIAGE), ray, t, ones, np.zeros(len(t), bool)))
 
     ok = np.isfinite(depth) & (depth <= cfg.max_range) & (depth >= cfg.min_range)
-    if cfg.dropout > 0:
-        ok &= rng.random(len(depth)) >= cfg.dropout
+    if not real:  # the perfect sensor, as trees made before the failures cast it
+        if cfg.dropout > 0:
+            ok &= rng.random(len(depth)) >= cfg.dropout
+        idx = np.flatnonzero(ok)
+        r = depth[idx] + rng.normal(0.0, cfg.range_noise, len(idx))
+        return (flat[idx] * r[:, None]).astype(np.float32)
+    return _real_returns(cfg, rng, rays, flat, world, depth, ok, hits, motion)
+
+
+def _real_returns(
+    cfg: LidarConfig,
+    rng: np.random.Generator,
+    rays: RayBundle,
+    flat: np.ndarray,
+    world: np.ndarray,
+    depth: np.ndarray,
+    ok: np.ndarray,
+    hits: list,
+    motion: tuple[float, float],
+) -> np.ndarray:
+    """The returns of a real sensor from the nearest hits: dropouts by range, incidence and
+    material, glass and recessed windows, range noise growing with range, the sweep's motion."""
+    cos = np.abs(world[:, 2])  # the ground's: its normal is about vertical
+    mat = np.full(len(depth), MAT_GROUND, np.int8)
+    glass = np.zeros(len(depth), bool)
+    for m, ray, t, c, g in hits:
+        win = _winners(depth, ray, t)
+        mat[ray[win]] = m[win]
+        cos[ray[win]] = c[win]
+        glass[ray[win]] = g[win]
+    u = rng.random(len(depth))
+    frac = np.clip(depth / cfg.max_range, 0.0, 1.0)
+    lost = (
+        cfg.dropout
+        + cfg.dropout_far * np.where(np.isfinite(frac), frac, 1.0) ** 2
+        + cfg.dropout_grazing * (1.0 - np.clip(cos, 0.0, 1.0)) ** 2
+        + cfg.dark_loss * (mat == MAT_VEHICLE)
+    )
+    ok &= u >= lost
+    # Glass: most rays pass through (lost); the rest return from frames and blinds behind it.
+    ok &= ~(glass & (rng.random(len(depth)) < cfg.glass_loss))
+    depth = np.where(glass, depth + rng.uniform(0.1, 0.6, len(depth)), depth)
     idx = np.flatnonzero(ok)
-    r = depth[idx] + rng.normal(0.0, cfg.range_noise, len(idx))
-    return (flat[idx] * r[:, None]).astype(np.float32)
+    std = cfg.range_noise + cfg.range_noise_per_100m * depth[idx] / 100.0
+    r = depth[idx] + rng.normal(0.0, 1.0, len(idx)) * std
+    pts = flat[idx] * r[:, None]
+    speed, yaw_rate = motion
+    if not cfg.deskewed and (speed or yaw_rate):
+        # Each column fires at its time in the sweep (clockwise from the rear); the sensor has
+        # moved speed*tau forward and turned yaw_rate*tau since the sweep's middle.
+        ncol = len(rays.azimuth)
+        col = idx % ncol
+        az = rays.azimuth[col]
+        tau = (np.mod(np.pi - az, 2 * np.pi) / (2 * np.pi) - 0.5) / cfg.rotation_hz
+        x = pts[:, 0] - speed * tau
+        y = pts[:, 1]
+        a = -yaw_rate * tau
+        ca, sa = np.cos(a), np.sin(a)
+        pts = np.stack([ca * x - sa * y, sa * x + ca * y, pts[:, 2]], 1)
+    return pts.astype(np.float32)

@@ -21,6 +21,7 @@ Every function takes one scan in its *sensor* frame (metres, z up, the sensor at
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 
@@ -42,15 +43,25 @@ GROUND_LEFT_M = 0.2
 @dataclass(frozen=True)
 class Layout:
     """A spinning sensor's nominal beams: ``beams`` elevations evenly spread from
-    ``elevation_max_deg`` (beam 0) down to ``elevation_min_deg``, as the synthetic LiDAR casts
-    them (:func:`~pnvlad_service.synth.lidar.ray_bundle`)."""
+    ``elevation_max_deg`` (beam 0) down to ``elevation_min_deg``, or the model's own ``table``
+    (degrees), as the synthetic LiDAR casts them
+    (:func:`~pnvlad_service.synth.lidar.ray_bundle`)."""
 
     beams: int
     elevation_max_deg: float
     elevation_min_deg: float
+    table: tuple[float, ...] | None = None
+
+    @classmethod
+    def of(cls, cfg: Any) -> Layout:
+        """The layout of a :class:`~pnvlad_service.synth.sensors.LidarConfig`."""
+        table = None if cfg.elevations_deg is None else tuple(cfg.elevations())
+        return cls(cfg.beams, cfg.elevation_max_deg, cfg.elevation_min_deg, table)
 
     def elevations(self) -> np.ndarray:
         """float64 [beams], degrees, beam 0 (the top) first."""
+        if self.table is not None:
+            return np.sort(np.asarray(self.table, dtype=np.float64))[::-1].copy()
         return np.linspace(self.elevation_max_deg, self.elevation_min_deg, self.beams)
 
 
@@ -67,8 +78,12 @@ def rings_by_elevation(points: np.ndarray, layout: Layout) -> np.ndarray:
     table = layout.elevations()
     if layout.beams == 1:
         return np.zeros(len(points), np.int64)
+    el = elevation_deg(points)
+    if layout.table is not None:  # the nearest of the table's beams (descending)
+        mids = (table[:-1] + table[1:]) / 2
+        return np.searchsorted(-mids, -el).astype(np.int64)
     step = (table[0] - table[-1]) / (layout.beams - 1)
-    ring = np.rint((table[0] - elevation_deg(points)) / step)
+    ring = np.rint((table[0] - el) / step)
     return np.clip(ring, 0, layout.beams - 1).astype(np.int64)
 
 

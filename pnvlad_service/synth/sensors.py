@@ -1,0 +1,167 @@
+"""The spinning LiDARs the synthetic city can be seen with: :class:`LidarConfig` and the
+catalogue :data:`SENSORS` of real models' beam layouts.
+
+A sensor is its beams (elevation angles: evenly spread, or a model's own table), its azimuth
+steps per turn and rotation rate, its range window, and how its returns fail as real ones do:
+range noise that grows with range, dropouts that grow with range and with the incidence angle,
+returns lost on glass and on dark vehicle paint, rays that reach into foliage before they
+return, and the vehicle's motion during a sweep (the scan is not de-skewed). Every realism
+field defaults to the perfect sensor of the first benchmarks, so that a tree whose
+``synth.json`` predates them casts the same scans again; the catalogue's sensors switch them on.
+
+Beam tables (degrees, from the makers' manuals): the Velodyne HDL-64E has an upper block of 32
+lasers from +2.0 to -8.33 degrees (1/3 degree apart) and a lower block of 32 from -8.83 to
+-24.8 degrees (about 1/2 degree apart); the HDL-32E 32 lasers evenly from +10.67 to -30.67; the
+VLP-16 16 from +15 to -15 (2 degrees apart); a 128-beam sensor (Ouster OS1-128) 128 evenly over
++-22.5 degrees.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, Field, model_validator
+
+
+class LidarConfig(BaseModel):
+    """The spinning sensor. Defaults: a perfect Velodyne HDL-64E-like sensor (64 beams evenly
+    from +2° to -24.8°, about 100 m range, 2 cm range noise, 5 % dropouts, no motion)."""
+
+    name: str = Field("", description="the sensor model, for the record (e.g. HDL-64E)")
+    beams: int = Field(64, ge=1, description="laser channels")
+    elevation_max_deg: float = Field(2.0, description="top beam elevation, degrees")
+    elevation_min_deg: float = Field(-24.8, description="bottom beam elevation, degrees")
+    elevations_deg: list[float] | None = Field(
+        None,
+        description="each beam's elevation, degrees (a model's own table); None: ``beams`` "
+        "evenly from elevation_max_deg to elevation_min_deg",
+    )
+    columns: int = Field(1800, ge=8, description="azimuth steps per turn (0.2°)")
+    rotation_hz: float = Field(10.0, gt=0, description="turns a second")
+    max_range: float = Field(100.0, gt=0, description="metres")
+    min_range: float = Field(2.5, ge=0, description="metres; closer returns are dropped")
+    range_noise: float = Field(0.02, ge=0, description="range noise std, metres")
+    range_noise_per_100m: float = Field(
+        0.0, ge=0, description="range noise std added per 100 m of range, metres"
+    )
+    dropout: float = Field(0.05, ge=0, lt=1, description="share of returns lost")
+    dropout_far: float = Field(
+        0.0, ge=0, lt=1, description="share lost added at max_range (grows as range squared)"
+    )
+    dropout_grazing: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="share lost added at a grazing incidence (grows as (1 - cos)^2 of the "
+        "angle between the ray and the surface normal)",
+    )
+    glass_loss: float = Field(
+        0.0, ge=0, le=1, description="share of the returns from facade windows lost on glass"
+    )
+    dark_loss: float = Field(
+        0.0, ge=0, lt=1, description="share of the returns from vehicles lost on dark paint"
+    )
+    foliage_depth: float = Field(
+        0.0,
+        ge=0,
+        description="mean depth (m) a ray reaches into a tree crown before it returns "
+        "(0: at the crown's surface)",
+    )
+    deskewed: bool = Field(
+        True,
+        description="False: each column is fired as the vehicle moves through the sweep and "
+        "the points are given in the sensor frame at the sweep's middle (not de-skewed)",
+    )
+    mount_height: float = Field(1.9, description="sensor height above the ground, metres")
+
+    @model_validator(mode="after")
+    def _table(self) -> LidarConfig:
+        table = self.elevations_deg
+        if table is not None:
+            if len(table) != self.beams:
+                raise ValueError(f"elevations_deg has {len(table)} beams, beams says {self.beams}")
+            if not all(np.isfinite(table)):
+                raise ValueError("elevations_deg must be finite")
+            # The extremes follow the table (what the realism statistics read).
+            object.__setattr__(self, "elevation_max_deg", float(max(table)))
+            object.__setattr__(self, "elevation_min_deg", float(min(table)))
+        if self.elevation_min_deg > self.elevation_max_deg:
+            raise ValueError("elevation_min_deg is above elevation_max_deg")
+        return self
+
+    def elevations(self) -> np.ndarray:
+        """Every beam's elevation, float64 [beams] degrees, highest first."""
+        if self.elevations_deg is not None:
+            return np.sort(np.asarray(self.elevations_deg, dtype=np.float64))[::-1].copy()
+        return np.linspace(self.elevation_max_deg, self.elevation_min_deg, self.beams)
+
+    @property
+    def realistic(self) -> bool:
+        """Whether any of the real sensor's failures is switched on."""
+        return bool(
+            self.range_noise_per_100m
+            or self.dropout_far
+            or self.dropout_grazing
+            or self.glass_loss
+            or self.dark_loss
+            or self.foliage_depth
+            or not self.deskewed
+        )
+
+
+def _hdl64e() -> list[float]:
+    upper = np.linspace(2.0, -8.33, 32)
+    lower = np.linspace(-8.83, -24.8, 32)
+    return [round(float(v), 3) for v in np.r_[upper, lower]]
+
+
+#: How real sensors fail, shared by the catalogue: range noise growing 2 cm a 100 m, a fifth of
+#: the returns lost at 100 m and a quarter at a grazing incidence, 70 % of facade windows and 30 %
+#: of vehicle paint lost, rays reaching 0.6 m into crowns on average, no de-skewing.
+REAL_FAILURES = {
+    "range_noise_per_100m": 0.02,
+    "dropout": 0.03,
+    "dropout_far": 0.2,
+    "dropout_grazing": 0.25,
+    "glass_loss": 0.7,
+    "dark_loss": 0.3,
+    "foliage_depth": 0.6,
+    "deskewed": False,
+}
+
+#: Real sensors by short name; ``pnvlad synth`` presets mix them across runs.
+SENSORS: dict[str, LidarConfig] = {
+    "hdl64e": LidarConfig(
+        name="HDL-64E", beams=64, elevations_deg=_hdl64e(), columns=2000, **REAL_FAILURES
+    ),
+    "hdl32e": LidarConfig(
+        name="HDL-32E",
+        beams=32,
+        elevation_max_deg=10.67,
+        elevation_min_deg=-30.67,
+        columns=2170,  # 0.166 degree steps at 10 Hz
+        **REAL_FAILURES,
+    ),
+    "vlp16": LidarConfig(
+        name="VLP-16",
+        beams=16,
+        elevation_max_deg=15.0,
+        elevation_min_deg=-15.0,
+        columns=1800,
+        range_noise=0.03,
+        **REAL_FAILURES,
+    ),
+    "os128": LidarConfig(
+        name="OS1-128",
+        beams=128,
+        elevation_max_deg=22.5,
+        elevation_min_deg=-22.5,
+        columns=1024,
+        range_noise=0.015,
+        **REAL_FAILURES,
+    ),
+}
+
+
+def sensor(name: str, **update: object) -> LidarConfig:
+    """A catalogue sensor by name (a copy, ``update`` applied), else ``KeyError``."""
+    return SENSORS[name].model_copy(update=update, deep=True)
