@@ -163,9 +163,9 @@ def synthetic_stats(
     (j + 0.5) / n of its route."""
     from pnvlad_service.synth.generate import simulated_drive
 
-    sensor = spec.lidar.model_copy(update=lidar)
-    spec = spec.model_copy(update={"lidar": sensor})
-    layout = rl.Layout(sensor.beams, sensor.elevation_max_deg, sensor.elevation_min_deg)
+    sensor = matching_sensor(spec, lidar)
+    spec = spec.model_copy(update={"lidar": sensor, "lidars": []})
+    layout = rl.Layout.of(sensor)
     areas = [i for i, a in enumerate(spec.areas) if a.district == src.district]
     areas = areas or list(range(len(spec.areas)))
     drives: dict[tuple[int, int], Any] = {}
@@ -178,6 +178,23 @@ def synthetic_stats(
         pts = drive.scan(int((j + 0.5) / args.scans * len(drive)))
         stats.append(rl.scan_stats(pts, layout, k=args.k, sample=args.sample, seed=j))
     return rl.pool(stats), sensor, sorted({spec.areas[a].district for a in areas})
+
+
+def matching_sensor(spec: Any, lidar: dict[str, Any]) -> Any:
+    """The synthetic sensor of a real source: the preset's sensor (of its mix, the one with as
+    many beams, else the first) with the source's geometry ``lidar`` (beams, elevations,
+    columns, mount height); a catalogue sensor keeps its own beam table where the source's
+    beams are the same layout (an HDL-64E's two blocks)."""
+    from pnvlad_service.synth.sensors import LidarConfig
+
+    pool = spec.lidars or [spec.lidar]
+    base = next((s for s in pool if s.beams == lidar.get("beams")), pool[0])
+    fields = base.model_dump()
+    if base.elevations_deg is not None and base.beams == lidar.get("beams"):
+        lidar = {k: v for k, v in lidar.items() if not k.startswith("elevation")}
+    else:
+        fields["elevations_deg"] = None
+    return LidarConfig.model_validate({**fields, **lidar})
 
 
 def _value(value: float, unit: str) -> str:

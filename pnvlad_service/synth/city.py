@@ -509,7 +509,15 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
             placer.side(street, side)
     placer.signs()
     placer.park_trees()
+    detail = cfg.detail
+    if detail.any:  # a stream of its own: the rest of the city stays where it was
+        from pnvlad_service.synth.furniture import clumped_crowns, place_detail
+
+        detail_rng = _rng(seed, sid, 4)
+        place_detail(placer, roads, detail, detail_rng)
     scene = placer.b.freeze()
+    if detail.crown_clumps > 1:
+        scene = clumped_crowns(scene, detail.crown_clumps, detail_rng)
     slots = placer.slots()
     log.debug(
         "world %s seed %d: %d roads, %d boxes, %d cylinders, %d crowns, %d parking slots",

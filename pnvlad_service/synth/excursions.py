@@ -71,7 +71,7 @@ def off_map_drive(
         raise InputError(f"need out_m > {MERGE_M:g} and back_m >= 0", "out_m")
     area = spec.areas[area_index]
     job = _run_jobs_of_area(Path("."), area_index, area, spec, seed, {})[run]
-    world = _world(area, seed)
+    world = _world(area, seed, spec.city)
     longer = make_route(world, area.route_m + out_m, seed)
     end = min(area.route_m + out_m, longer.length)
     route = out_and_back(longer, end, max(0.0, area.route_m - back_m))
@@ -82,7 +82,7 @@ def off_map_drive(
         seed=job["run_seed"],
         start_us=job["start_us"],
         conditions=spec.conditions,
-        lidar=spec.lidar,
+        lidar=spec.run_lidar(area_index, run),
         scan_spacing=spec.scan_spacing,
     )
 

@@ -40,7 +40,8 @@ from pnvlad_service.errors import InputError
 from pnvlad_service.synth.city import generate_world
 from pnvlad_service.synth.lidar import LidarConfig
 from pnvlad_service.synth.runs import Route, RunConditions, SimulatedDrive, make_route
-from pnvlad_service.synth.world import DISTRICTS, World, WorldConfig
+from pnvlad_service.synth.sensors import sensor
+from pnvlad_service.synth.world import DISTRICTS, CityDetail, World, WorldConfig
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,20 @@ class SynthPreset(BaseModel):
         5.0, gt=0, description="metres between keyframes (single-scan map entries); None: none"
     )
     raw_scans: bool = Field(True, description="keep the raw scan at each test submap")
+    lidars: list[LidarConfig] = Field(
+        default_factory=list,
+        description="sensors the runs are recorded with, run k of area a with lidars[(a + k) % "
+        "len] (a map of one sensor met by queries of another); empty: ``lidar`` for every run",
+    )
+    city: CityDetail = Field(
+        default_factory=CityDetail, description="street detail beyond the first benchmarks'"
+    )
+
+    def run_lidar(self, area_index: int, run: int) -> LidarConfig:
+        """The sensor run ``run`` of area ``area_index`` is recorded with."""
+        if not self.lidars:
+            return self.lidar
+        return self.lidars[(area_index + run) % len(self.lidars)]
 
 
 def _areas(route_m: float, size: tuple[float, float], names: tuple[str, ...]) -> list[AreaSpec]:
@@ -90,6 +105,14 @@ def _areas(route_m: float, size: tuple[float, float], names: tuple[str, ...]) ->
         for i, n in enumerate(names)
     ]
 
+
+#: Run conditions of the realistic presets: the vehicle clear of parked and oncoming cars,
+#: cars of several shapes.
+REAL_CONDITIONS = RunConditions(ego_clearance=0.3, vehicle_shapes=True)
+#: Street detail of the realistic presets.
+REAL_CITY = CityDetail(
+    hedges=0.35, bollard_spacing=1.5, furniture_per_100m=3.0, shrubs_per_1000m2=0.6, crown_clumps=4
+)
 
 PRESETS: dict[str, SynthPreset] = {
     # For tests: a small block, three runs, a sparse sensor. A few seconds.
@@ -108,15 +131,32 @@ PRESETS: dict[str, SynthPreset] = {
         name="demo",
         areas=_areas(1000.0, (700.0, 600.0), ("business",)),
         runs=4,
-        lidar=LidarConfig(columns=900),
+        lidar=sensor("hdl64e", columns=900),
+        conditions=REAL_CONDITIONS,
+        city=REAL_CITY,
         scan_spacing=2.5,
         max_points_per_scan=8000,
         test_share=0.35,
         region_half_size=120.0,
     ),
-    # Our quality figures: three districts, five runs each.
+    # Our quality figures: three districts, five runs each, each run recorded with one of four
+    # real sensors, streets with hedges, furniture and cars of several shapes (issue #37).
     "benchmark": SynthPreset(
         name="benchmark",
+        areas=_areas(3000.0, (1000.0, 800.0), ("business", "residential", "campus")),
+        runs=5,
+        lidars=[sensor(name) for name in ("hdl64e", "hdl32e", "vlp16", "os128")],
+        conditions=REAL_CONDITIONS,
+        city=REAL_CITY,
+        scan_spacing=2.5,
+        max_points_per_scan=8000,
+        test_share=0.45,
+        region_half_size=150.0,
+    ),
+    # The benchmark before #37 (one perfect 64-beam sensor, boxes for cars, no street detail):
+    # what the figures of docs/results before 2026-12-05 (session c) were measured on.
+    "benchmark_v1": SynthPreset(
+        name="benchmark_v1",
         areas=_areas(3000.0, (1000.0, 800.0), ("business", "residential", "campus")),
         runs=5,
         lidar=LidarConfig(columns=1200),
@@ -161,12 +201,14 @@ def simulated_drive(spec: SynthPreset, area_index: int, run: int, seed: int) -> 
     return _job_drive(jobs[run])
 
 
-def _world(area: AreaSpec, seed: int) -> World:
+def _world(area: AreaSpec, seed: int, detail: CityDetail | None = None) -> World:
     if area.district not in DISTRICTS:
         raise InputError(
             f"unknown district {area.district!r}; choose one of {sorted(DISTRICTS)}", area.name
         )
-    cfg = WorldConfig(district=area.district, size=area.size, origin=area.origin)
+    cfg = WorldConfig(
+        district=area.district, size=area.size, origin=area.origin, detail=detail or CityDetail()
+    )
     return generate_world(cfg, seed=seed)
 
 
@@ -239,7 +281,7 @@ def _job_drive(job: dict[str, Any]) -> SimulatedDrive:
     """The drive of one run job (no scan is cast until asked for)."""
     preset = SynthPreset.model_validate(job["preset"])
     area = AreaSpec.model_validate(job["area"])
-    world = _world(area, job["seed"])
+    world = _world(area, job["seed"], preset.city)
     route = (
         route_from_csv(world, job["trajectory"])
         if job.get("trajectory")
@@ -252,7 +294,7 @@ def _job_drive(job: dict[str, Any]) -> SimulatedDrive:
         seed=job["run_seed"],
         start_us=job["start_us"],
         conditions=preset.conditions,
-        lidar=preset.lidar,
+        lidar=LidarConfig.model_validate(job["lidar"]) if job.get("lidar") else preset.lidar,
         scan_spacing=preset.scan_spacing,
     )
 
@@ -274,6 +316,7 @@ def _run_jobs_of_area(
                 "start_us": start,
                 "out": str(out),
                 "trajectory": str(traj[(area.name, k)]) if traj else None,
+                "lidar": spec.run_lidar(area_index, k).model_dump(),
             }
         )
     return jobs
@@ -310,6 +353,7 @@ def _run_job(job: dict[str, Any]) -> dict[str, Any]:
         "lane_offset_m": drive.lane,
         "removed_objects": drive.scene.removed,
         "roadworks": len(drive.scene.roadworks),
+        "sensor": drive.lidar.name or f"{drive.lidar.beams} beams",
     }
 
 
@@ -346,7 +390,7 @@ def _area_jobs(
     """Write the area's test regions (chosen on its first route) and return one job per run."""
     from pnvlad_service.data.splits import TestRegions, save_regions
 
-    world = _world(area, seed)
+    world = _world(area, seed, spec.city)
     route = (
         route_from_csv(world, traj_files[(area.name, 0)])
         if traj_files

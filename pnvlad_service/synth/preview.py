@@ -60,7 +60,7 @@ def render_map(root: str | Path, out_png: str | Path, *, seed: int | None = None
     tree = BenchmarkTree(root)
     fig, axes = plt.subplots(1, len(spec.areas), figsize=(7 * len(spec.areas), 6.5), squeeze=False)
     for ax, area in zip(axes[0], spec.areas, strict=True):
-        world = _world(area, seed)
+        world = _world(area, seed, spec.city)
         ox, oy = world.origin
         b = world.scene.boxes
         for k in np.flatnonzero(b.kind == KIND_BUILDING):

@@ -27,6 +27,7 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from pnvlad_service.synth.lidar import LidarConfig, RayBundle, cast_scan, ray_bundle
+from pnvlad_service.synth.vehicles import Shapes, draw_shapes, vehicle_boxes
 from pnvlad_service.synth.world import (
     KIND_BARRIER,
     KIND_CAR,
@@ -82,6 +83,18 @@ class RunConditions(BaseModel):
         ge=0,
         description="street objects (poles, signs, trees) removed within this "
         "distance of a roadworks site, m",
+    )
+    ego_clearance: float | None = Field(
+        None,
+        ge=0,
+        description="metres the vehicle keeps from parked cars' sides, and no moving vehicle "
+        "overlaps it (None: the first benchmarks' lane, which could run through parked and "
+        "oncoming cars)",
+    )
+    vehicle_shapes: bool = Field(
+        False,
+        description="cars as a body and a cabin of several shapes, vans as one tall box, "
+        "parked ones changing shape from run to run (False: one box each)",
     )
 
 
@@ -210,6 +223,7 @@ class _Movers:
     lateral: np.ndarray
     half: np.ndarray  # [M, 2] cars; [M, 1] radius for pedestrians
     height: np.ndarray
+    shapes: Shapes | None = None  # cars with RunConditions.vehicle_shapes
 
 
 class RunScene:
@@ -228,6 +242,11 @@ class RunScene:
         taken = rng.random(len(world.parking)) < share
         p = world.parking
         parked = Boxes(p.center[taken], p.half[taken], p.z[taken], p.yaw[taken], p.kind[taken])
+        # A stream of its own for what the first benchmarks did not draw (their runs unchanged).
+        self._extra = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
+        if cond.vehicle_shapes:  # another car in the slot each run
+            shapes = draw_shapes(self._extra, len(parked))
+            parked = vehicle_boxes(parked.center, parked.yaw, parked.z[:, 0], shapes)
         # Season: crowns grow or shrink about their trunk top, foliage thins.
         el = sc.ellipsoids
         scale = rng.uniform(*cond.crown_scale)
@@ -313,6 +332,12 @@ class RunScene:
             half[big, 0] = rng.uniform(4.0, 6.0, int(big.sum()))
             half[big, 1] = 1.25
             height[big] = rng.uniform(3.0, 3.8, int(big.sum()))
+            if self.conditions.vehicle_shapes:
+                shapes = draw_shapes(self._extra, n)
+                shapes.half[big], shapes.height[big], shapes.cabin[big] = half[big], height[big], 0
+                return _Movers(
+                    road, rng.uniform(0.0, lengths[road]), v, lateral, half, height, shapes
+                )
         else:
             lateral = side * (hw + rng.uniform(0.8, 2.5, n))
             v = rng.choice([-1.0, 1.0], n) * rng.uniform(0.8, 1.6, n)
@@ -347,8 +372,17 @@ class RunScene:
         cyl = self.cylinders
         if len(self.cars.road):
             sel, c, yaw, z = self._near(self.cars, t, near, radius)
-            kind = np.full(len(c), KIND_CAR, np.int8)
-            boxes = Boxes.concat(boxes, Boxes(c, self.cars.half[sel], z, yaw, kind))
+            if self.conditions.ego_clearance is not None:  # none where the vehicle itself is
+                clear = _clear_of(c, yaw, self.cars.half[sel], near, self.conditions.ego_clearance)
+                sel[np.flatnonzero(sel)[~clear]] = False
+                c, yaw, z = c[clear], yaw[clear], z[clear]
+            sh = self.cars.shapes
+            if sh is not None:
+                part = Shapes(sh.half[sel], sh.height[sel], sh.cabin[sel], sh.shift[sel])
+                boxes = Boxes.concat(boxes, vehicle_boxes(c, yaw, z[:, 0], part))
+            else:
+                kind = np.full(len(c), KIND_CAR, np.int8)
+                boxes = Boxes.concat(boxes, Boxes(c, self.cars.half[sel], z, yaw, kind))
         if len(self.people.road):
             sel, c, _, z = self._near(self.people, t, near, radius)
             kind = np.full(len(c), KIND_PEDESTRIAN, np.int8)
@@ -364,6 +398,24 @@ class RunScene:
         sel = np.linalg.norm(c - near, axis=1) < radius
         z = self.world.ground.height(c[sel, 0], c[sel, 1])
         return sel, c[sel], yaw[sel], np.stack([z, z + m.height[sel]], 1)
+
+
+#: Half length and half width of the vehicle that carries the sensor, metres.
+EGO_HALF = (2.4, 0.95)
+
+
+def _clear_of(
+    centers: np.ndarray, yaw: np.ndarray, half: np.ndarray, ego: np.ndarray, margin: float
+) -> np.ndarray:
+    """Which vehicles (centres [M, 2], headings [M], half sizes [M, 2]) stay clear of the ego
+    vehicle at ``ego`` [2] by ``margin`` metres (taken as parallel to each: a lane's view)."""
+    rel = np.asarray(ego, dtype=np.float64)[:2] - centers
+    c, s = np.cos(yaw), np.sin(yaw)
+    along = np.abs(c * rel[:, 0] + s * rel[:, 1])
+    across = np.abs(-s * rel[:, 0] + c * rel[:, 1])
+    return (along > half[:, 0] + EGO_HALF[0] + margin) | (
+        across > half[:, 1] + EGO_HALF[1] + margin
+    )
 
 
 class SimulatedDrive:
@@ -403,10 +455,16 @@ class SimulatedDrive:
         nrm = np.stack([t[:, 1], -t[:, 0]], 1)
         # Keep to the right half of the street, about its lane centre, plus the run's offset.
         lateral = hw * 0.45 + self.lane
+        if cond.ego_clearance is not None:  # out of the parking lane (kerb - 2.0 m .. kerb)
+            lateral = np.clip(lateral, 0.5, hw - 2.0 - EGO_HALF[1] - cond.ego_clearance)
         true_xy = p + nrm * lateral[:, None]
         yaw = np.arctan2(t[:, 1], t[:, 0])
         self.true_xy = true_xy
         self.true_yaw = yaw
+        # rad/s: the turn during a sweep, for sensors that do not de-skew
+        self._yaw_rate = (
+            np.gradient(np.unwrap(yaw), s) * self.speed if len(s) > 1 else np.zeros(len(s))
+        )
         self.true_z = world.ground.height(true_xy[:, 0], true_xy[:, 1]) + self.lidar.mount_height
         self.times = s / self.speed  # seconds since the start of the run
         self.timestamps = (start_us + np.round(self.times * 1e6)).astype(np.int64)
@@ -453,6 +511,14 @@ class SimulatedDrive:
         pos = np.array([self.true_xy[i, 0], self.true_xy[i, 1], self.true_z[i]])
         scene = self.scene.scene_at(float(self.times[i]), pos[:2], self.lidar.max_range + 10.0)
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 3, i]))
+        motion = (self.speed, float(self._yaw_rate[i]))
         return cast_scan(
-            scene, self.world.ground, pos, float(self.true_yaw[i]), self.lidar, rng, self._rays
+            scene,
+            self.world.ground,
+            pos,
+            float(self.true_yaw[i]),
+            self.lidar,
+            rng,
+            self._rays,
+            motion,
         )

@@ -26,12 +26,13 @@ from dataclasses import dataclass, field, fields
 from typing import TypeVar
 
 import numpy as np
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 # Kinds, stored as int8 next to each primitive (used by runs.py for per-run edits and by
 # preview.py for colours).
 KIND_BUILDING, KIND_WALL, KIND_FENCE, KIND_KERB, KIND_CAR, KIND_SIGN = 0, 1, 2, 3, 4, 5
 KIND_TRUNK, KIND_POLE, KIND_PEDESTRIAN, KIND_CONE, KIND_CROWN, KIND_BARRIER = 6, 7, 8, 9, 10, 11
+KIND_HEDGE, KIND_BOLLARD, KIND_FURNITURE = 12, 13, 14
 
 
 class DistrictStyle(BaseModel):
@@ -119,6 +120,39 @@ DISTRICTS: dict[str, DistrictStyle] = {
 }
 
 
+class CityDetail(BaseModel):
+    """What real streets have beyond the first benchmarks' city (all off by default, so that
+    a tree made before them is built again the same): hedges along the pavements' back edge,
+    bollards by the junctions, benches, bins and cabinets, shrubs on free land, tree crowns of
+    several clumps."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    hedges: float = Field(0.0, ge=0, le=1, description="share of pavement stretches with a hedge")
+    bollard_spacing: float = Field(
+        0.0, ge=0, description="metres between bollards near junctions (0: none)"
+    )
+    furniture_per_100m: float = Field(
+        0.0, ge=0, description="benches, bins and cabinets per 100 m of pavement"
+    )
+    shrubs_per_1000m2: float = Field(0.0, ge=0, description="shrubs per 1000 m² of free land")
+    crown_clumps: int = Field(
+        1, ge=1, le=6, description="ellipsoids a tree crown is made of (1: one smooth crown)"
+    )
+
+    @property
+    def any(self) -> bool:
+        return (
+            bool(
+                self.hedges
+                or self.bollard_spacing
+                or self.furniture_per_100m
+                or self.shrubs_per_1000m2
+            )
+            or self.crown_clumps > 1
+        )
+
+
 class WorldConfig(BaseModel):
     """Size, district and georeference of one generated area."""
 
@@ -129,6 +163,7 @@ class WorldConfig(BaseModel):
     )
     ground_slope: float = Field(0.015, description="largest mean ground gradient (1.5 %)")
     ground_relief: float = Field(2.5, description="amplitude of ground undulation, metres")
+    detail: CityDetail = Field(default_factory=CityDetail)
 
 
 _P = TypeVar("_P", bound="_Primitives")
