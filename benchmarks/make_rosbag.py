@@ -105,11 +105,20 @@ def main() -> None:
 
     from pnvlad_service.data.sources.rosbag_write import write_drive_bag
     from pnvlad_service.synth.generate import get_preset, simulated_drive
+    from pnvlad_service.synth.sensors import LidarConfig
 
     spec = get_preset(args.preset)
     dense = {k: v for k, v in (("beams", args.beams), ("columns", args.columns)) if v}
     if dense:
-        spec = spec.model_copy(update={"lidar": spec.lidar.model_copy(update=dense)})
+        spec = spec.model_copy(
+            update={
+                "lidar": spec.lidar.model_copy(update=dense),
+                "lidars": [
+                    LidarConfig.model_validate({**s.model_dump(), "elevations_deg": None, **dense})
+                    for s in spec.lidars
+                ],
+            }
+        )
     if args.off_map:
         from pnvlad_service.synth.excursions import off_map_drive
 

@@ -108,3 +108,33 @@ def test_the_benchmark_mixes_sensors_across_runs() -> None:
     old = get_preset("benchmark_v1")
     assert not old.lidars and not old.city.any and not old.lidar.realistic
     assert CityDetail().any is False
+
+
+def test_a_tree_of_mixed_sensors_and_street_detail_checks_and_repeats(tmp_path) -> None:
+    import json
+
+    from pnvlad_service.data.tree import check_tree
+    from pnvlad_service.synth.generate import REAL_CONDITIONS, generate
+    from pnvlad_service.synth.sensors import sensor
+    from pnvlad_service.synth.windows import drives_of
+
+    spec = get_preset("tiny").model_copy(
+        update={
+            "name": "tiny-real",
+            "lidars": [sensor("vlp16", columns=360), sensor("hdl32e", columns=360)],
+            "conditions": REAL_CONDITIONS,
+            "city": REAL_CITY,
+        }
+    )
+    a, b = tmp_path / "a", tmp_path / "b"
+    summary = generate(spec, a, seed=5, workers=1, progress=False)
+    generate(spec, b, seed=5, workers=1, progress=False)
+    report = check_tree(a)
+    assert report.ok, report.problems
+    assert [r["sensor"] for r in summary["runs"]] == ["VLP-16", "HDL-32E", "VLP-16"]
+    files = sorted(p.relative_to(a) for p in a.rglob("*.bin"))
+    assert files and all((a / f).read_bytes() == (b / f).read_bytes() for f in files)
+    # the tree's synth.json gives back each run's sensor (windows and realism re-cast from it)
+    spec_back = next(iter(drives_of(a).values()))[0]
+    assert spec_back.run_lidar(0, 1).name == "HDL-32E"
+    assert json.loads((a / "synth.json").read_text())["preset"]["city"]["crown_clumps"] == 4
