@@ -14,8 +14,10 @@ def synth(
     preset: str = typer.Option(
         "demo",
         "--preset",
-        help="tiny (tests, seconds), demo (README, ~600 submaps, under 2 min) or benchmark "
-        "(3 districts x 5 runs, quality figures, under 30 min).",
+        help="tiny (tests, seconds), demo (README, ~600 submaps, under 2 min), benchmark "
+        "(3 districts x 5 runs recorded with four real sensors' layouts, quality figures, under "
+        "30 min) or benchmark_v1 (the benchmark before #37: one perfect sensor, no street "
+        "detail).",
     ),
     seed: int = typer.Option(0, "--seed", "-s", help="Seed of the city and of every run."),
     workers: int = typer.Option(
