@@ -200,6 +200,21 @@ def _map_positions(bundle: Path | None) -> Any:
     return np.c_[meta.northing, meta.easting]
 
 
+def _map_record(bundle: Path | None, url: str | None, api_key: str | None) -> Any:
+    """The serving map's ``map`` entry (how its windows laid each scan): from the bundle's
+    manifest, else from the server's ``GET /info``; None where neither says."""
+    if bundle is not None:
+        from pnvlad_service.index.manifest import Manifest
+
+        return Manifest.read(bundle).map_record.to_json()
+    if url is not None:
+        from pnvlad_service.localization.client import LocalizeClient
+
+        with LocalizeClient(url, api_key=api_key) as client:
+            return client.info()["manifest"].get("map")
+    return None
+
+
 def replay_rosbag(
     *,
     rosbag: Path,
@@ -255,7 +270,8 @@ def replay_rosbag(
         if window is not None:
             posed = odometry == "kiss-icp" or (odometry == "auto" and pose_topic is None
                                                and tf_frame is None)  # fmt: skip
-            windows = Windows(window, odometry=posed)
+            map_record = _map_record(index if index is not None else map_bundle, url, api_key)
+            windows = Windows(window, odometry=posed, map_record=map_record)
         with _service(url, index, model, api_key, top_n) as ask:
             rows = replay(drive, ask, every=every, progress=progress, window=windows)
     finally:

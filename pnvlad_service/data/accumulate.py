@@ -18,7 +18,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -210,6 +210,34 @@ class WindowAccumulator:
             raise InputError(f"must be > 0 metres, got {self.max_range_m}", "max_range_m")
         if self.frame not in ("enu", "sensor"):
             raise InputError(f"must be enu or sensor, got {self.frame!r}", "frame")
+
+    @classmethod
+    def for_map(
+        cls,
+        map_record: Any,
+        window_m: float = 20.0,
+        frame: Literal["enu", "sensor"] = "sensor",
+        seed: int = 0,
+    ) -> WindowAccumulator:
+        """An accumulator that lays scans as the map's windows were laid: ``map_record`` a
+        bundle manifest's ``map`` entry (its JSON, as ``GET /info`` gives it under
+        ``manifest``, or an ``index.manifest.MapRecord``) whose ``accumulation`` holds the map's
+        ``max_points_per_scan``, ``max_range_m`` and ``min_scan_spacing_m``; without one the
+        scans are kept whole. Keeping the map's points a scan matters: windows of whole scans
+        found their place at 51.7 % recall@1 where the map's own submaps found it at 93 %
+        (docs/SCANS.md)."""
+        acc = getattr(map_record, "accumulation", None)
+        if acc is None and isinstance(map_record, dict):
+            acc = map_record.get("accumulation")
+        acc = dict(acc or {})
+        return cls(
+            window_m=window_m,
+            min_spacing_m=float(acc.get("min_scan_spacing_m", 0.05)),
+            max_points_per_scan=acc.get("max_points_per_scan"),
+            max_range_m=acc.get("max_range_m"),
+            frame=frame,
+            seed=seed,
+        )
 
     def add(self, points: np.ndarray, pose: np.ndarray) -> None:
         """Take one scan float [N, 3+] (sensor frame, metres) at ``pose`` float64 [4, 4]."""

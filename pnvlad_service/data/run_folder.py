@@ -127,10 +127,9 @@ def claim_folder(
     atomic_write_text(record, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
 
 
-def recorded_g_config(run_dir: Path, folder: str) -> dict[str, Any] | None:
-    """The filter G settings a prepare call recorded for a layout folder of a run (its
-    ``.prepare-<folder>.json``), as JSON; ``None`` where none is recorded (trees from
-    elsewhere). :class:`InputError` naming the record when it cannot be read."""
+def _prepare_record(run_dir: Path, folder: str) -> dict[str, Any] | None:
+    """A layout folder's ``.prepare-<folder>.json`` as a dict; ``None`` where there is none.
+    :class:`InputError` naming the record when it cannot be read."""
     record = manifest_path(Path(run_dir), Path(folder))
     if not record.is_file():
         return None
@@ -138,5 +137,28 @@ def recorded_g_config(run_dir: Path, folder: str) -> dict[str, Any] | None:
         doc = json.loads(record.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         raise InputError(f"cannot read the prepare record: {exc}", record) from None
-    g = doc.get("g_config") if isinstance(doc, dict) else None
+    return doc if isinstance(doc, dict) else None
+
+
+def recorded_g_config(run_dir: Path, folder: str) -> dict[str, Any] | None:
+    """The filter G settings a prepare call recorded for a layout folder of a run (its
+    ``.prepare-<folder>.json``), as JSON; ``None`` where none is recorded (trees from
+    elsewhere). :class:`InputError` naming the record when it cannot be read."""
+    doc = _prepare_record(run_dir, folder)
+    g = doc.get("g_config") if doc is not None else None
     return dict(g) if isinstance(g, dict) else None
+
+
+#: How prepare laid each scan into a window (its options), as an accumulated query must too.
+ACCUMULATION_KEYS = ("max_points_per_scan", "max_range_m", "min_scan_spacing_m")
+
+
+def recorded_accumulation(run_dir: Path, folder: str) -> dict[str, Any] | None:
+    """How the scans of a layout folder's windows were laid (:data:`ACCUMULATION_KEYS`, as
+    its prepare record says); ``None`` where none is recorded. A window asked about must keep
+    the same points a scan (``max_points_per_scan``): a window of whole scans is as far from
+    the map's submaps as another place (docs/SCANS.md)."""
+    doc = _prepare_record(run_dir, folder)
+    if doc is None:
+        return None
+    return {k: doc.get(k) for k in ACCUMULATION_KEYS if doc.get(k) is not None}

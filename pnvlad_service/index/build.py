@@ -178,6 +178,15 @@ def tree_preprocess_config(root: Path, records: Sequence[Submap]) -> dict[str, A
     return found if found is not None else default_preprocess_config(records[0].kind)
 
 
+def tree_accumulation(root: Path, records: Sequence[Submap]) -> dict[str, Any] | None:
+    """How the first run's windows laid each scan (its prepare record), for accumulated queries
+    to do the same; ``None`` where the tree recorded nothing (made elsewhere)."""
+    from pnvlad_service.data.run_folder import recorded_accumulation
+
+    run, folder = records[0].path.rsplit("/", 2)[:2]
+    return recorded_accumulation(root.joinpath(*run.split("/")), folder)
+
+
 # --------------------------------------------------------------------------------------------
 # Sharded embedding under torchrun
 # --------------------------------------------------------------------------------------------
@@ -329,7 +338,13 @@ def build_bundle(
             overwrite=overwrite,
             build={"processes": world, "embed_seconds": round(t_embed, 3)},
             geometry=None if frames is None else geometry_writer(root, records, frames),
-            map_record=MapRecord(LAYOUT_KINDS[layout], layout, turns),
+            map_record=MapRecord(
+                LAYOUT_KINDS[layout],
+                layout,
+                turns,
+                # windows go to submap maps only (a keyframe map refuses them)
+                tree_accumulation(root, records) if LAYOUT_KINDS[layout] == "submap" else None,
+            ),
         )
     rate = len(records) / t_embed if t_embed > 0 else float("inf")
     return BuildReport(out, len(records), index_key, t_embed, t_index, rate, recall, manifest)

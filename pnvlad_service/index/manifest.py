@@ -189,11 +189,16 @@ class MapRecord:
     """The manifest's ``map`` entry: ``kind`` of the entries (:data:`MAP_KINDS`), the layout
     they came from (``train``, ``test`` or ``keyframe``), and ``turns``: the headings a quarter
     turn apart each entry is embedded at (the index holds ``turns`` vectors an entry, entry
-    ``i``'s at ``i * turns ...``; 4 for a model that turns clouds to their own heading)."""
+    ``i``'s at ``i * turns ...``; 4 for a model that turns clouds to their own heading);
+    ``accumulation``: how the map's windows laid each scan (``data.run_folder.
+    ACCUMULATION_KEYS``: the points kept a scan, its range), which an accumulated query must
+    follow (:meth:`~pnvlad_service.data.accumulate.WindowAccumulator.for_map`); ``None`` where
+    the tree recorded none."""
 
     kind: str = "submap"
     layout: str = "test"
     turns: int = 1
+    accumulation: Mapping[str, Any] | None = None
 
     @classmethod
     def from_json(cls, doc: Any, source: str | Path | None = None) -> MapRecord:
@@ -205,10 +210,24 @@ class MapRecord:
         turns = doc.get("turns", 1)
         if turns not in (1, 2, 4) or isinstance(turns, bool):
             raise InputError(f"manifest's map turns must be 1, 2 or 4, got {turns!r}", source)
-        return cls(str(doc["kind"]), str(doc.get("layout", "test")), int(turns))
+        acc = doc.get("accumulation")
+        if acc is not None and not (
+            isinstance(acc, Mapping)
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in acc.values())
+        ):
+            raise InputError("manifest's map accumulation must map names to numbers", source)
+        return cls(
+            str(doc["kind"]),
+            str(doc.get("layout", "test")),
+            int(turns),
+            None if acc is None else MappingProxyType(dict(acc)),
+        )
 
     def to_json(self) -> dict[str, Any]:
-        return {"kind": self.kind, "layout": self.layout, "turns": self.turns}
+        out: dict[str, Any] = {"kind": self.kind, "layout": self.layout, "turns": self.turns}
+        if self.accumulation is not None:
+            out["accumulation"] = dict(self.accumulation)
+        return out
 
     def accepts(self, query_kind: str) -> bool:
         """Whether a query of ``query_kind`` (:data:`QUERY_KINDS`) meets its own kind here."""

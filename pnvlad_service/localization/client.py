@@ -122,6 +122,14 @@ class LocalizeClient:
         in its newest scan's axes; ``options`` as :meth:`localize` takes them."""
         return self.localize(window.cloud(), top_n, kind="window", **options)
 
+    def window_accumulator(self, window_m: float = 20.0) -> Any:
+        """A :class:`~pnvlad_service.data.accumulate.WindowAccumulator` of ``window_m`` metres
+        that lays scans as the serving map's windows were laid (its points a scan and range,
+        from ``GET /info``): feed it scans and poses, then :meth:`localize_window`."""
+        from pnvlad_service.data.accumulate import WindowAccumulator
+
+        return WindowAccumulator.for_map(self.info()["manifest"].get("map"), window_m)
+
     def ready(self) -> bool:
         """Whether the server answers ``GET /readyz`` with 200 (False when unreachable)."""
         try:

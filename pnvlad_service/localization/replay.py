@@ -127,12 +127,14 @@ class Windows:
     asked about goes into a :class:`~pnvlad_service.data.accumulate.WindowAccumulator` of
     ``window_m`` metres (the code ``pnvlad data prepare`` lays submaps with), posed by the
     drive's ``poses`` (a pose topic, /tf) or, with ``odometry``, by LiDAR odometry on the scans
-    (KISS-ICP, extra ``odometry``); the window is asked about in the newest scan's axes."""
+    (KISS-ICP, extra ``odometry``); the window is asked about in the newest scan's axes, its
+    scans laid as the map's were (``map_record``: the bundle manifest's ``map`` entry, see
+    :meth:`~pnvlad_service.data.accumulate.WindowAccumulator.for_map`)."""
 
-    def __init__(self, window_m: float, odometry: bool = False) -> None:
+    def __init__(self, window_m: float, odometry: bool = False, map_record: Any = None) -> None:
         from pnvlad_service.data.accumulate import WindowAccumulator
 
-        self.accumulator = WindowAccumulator(window_m=window_m, frame="sensor")
+        self.accumulator = WindowAccumulator.for_map(map_record, window_m, frame="sensor")
         self.odometry: Any = None
         if odometry:
             from pnvlad_service.data.sources.odometry import LidarOdometry

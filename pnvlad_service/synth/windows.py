@@ -84,6 +84,7 @@ def window_queries(
         raise InputError(f"must be recorded or odometry, got {poses!r}", "poses")
     frame = frame or ("enu" if poses == "recorded" else "sensor")
     root, out_dir = Path(root), Path(out_dir)
+    accumulation = map_accumulation(qs)
     drives = drives_of(root)
     total = sum(len(s) for s in qs.scans)
     bar = tqdm(total=total, desc=f"windows ({poses} poses)", unit="query", disable=not progress)
@@ -113,7 +114,7 @@ def window_queries(
                 warm = first
             clouds = [drive.scan(j) for j in range(warm, i + 1)]
             laid = _laid_poses(drive, warm, i, clouds, poses)[first - warm :]
-            acc = WindowAccumulator(window_m=window_m, frame=frame)
+            acc = WindowAccumulator.for_map({"accumulation": accumulation}, window_m, frame)
             for pts, pose in zip(clouds[first - warm :], laid, strict=True):
                 acc.add(pts, pose)
             path = out_dir / run.area / run.name / f"{s.timestamp}.bin"
@@ -128,8 +129,17 @@ def window_queries(
             bar.update()
         scans_out.append(out)
     bar.close()
-    window = {"poses": poses, "frame": frame, "window_m": window_m}
+    window = {"poses": poses, "frame": frame, "window_m": window_m, **accumulation}
     return replace(qs, scans=scans_out, g_frames={}, window=window, drift_m=drift)
+
+
+def map_accumulation(qs: Any) -> dict[str, Any]:
+    """How the map's windows laid each scan (its first database run's prepare record; empty
+    where none is recorded): an accumulated query lays its scans the same way."""
+    from pnvlad_service.data.run_folder import recorded_accumulation
+
+    first = Path(qs.runs[0].db_paths[0])
+    return recorded_accumulation(first.parents[1], first.parent.name) or {}
 
 
 def _laid_poses(

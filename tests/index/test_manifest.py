@@ -143,3 +143,17 @@ def test_a_bundle_written_before_the_typed_manifest_loads_unchanged() -> None:
     assert (bundle.count, bundle.dim, bundle.key) == (8, 16, "Flat")
     assert bundle.manifest.model.weights_sha256 == doc["model"]["weights_sha256"]
     assert bundle.manifest.build == {"processes": 1, "embed_seconds": doc["build"]["embed_seconds"]}
+
+
+def test_map_record_carries_how_windows_were_laid() -> None:
+    from pnvlad_service.index.manifest import MapRecord
+
+    doc = {"kind": "submap", "layout": "test", "turns": 1,
+           "accumulation": {"max_points_per_scan": 8000, "min_scan_spacing_m": 0.05}}  # fmt: skip
+    rec = MapRecord.from_json(doc)
+    assert rec.to_json() == doc and rec.accumulation["max_points_per_scan"] == 8000
+    assert "accumulation" not in MapRecord.from_json({"kind": "submap"}).to_json()
+    for bad in ({"max_points_per_scan": "all"}, [8000], {"max_range_m": True}):
+        with pytest.raises(InputError, match="accumulation") as err:
+            MapRecord.from_json({**doc, "accumulation": bad}, "b/manifest.json")
+        assert str(err.value.source) == "b/manifest.json"

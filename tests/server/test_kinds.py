@@ -123,3 +123,30 @@ def test_a_scan_g_cannot_reduce_is_refused_naming_the_field(
     assert problem["field"] == field and message in problem["detail"], (name, problem)
     # The server is unharmed: the next good scan is answered.
     assert httpx.get(f"{keys_server}/readyz").status_code == 200
+
+
+def test_a_window_is_laid_as_the_served_maps_windows_were(tiny_maps: dict) -> None:
+    """The client's accumulator keeps the map's points a scan, as the serving bundle's manifest
+    says from the tree's prepare record (windows of whole scans missed their place: #34)."""
+    import json
+
+    from pnvlad_service.localization.client import LocalizeClient
+
+    tree = tiny_maps["tree"].root
+    run = next(p for p in (tree / "business").iterdir() if p.is_dir())
+    record = json.loads((run / ".prepare-pointcloud_20m.json").read_text())
+    port = free_port()
+    proc = start_server(tiny_maps["map"], port)
+    try:
+        with LocalizeClient(f"http://127.0.0.1:{port}") as client:
+            acc = client.window_accumulator(20.0)
+            assert acc.max_points_per_scan == record["max_points_per_scan"] == 3000
+            assert acc.min_spacing_m == record["min_scan_spacing_m"]
+            assert acc.window_m == 20.0 and acc.frame == "sensor"
+            scan = _scan(tiny_maps)
+            acc.add(scan, np.eye(4))
+            assert len(acc.cloud()) == 3000 < len(scan)
+            answer = client.localize_window(acc, top_n=2)
+            assert answer["query_kind"] == "window" and len(answer["matches"]) == 2
+    finally:
+        stop_server(proc)

@@ -29,7 +29,14 @@ def test_recorded_windows_lie_behind_their_query_in_the_worlds_axes(
 ) -> None:
     qs = scan_query_set(tiny, load_splits(tiny / "splits.json"))
     out = window_queries(qs, tiny, tmp_path, poses="recorded", window_m=20.0, progress=False)
-    assert out.window == {"poses": "recorded", "frame": "enu", "window_m": 20.0}
+    # the scans laid as the map's windows were: the tiny preset keeps 3,000 points a scan
+    assert out.window == {
+        "poses": "recorded",
+        "frame": "enu",
+        "window_m": 20.0,
+        "max_points_per_scan": 3000,
+        "min_scan_spacing_m": 0.05,
+    }
     assert [len(s) for s in out.scans] == [len(s) for s in qs.scans] and out.drift_m == []
     spec, a, k, seed = drives_of(tiny)[("business", qs.runs[0].name)]
     drive = simulated_drive(spec, a, k, seed)
@@ -41,6 +48,7 @@ def test_recorded_windows_lie_behind_their_query_in_the_worlds_axes(
         # Every scan of the window, each cut to the sensor's range: more points than the raw
         # scan alone, about the newest scan's recorded position (the cloud's origin).
         assert len(pts) > len(read_points(scan.path, "kitti")) * min(i - first + 1, 2) * 0.5
+        assert len(pts) <= 3000 * (i - first + 1)  # at most the map's points a scan
         heading = drive.poses[i, :2, 0]
         behind = -(pts[:, :2] @ heading)
         assert np.percentile(behind, 60) > 0  # more of the window lies behind than ahead
