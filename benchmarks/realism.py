@@ -2,7 +2,7 @@
 scans of the matching sensor, side by side, with a distance per statistic.
 
 Usage: python benchmarks/realism.py [--preset demo | --tree DIR] [--seed 0] [--scans 12]
-       [--real DIR] [--png realism.png] [--preset-sensor]
+       [--real DIR] [--png realism.png] [--preset-sensor] [--ablation]
 
 Real: the scans of ../shared/data/real_scans (or $PNVLAD_REAL_SCANS, or --real), read in
 place: six KITTI scans (Velodyne HDL-64E), a nuScenes sweep and an NCLT scan (HDL-32E).
@@ -175,8 +175,12 @@ def synthetic_stats(
         if key not in drives:
             drives[key] = simulated_drive(spec, key[0], key[1], seed)
         drive = drives[key]
-        pts = drive.scan(int((j + 0.5) / args.scans * len(drive)))
-        stats.append(rl.scan_stats(pts, layout, k=args.k, sample=args.sample, seed=j))
+        # the beams as cast (an elevation would put a point of the sweep's seam, moved by the
+        # vehicle's motion, in another ring)
+        pts, rings = drive.scan(int((j + 0.5) / args.scans * len(drive)), rings=True)
+        stats.append(
+            rl.scan_stats(pts, layout, ring_ids=rings, k=args.k, sample=args.sample, seed=j)
+        )
     return rl.pool(stats), sensor, sorted({spec.areas[a].district for a in areas})
 
 
@@ -277,6 +281,48 @@ def figure(results: list[tuple[Source, rl.ScanStats, rl.ScanStats, str]], png: P
     plt.close(fig)
 
 
+def ablation_steps(spec: Any) -> list[tuple[str, Any]]:
+    """The realistic ``spec`` (the ``benchmark`` preset) reached from its ``_v1`` in steps of
+    one change each (#37): the real beam tables alone (failures off), then the sensors'
+    failures, then street detail and vehicle shapes."""
+    from pnvlad_service.synth.generate import get_preset
+    from pnvlad_service.synth.sensors import REAL_FAILURES, LidarConfig
+
+    def perfect(sensor: Any) -> Any:
+        fields = sensor.model_dump()
+        fields.update({k: LidarConfig.model_fields[k].default for k in REAL_FAILURES})
+        return LidarConfig.model_validate(fields)
+
+    old = get_preset(f"{spec.name}_v1")
+    return [
+        ("v1", old),
+        ("beam tables", old.model_copy(update={"lidars": [perfect(s) for s in spec.lidars]})),
+        ("sensor failures", old.model_copy(update={"lidars": spec.lidars})),
+        ("street detail", spec),
+    ]
+
+
+def ablation(spec: Any, seed: int, reals: dict[str, Any], args: argparse.Namespace) -> str:
+    """Each statistic's distance to the real scans at every step of :func:`ablation_steps`,
+    per source (Markdown)."""
+    steps = ablation_steps(spec)
+    dist: dict[str, list[list[str]]] = {}
+    for _, variant in steps:
+        for j, src in enumerate(SOURCES):
+            synth, _, _ = synthetic_stats(variant, seed, src, src.lidar, args)
+            for r in rl.compare(reals[src.name], synth):
+                dist.setdefault(r.label, [[] for _ in SOURCES])[j].append(
+                    _distance(r.distance, r.distance_unit)
+                )
+    names = " → ".join(name for name, _ in steps)
+    head = ["statistic", *(f"{src.name}: {names}" for src in SOURCES)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for label, per_source in dist.items():
+        cells = [" → ".join([*v[:-1], f"**{v[-1]}**"]) for v in per_source]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def _args() -> argparse.Namespace:
     default = os.environ.get("PNVLAD_REAL_SCANS") or str(REPO.parent / "shared/data/real_scans")
     ap = argparse.ArgumentParser(
@@ -290,6 +336,11 @@ def _args() -> argparse.Namespace:
     ap.add_argument("--png", type=Path, help="draw the distributions to this PNG")
     ap.add_argument(
         "--preset-sensor", action="store_true", help="KITTI against the preset's own LiDAR"
+    )
+    ap.add_argument(
+        "--ablation",
+        action="store_true",
+        help="also print each distance at every step from PRESET_v1 to PRESET (#37)",
     )
     ap.add_argument("--k", type=int, default=rl.DEFAULT_K, help="neighbours of a local shape")
     ap.add_argument("--sample", type=int, default=rl.DEFAULT_SAMPLE, help="local shapes per scan")
@@ -318,6 +369,9 @@ def main() -> int:
     print(table(results))
     if args.png is not None:
         figure(results, args.png)
+    if args.ablation:
+        reals = {src.name: real for src, real, _, _ in results}
+        print("\n" + ablation(spec, seed, reals, args))
     return 0
 
 

@@ -10,6 +10,7 @@ one numpy pass, then reduced to the nearest hit per ray with ``np.minimum.at``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -244,13 +245,15 @@ def cast_scan(
     rng: np.random.Generator,
     rays: RayBundle | None = None,
     motion: tuple[float, float] = (0.0, 0.0),
-) -> np.ndarray:
+    rings: bool = False,
+) -> Any:
     """Simulate one full turn of the sensor at ``position`` (local metres, float64 [3]) with
     heading ``yaw`` (radians from east, sensor level), the vehicle moving at ``motion`` =
     (forward speed m/s, yaw rate rad/s) at that moment (used when ``cfg.deskewed`` is False).
 
     Returns the points in the *sensor* frame (x forward, y left, z up), float32 [N,3], metres,
-    with range noise and dropouts applied and rays without a return in range removed.
+    with range noise and dropouts applied and rays without a return in range removed; with
+    ``rings`` also each point's beam, int64 [N] (0: the top one).
     """
     rays = rays or ray_bundle(cfg)
     c, s = np.cos(yaw), np.sin(yaw)
@@ -309,8 +312,10 @@ def cast_scan(
             ok &= rng.random(len(depth)) >= cfg.dropout
         idx = np.flatnonzero(ok)
         r = depth[idx] + rng.normal(0.0, cfg.range_noise, len(idx))
-        return (flat[idx] * r[:, None]).astype(np.float32)
-    return _real_returns(cfg, rng, rays, flat, world, depth, ok, hits, motion)
+        pts = (flat[idx] * r[:, None]).astype(np.float32)
+    else:
+        pts, idx = _real_returns(cfg, rng, rays, flat, world, depth, ok, hits, motion)
+    return (pts, idx // len(rays.azimuth)) if rings else pts
 
 
 def _real_returns(
@@ -323,9 +328,10 @@ def _real_returns(
     ok: np.ndarray,
     hits: list,
     motion: tuple[float, float],
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """The returns of a real sensor from the nearest hits: dropouts by range, incidence and
-    material, glass and recessed windows, range noise growing with range, the sweep's motion."""
+    material, glass and recessed windows, range noise growing with range, the sweep's motion;
+    float32 [N, 3] and the flat ray index of each."""
     cos = np.abs(world[:, 2])  # the ground's: its normal is about vertical
     mat = np.full(len(depth), MAT_GROUND, np.int8)
     glass = np.zeros(len(depth), bool)
@@ -363,4 +369,4 @@ def _real_returns(
         a = -yaw_rate * tau
         ca, sa = np.cos(a), np.sin(a)
         pts = np.stack([ca * x - sa * y, sa * x + ca * y, pts[:, 2]], 1)
-    return pts.astype(np.float32)
+    return pts.astype(np.float32), idx

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, Field
@@ -506,8 +507,9 @@ class SimulatedDrive:
         out[:, 2, 3] = self.true_z
         return out
 
-    def scan(self, i: int) -> np.ndarray:
-        """Points float32 [N, 3] of scan ``i`` in the sensor frame, metres."""
+    def scan(self, i: int, rings: bool = False) -> Any:
+        """Points float32 [N, 3] of scan ``i`` in the sensor frame, metres (with ``rings``, and
+        each point's beam, 0 the top one)."""
         pos = np.array([self.true_xy[i, 0], self.true_xy[i, 1], self.true_z[i]])
         scene = self.scene.scene_at(float(self.times[i]), pos[:2], self.lidar.max_range + 10.0)
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 3, i]))
@@ -521,4 +523,5 @@ class SimulatedDrive:
             rng,
             self._rays,
             motion,
+            rings,
         )

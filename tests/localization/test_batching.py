@@ -72,7 +72,8 @@ def test_two_lanes_start_the_next_batch_while_one_is_busy() -> None:
         with closing(batcher) as b:
             t0 = time.perf_counter()
             a = b.submit(np.zeros((4, 3), np.float32), 1)
-            time.sleep(0.02)
+            while not sizes:  # the first batch has started (not a fixed sleep: loaded CI)
+                time.sleep(0.001)
             c = b.submit(np.ones((4, 3), np.float32), 1)
             assert c.result(5).ids.tolist() == [1] and a.result(5).ids.tolist() == [0]
             took = time.perf_counter() - t0

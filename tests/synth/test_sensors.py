@@ -66,8 +66,11 @@ def test_rings_of_a_beam_table_are_the_beams() -> None:
     cfg = sensor("hdl64e", columns=90, **CLEAN)
     scene = Scene(_wall(10.0, 100.0), NO_CYL, NO_ELL)
     rays = ray_bundle(cfg)
-    pts = cast_scan(scene, FLAT, np.array([0.0, 0.0, 30.0]), 0.0, cfg, np.random.default_rng(0))
+    pts, beams = cast_scan(
+        scene, FLAT, np.array([0.0, 0.0, 30.0]), 0.0, cfg, np.random.default_rng(0), rings=True
+    )
     rings = rl.rings_by_elevation(pts, rl.Layout.of(cfg))
+    np.testing.assert_array_equal(rings, beams)  # the beam each point was cast with
     expected = np.argmin(
         np.abs(rl.elevation_deg(pts)[:, None] - np.rad2deg(rays.elevation)[None]), axis=1
     )
