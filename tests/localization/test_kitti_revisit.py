@@ -173,9 +173,10 @@ def test_revisit_is_retrieved_among_real_keyframes_and_verified(
     run_cli(["index", "build", "-m", str(model), "-r", str(tree), "--layout", "keyframe",
              "-o", str(bundle)])  # fmt: skip
     assert json.loads((bundle / "manifest.json").read_text())["count"] == 2
-    body = json.loads(run_cli(["localize", str(real_scans / f"kitti00_{QUERY_FRAME:06d}.bin"),
-                               "--reader", "kitti", "--preprocess", "--index", str(bundle),
-                               "-m", str(model), "--rerank", "2", "-n", "2", "--json"]))  # fmt: skip
+    query = str(real_scans / f"kitti00_{QUERY_FRAME:06d}.bin")
+    body = json.loads(run_cli(["localize", query, "--reader", "kitti", "--preprocess",
+                               "--index", str(bundle), "-m", str(model), "--rerank", "2",
+                               "-n", "2", "--json"]))  # fmt: skip
     want = placed(real_scans, QUERY_FRAME)
     first, second = body["matches"]
     assert first["timestamp"] == 0  # frame 52: the first scan of the folder, at 0 s
