@@ -13,6 +13,7 @@ import logging
 import numpy as np
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.synth.streets import Street, box_samples, normal
 from pnvlad_service.synth.world import (
     DISTRICTS,
     KIND_BUILDING,
@@ -183,17 +184,6 @@ class _Occupancy:
         self.grid[r[ok], c[ok]] = True
 
 
-def _box_samples(center: np.ndarray, half: np.ndarray, yaw: float, step: float = 0.8) -> np.ndarray:
-    """Points covering an oriented rectangle (including its border), float64 [M,2]."""
-    u = np.arange(-half[0], half[0] + 1e-9, step)
-    v = np.arange(-half[1], half[1] + 1e-9, step)
-    u = np.append(u, half[0])
-    v = np.append(v, half[1])
-    uu, vv = np.meshgrid(u, v)
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.stack([center[0] + c * uu - s * vv, center[1] + s * uu + c * vv], -1).reshape(-1, 2)
-
-
 class _Builder:
     """Collects primitives in lists, then freezes them into arrays."""
 
@@ -257,30 +247,6 @@ def _templates(style: DistrictStyle, rng: np.random.Generator) -> list[dict[str,
     return out
 
 
-class _Street:
-    """One road's centreline by travelled distance: ``at(s)`` gives the point and unit
-    tangent ``s`` metres along it (clamped to its segments)."""
-
-    def __init__(self, road: Road) -> None:
-        self.road = road
-        self.pts = road.points
-        self.seg = np.diff(self.pts, axis=0)
-        self.seglen = np.linalg.norm(self.seg, axis=1)
-        self.cum = np.concatenate([[0.0], np.cumsum(self.seglen)])
-        self.total = self.cum[-1]
-        self.half_width = road.half_width
-
-    def at(self, s: float) -> tuple[np.ndarray, np.ndarray]:
-        k = int(np.clip(np.searchsorted(self.cum, s) - 1, 0, len(self.seg) - 1))
-        t = self.seg[k] / self.seglen[k]
-        return self.pts[k] + t * (s - self.cum[k]), t
-
-
-def _normal(t: np.ndarray, side: float) -> np.ndarray:
-    """Unit normal of tangent ``t`` towards ``side`` (+1: right of travel, -1: left)."""
-    return np.array([t[1], -t[0]]) * side
-
-
 class _Placer:
     """Places the static scene of one area along its roads, drawing from one random stream.
 
@@ -310,7 +276,7 @@ class _Placer:
                 d = p1 - p0
                 yaw = float(np.arctan2(d[1], d[0]))
                 half = np.array([np.linalg.norm(d) / 2 + 0.5, r.half_width + 1.0])
-                self.occ.mark(_box_samples((p0 + p1) / 2, half, yaw, step=0.9))
+                self.occ.mark(box_samples((p0 + p1) / 2, half, yaw, step=0.9))
         self.b = _Builder()
         self.templates = _templates(style, rng)
         self.parking: list[tuple[float, ...]] = []
@@ -328,7 +294,7 @@ class _Placer:
     def _z(self, c: np.ndarray) -> float:
         return float(self.ground.height(c[0], c[1]))
 
-    def side(self, street: _Street, side: float) -> None:
+    def side(self, street: Street, side: float) -> None:
         """Everything along one side of one street, in the order the stream is drawn."""
         rng, style = self.rng, self.style
         start = rng.uniform(0, 8)
@@ -343,7 +309,7 @@ class _Placer:
         self.poles(street, side)
         self.parking_slots(street, side)
 
-    def buildings(self, street: _Street, side: float, start: float, setback: float) -> None:
+    def buildings(self, street: Street, side: float, start: float, setback: float) -> None:
         """Buildings along the frontage (from the district's templates), wings and fences."""
         rng, total, hw = self.rng, street.total, street.half_width
         s = start
@@ -352,10 +318,10 @@ class _Placer:
             w, d = tpl["w"], tpl["d"]
             hgt = tpl["h"] * rng.uniform(0.95, 1.05)
             p, t = street.at(min(s + w / 2, total))
-            n = _normal(t, side)
+            n = normal(t, side)
             c = p + n * (hw + setback + d / 2)
             yaw = float(np.arctan2(t[1], t[0]))
-            samples = _box_samples(c, np.array([w / 2, d / 2]) + 0.3, yaw, step=1.0)
+            samples = box_samples(c, np.array([w / 2, d / 2]) + 0.3, yaw, step=1.0)
             if self.occ.free(samples) and self.clear_of_roads(samples, 0.6):
                 self.occ.mark(samples)
                 z = self._z(c)
@@ -383,7 +349,7 @@ class _Placer:
         """The L-shaped wing behind a building, where the land is free."""
         ww, wd = w * tpl["wing_w"], d * tpl["wing_d"]
         wc = c + n * (d / 2 + wd / 2) + t * (w / 2 - ww / 2)
-        ws = _box_samples(wc, np.array([ww / 2, wd / 2]) + 0.3, yaw, step=1.0)
+        ws = box_samples(wc, np.array([ww / 2, wd / 2]) + 0.3, yaw, step=1.0)
         if self.occ.free(ws) and self.clear_of_roads(ws, 0.6):
             self.occ.mark(ws)
             z2 = self._z(wc)
@@ -391,50 +357,50 @@ class _Placer:
                 wc[0], wc[1], ww / 2, wd / 2, z2 - 0.5, z2 + hgt * tpl["wing_h"], yaw, KIND_BUILDING
             )
 
-    def wall(self, street: _Street, side: float) -> None:
+    def wall(self, street: Street, side: float) -> None:
         """A wall along a (campus) street side, in 8 m pieces where the land is free."""
         for s0 in np.arange(10.0, street.total - 10.0, 8.0):
             p, t = street.at(s0 + 4.0)
-            c = p + _normal(t, side) * (street.half_width + 2.5)
+            c = p + normal(t, side) * (street.half_width + 2.5)
             if self.clear_of_roads(c[None], 1.5) and self.occ.free(c[None]):
                 z = self._z(c)
                 yaw = float(np.arctan2(t[1], t[0]))
                 self.b.box(c[0], c[1], 4.0, 0.15, z - 0.2, z + 2.2, yaw, KIND_WALL)
 
-    def kerbs(self, street: _Street, side: float) -> None:
+    def kerbs(self, street: Street, side: float) -> None:
         """Kerb stones in 10 m pieces, except near junctions."""
         for s0 in np.arange(0.0, street.total, 10.0):
             p, t = street.at(min(s0 + 5.0, street.total))
-            c = p + _normal(t, side) * (street.half_width + 0.1)
+            c = p + normal(t, side) * (street.half_width + 0.1)
             if not self.near_junction(p, street.half_width + 10.0):
                 z = self._z(c)
                 yaw = float(np.arctan2(t[1], t[0]))
                 self.b.box(c[0], c[1], 5.0, 0.12, z - 0.1, z + 0.15, yaw, KIND_KERB)
 
-    def street_trees(self, street: _Street, side: float) -> None:
+    def street_trees(self, street: Street, side: float) -> None:
         """Trees on the pavement every ``street_tree_spacing`` metres, a share of them planted."""
         rng, style = self.rng, self.style
         for s0 in np.arange(rng.uniform(3, 10), street.total, style.street_tree_spacing):
             p, t = street.at(s0)
             if self.near_junction(p, 14.0) or rng.random() > style.street_tree_share:
                 continue
-            c = p + _normal(t, side) * (street.half_width + 1.3)
-            pad = _box_samples(c, np.array([0.3, 0.3]), 0.0, 0.5)
+            c = p + normal(t, side) * (street.half_width + 1.3)
+            pad = box_samples(c, np.array([0.3, 0.3]), 0.0, 0.5)
             if self.occ.free(pad) or self.clear_of_roads(c[None], 0.8):
                 self.b.tree(rng, self.ground, c[0], c[1], style.crown_radius)
 
-    def poles(self, street: _Street, side: float) -> None:
+    def poles(self, street: Street, side: float) -> None:
         """Lamp posts every ``pole_spacing`` metres, staggered between the two sides."""
         spacing = self.style.pole_spacing
         offset = 0.0 if side > 0 else spacing / 2
         for s0 in np.arange(offset + 5.0, street.total - 5.0, spacing):
             p, t = street.at(s0)
-            c = p + _normal(t, side) * (street.half_width + 0.6)
+            c = p + normal(t, side) * (street.half_width + 0.6)
             if self.clear_of_roads(c[None], 0.3):
                 z = self._z(c)
                 self.b.cylinder(c[0], c[1], 0.1, z - 0.2, z + self.rng.uniform(6.0, 8.0), KIND_POLE)
 
-    def parking_slots(self, street: _Street, side: float) -> None:
+    def parking_slots(self, street: Street, side: float) -> None:
         """Kerb-side parking slots every 6.5 m (a car or, one in ten, a van), away from
         junctions; each run decides which are taken."""
         rng = self.rng
@@ -442,7 +408,7 @@ class _Placer:
             p, t = street.at(s0)
             if self.near_junction(p, 18.0):
                 continue
-            c = p + _normal(t, side) * (street.half_width - 1.1)
+            c = p + normal(t, side) * (street.half_width - 1.1)
             z = self._z(c)
             ln, ht = rng.uniform(4.0, 5.0), rng.uniform(1.4, 1.7)
             if rng.random() < 0.1:
@@ -469,9 +435,9 @@ class _Placer:
         n_park = int(self.style.park_tree_density * w * h / 1000.0)
         cand = self.rng.uniform([0.0, 0.0], [w, h], (n_park, 2))
         for c in cand:
-            pad = _box_samples(c, np.array([1.0, 1.0]), 0.0, 1.0)
+            pad = box_samples(c, np.array([1.0, 1.0]), 0.0, 1.0)
             if self.occ.free(pad):
-                self.occ.mark(_box_samples(c, np.array([0.5, 0.5]), 0.0, 1.0))
+                self.occ.mark(box_samples(c, np.array([0.5, 0.5]), 0.0, 1.0))
                 self.b.tree(self.rng, self.ground, c[0], c[1], self.style.crown_radius)
 
     def slots(self) -> Boxes:
@@ -504,7 +470,7 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
     nodes, roads = _make_roads(cfg, style, _rng(seed, sid, 2))
     placer = _Placer(cfg, style, ground, nodes, roads, _rng(seed, sid, 3))
     for r in roads:
-        street = _Street(r)
+        street = Street(r)
         for side in (1.0, -1.0):
             placer.side(street, side)
     placer.signs()

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from pnvlad_service.synth.streets import Street, box_samples, normal
 from pnvlad_service.synth.world import (
     KIND_BOLLARD,
     KIND_CROWN,
@@ -35,11 +36,9 @@ def place_detail(
 ) -> None:
     """Add ``detail``'s objects through ``placer`` (the city's ``_Placer``): along both sides
     of every road, then on free land."""
-    from pnvlad_service.synth.city import _box_samples, _normal, _Street
-
     b = placer.b
     for road in roads:
-        street = _Street(road)
+        street = Street(road)
         for side in (1.0, -1.0):
             hw = street.half_width
             if detail.hedges > 0:
@@ -50,9 +49,9 @@ def place_detail(
                     offset = hw + rng.uniform(2.6, 3.2)
                     for s in np.arange(s0, min(s0 + HEDGE_PIECE_M, street.total), HEDGE_STEP):
                         p, t = street.at(s)
-                        c = p + _normal(t, side) * offset
+                        c = p + normal(t, side) * offset
                         if placer.near_junction(p, hw + 8.0) or not placer.occ.free(
-                            _box_samples(c, np.array([0.4, 0.4]), 0.0, 0.4)
+                            box_samples(c, np.array([0.4, 0.4]), 0.0, 0.4)
                         ):
                             continue
                         z = placer._z(c)
@@ -62,7 +61,7 @@ def place_detail(
                 n = rng.poisson(detail.furniture_per_100m * street.total / 100.0)
                 for s in rng.uniform(0, street.total, n):
                     p, t = street.at(s)
-                    c = p + _normal(t, side) * (hw + rng.uniform(0.8, 2.0))
+                    c = p + normal(t, side) * (hw + rng.uniform(0.8, 2.0))
                     if placer.near_junction(p, hw + 4.0) or not placer.clear_of_roads(c[None], 0.4):
                         continue
                     z = placer._z(c)
@@ -87,7 +86,7 @@ def place_detail(
     if detail.shrubs_per_1000m2 > 0:
         w, h = placer.cfg.size
         for c in rng.uniform([0.0, 0.0], [w, h], (int(detail.shrubs_per_1000m2 * w * h / 1e3), 2)):
-            if placer.occ.free(_box_samples(c, np.array([0.8, 0.8]), 0.0, 0.8)):
+            if placer.occ.free(box_samples(c, np.array([0.8, 0.8]), 0.0, 0.8)):
                 z = placer._z(c)
                 r = rng.uniform(0.5, 1.3)
                 b.ellipsoid(c[0], c[1], z + 0.6 * r, r, 0.7 * r, 0.85, KIND_HEDGE)
