@@ -238,16 +238,9 @@ class RunScene:
         self.conditions = conditions
         sc = world.scene
         cond = conditions
-        # Parked cars: a share of the slots, drawn per run.
-        share = rng.uniform(*cond.parked_share)
-        taken = rng.random(len(world.parking)) < share
-        p = world.parking
-        parked = Boxes(p.center[taken], p.half[taken], p.z[taken], p.yaw[taken], p.kind[taken])
         # A stream of its own for what the first benchmarks did not draw (their runs unchanged).
         self._extra = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
-        if cond.vehicle_shapes:  # another car in the slot each run
-            shapes = draw_shapes(self._extra, len(parked))
-            parked = vehicle_boxes(parked.center, parked.yaw, parked.z[:, 0], shapes)
+        parked = self._parked(rng)
         # Season: crowns grow or shrink about their trunk top, foliage thins.
         el = sc.ellipsoids
         scale = rng.uniform(*cond.crown_scale)
@@ -320,10 +313,23 @@ class RunScene:
             for r in world.roads
         ]
 
+    def _parked(self, rng: np.random.Generator) -> Boxes:
+        """The parked cars of this run: a share of the slots (and with ``vehicle_shapes``
+        another car's shape in each slot, drawn from the run's extra stream)."""
+        share = rng.uniform(*self.conditions.parked_share)
+        p = self.world.parking
+        taken = rng.random(len(p)) < share
+        parked = Boxes(p.center[taken], p.half[taken], p.z[taken], p.yaw[taken], p.kind[taken])
+        if not self.conditions.vehicle_shapes:
+            return parked
+        shapes = draw_shapes(self._extra, len(parked))
+        return vehicle_boxes(parked.center, parked.yaw, parked.z[:, 0], shapes)
+
     def _movers(self, rng: np.random.Generator, lengths: np.ndarray, n: int, car: bool) -> _Movers:
         road = rng.choice(len(lengths), size=n, p=lengths / lengths.sum())
         hw = np.array([self.world.roads[i].half_width for i in road])
         side = np.where(rng.random(n) < 0.5, 1.0, -1.0)
+        shapes = None
         if car:
             lateral = side * hw * rng.uniform(0.2, 0.45, n)
             v = -side * rng.uniform(5.0, 14.0, n)  # drive on the side of the direction
@@ -333,18 +339,15 @@ class RunScene:
             half[big, 0] = rng.uniform(4.0, 6.0, int(big.sum()))
             half[big, 1] = 1.25
             height[big] = rng.uniform(3.0, 3.8, int(big.sum()))
-            if self.conditions.vehicle_shapes:
+            if self.conditions.vehicle_shapes:  # buses and lorries stay one box
                 shapes = draw_shapes(self._extra, n)
                 shapes.half[big], shapes.height[big], shapes.cabin[big] = half[big], height[big], 0
-                return _Movers(
-                    road, rng.uniform(0.0, lengths[road]), v, lateral, half, height, shapes
-                )
         else:
             lateral = side * (hw + rng.uniform(0.8, 2.5, n))
             v = rng.choice([-1.0, 1.0], n) * rng.uniform(0.8, 1.6, n)
             half = rng.uniform(0.22, 0.3, (n, 1))
             height = rng.uniform(1.55, 1.9, n)
-        return _Movers(road, rng.uniform(0.0, lengths[road]), v, lateral, half, height)
+        return _Movers(road, rng.uniform(0.0, lengths[road]), v, lateral, half, height, shapes)
 
     def _place(self, m: _Movers, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Centres [M, 2] and yaw [M] of movers at time ``t`` seconds (they bounce at ends)."""
@@ -377,9 +380,8 @@ class RunScene:
                 clear = _clear_of(c, yaw, self.cars.half[sel], near, self.conditions.ego_clearance)
                 sel[np.flatnonzero(sel)[~clear]] = False
                 c, yaw, z = c[clear], yaw[clear], z[clear]
-            sh = self.cars.shapes
-            if sh is not None:
-                part = Shapes(sh.half[sel], sh.height[sel], sh.cabin[sel], sh.shift[sel])
+            if self.cars.shapes is not None:
+                part = self.cars.shapes.take(sel)
                 boxes = Boxes.concat(boxes, vehicle_boxes(c, yaw, z[:, 0], part))
             else:
                 kind = np.full(len(c), KIND_CAR, np.int8)

@@ -40,6 +40,10 @@ class Shapes:
     cabin: np.ndarray
     shift: np.ndarray
 
+    def take(self, keep: np.ndarray) -> Shapes:
+        """The shapes of the vehicles ``keep`` selects (a mask or indices)."""
+        return Shapes(self.half[keep], self.height[keep], self.cabin[keep], self.shift[keep])
+
 
 def draw_shapes(rng: np.random.Generator, n: int) -> Shapes:
     """``n`` vehicle shapes drawn from :data:`SHAPES` by their shares."""
