@@ -110,11 +110,12 @@ def _pairs(
 
 
 def _hit_boxes(
-    b: Boxes, prim: np.ndarray, o: np.ndarray, d: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Entry distance of rays ``d`` [M,3] from ``o`` into boxes ``prim`` [M] (inf if none),
-    the cosine of the incidence on the face entered, and where on a side face it is entered:
-    metres along the face (from the box's corner), nan on the top or bottom."""
+    b: Boxes, prim: np.ndarray, o: np.ndarray, d: np.ndarray, faces: bool = False
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Entry distance of rays ``d`` [M,3] from ``o`` into boxes ``prim`` [M] (inf if none);
+    with ``faces`` (a real sensor's failures need them) also the cosine of the incidence on the
+    face entered and where on a side face it is entered: metres along the face (from the box's
+    corner), nan on the top or bottom; else None for both."""
     c, s = np.cos(b.yaw[prim]), np.sin(b.yaw[prim])
     rx = o[0] - b.center[prim, 0]
     ry = o[1] - b.center[prim, 1]
@@ -134,6 +135,8 @@ def _hit_boxes(
             np.minimum(np.maximum(tx1, tx2), np.maximum(ty1, ty2)), np.maximum(tz1, tz2)
         )
     hit = (tn <= tf) & (tn > 0)
+    if not faces:
+        return np.where(hit, tn, np.inf), None, None
     face = enter.argmax(0)
     cos = np.abs(np.choose(face, [dx, dy, d[:, 2]]))
     with np.errstate(invalid="ignore"):  # misses: inf times a zero direction
@@ -146,7 +149,8 @@ def _hit_boxes(
 def _hit_cylinders(
     cy: Cylinders, prim: np.ndarray, o: np.ndarray, d: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Distance to the side of vertical cylinders (inf if missed) and the incidence cosine."""
+    """Distance to the side of vertical cylinders (inf if missed) and the incidence cosine
+    (a few products of what the distance needs anyway)."""
     rx = o[0] - cy.center[prim, 0]
     ry = o[1] - cy.center[prim, 1]
     a = d[:, 0] ** 2 + d[:, 1] ** 2
@@ -272,7 +276,7 @@ def cast_scan(
         rad = np.hypot(bx.half[:, 0], bx.half[:, 1])
         prim, ray = _pairs(bx.center, rad, bx.z[:, 0], bx.z[:, 1], o, yaw, rays, cfg.max_range)
         if len(prim):
-            t, cos, along = _hit_boxes(bx, prim, o, world[ray])
+            t, cos, along = _hit_boxes(bx, prim, o, world[ray], faces=real)
             np.minimum.at(depth, ray, t)
             if real:
                 kind = bx.kind[prim]
