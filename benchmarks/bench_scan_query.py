@@ -68,9 +68,7 @@ def window_cost(run_dir: Path, count: int) -> None:
     # laid as the tree's submap windows were (their points a scan, as a served map says)
     from pnvlad_service.data.run_folder import recorded_accumulation
 
-    acc = WindowAccumulator.for_map(
-        {"accumulation": recorded_accumulation(run_dir, "pointcloud_20m")}, 20.0, "sensor"
-    )
+    acc = WindowAccumulator.laid_as(recorded_accumulation(run_dir, "pointcloud_20m"), 20.0)
     add_s, cloud_s, g_window, g_scan, points = [], [], [], [], []
     first = max(0, min(100, len(drive) - 8 - count))
     for i in range(first, min(len(drive), first + 8 + count)):

@@ -229,7 +229,20 @@ class WindowAccumulator:
         acc = getattr(map_record, "accumulation", None)
         if acc is None and isinstance(map_record, dict):
             acc = map_record.get("accumulation")
-        acc = dict(acc or {})
+        return cls.laid_as(acc, window_m, frame, seed)
+
+    @classmethod
+    def laid_as(
+        cls,
+        accumulation: Any,
+        window_m: float = 20.0,
+        frame: Literal["enu", "sensor"] = "sensor",
+        seed: int = 0,
+    ) -> WindowAccumulator:
+        """An accumulator that lays scans by ``accumulation`` (a map's, or a prepare record's:
+        ``data.run_folder.recorded_accumulation``): its ``max_points_per_scan``,
+        ``max_range_m`` and ``min_scan_spacing_m``; ``None`` keeps the scans whole."""
+        acc = dict(accumulation or {})
         return cls(
             window_m=window_m,
             min_spacing_m=float(acc.get("min_scan_spacing_m", 0.05)),

@@ -158,33 +158,53 @@ def default_preprocess_config(layout: str = "test") -> dict[str, Any]:
     return (scan_config() if layout == "keyframe" else GConfig()).model_dump(mode="json")
 
 
+def _recorded_by_runs(
+    root: Path, records: Sequence[Submap], read: Any
+) -> tuple[dict[str, Any] | None, str | None]:
+    """What ``read(run_dir, folder)`` finds in the prepare records of the runs indexed: the
+    value the runs that record one agree on (``None`` where none does) and the first run that
+    records another (``None`` where they all agree)."""
+    found: dict[str, Any] | None = None
+    folder = records[0].path.rsplit("/", 2)[1]
+    for run in dict.fromkeys(r.path.rsplit("/", 2)[0] for r in records):
+        value = read(root.joinpath(*run.split("/")), folder)
+        if value is not None and found is not None and value != found:
+            return found, run
+        found = value if value is not None else found
+    return found, None
+
+
 def tree_preprocess_config(root: Path, records: Sequence[Submap]) -> dict[str, Any]:
     """The G that the records' map entries went through, as the tree's prepare records say
     (so that a raw query meets its own kind), else the layout's default. :class:`InputError`
     when the runs indexed record different settings."""
     from pnvlad_service.data.run_folder import recorded_g_config
 
-    found: dict[str, Any] | None = None
-    for run in dict.fromkeys(r.path.rsplit("/", 2)[0] for r in records):
-        folder = records[0].path.rsplit("/", 2)[1]
-        g = recorded_g_config(root.joinpath(*run.split("/")), folder)
-        if g is not None and found is not None and g != found:
-            raise InputError(
-                f"the runs indexed went through different filter G settings ({run} differs); "
-                "index them into separate bundles",
-                root,
-            )
-        found = g if g is not None else found
+    found, differs = _recorded_by_runs(root, records, recorded_g_config)
+    if differs is not None:
+        raise InputError(
+            f"the runs indexed went through different filter G settings ({differs} differs); "
+            "index them into separate bundles",
+            root,
+        )
     return found if found is not None else default_preprocess_config(records[0].kind)
 
 
 def tree_accumulation(root: Path, records: Sequence[Submap]) -> dict[str, Any] | None:
-    """How the first run's windows laid each scan (its prepare record), for accumulated queries
-    to do the same; ``None`` where the tree recorded nothing (made elsewhere)."""
+    """How the runs' windows laid each scan (their prepare records), for accumulated queries
+    to do the same; ``None`` where the tree recorded nothing (made elsewhere) or where the runs
+    laid theirs differently (a warning: the bundle then cannot say how to lay a window)."""
     from pnvlad_service.data.run_folder import recorded_accumulation
 
-    run, folder = records[0].path.rsplit("/", 2)[:2]
-    return recorded_accumulation(root.joinpath(*run.split("/")), folder)
+    found, differs = _recorded_by_runs(root, records, recorded_accumulation)
+    if differs is not None:
+        log.warning(
+            "the runs indexed laid their windows' scans differently (%s differs): the bundle "
+            "records none, and accumulated queries keep their scans whole",
+            differs,
+        )
+        return None
+    return found
 
 
 # --------------------------------------------------------------------------------------------

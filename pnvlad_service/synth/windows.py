@@ -114,7 +114,7 @@ def window_queries(
                 warm = first
             clouds = [drive.scan(j) for j in range(warm, i + 1)]
             laid = _laid_poses(drive, warm, i, clouds, poses)[first - warm :]
-            acc = WindowAccumulator.for_map({"accumulation": accumulation}, window_m, frame)
+            acc = WindowAccumulator.laid_as(accumulation, window_m, frame)
             for pts, pose in zip(clouds[first - warm :], laid, strict=True):
                 acc.add(pts, pose)
             path = out_dir / run.area / run.name / f"{s.timestamp}.bin"

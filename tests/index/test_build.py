@@ -318,3 +318,36 @@ def test_a_map_of_a_heading_model_holds_four_turns_an_entry(
     ib.add_to_bundle(out.path, ckpt, world["tree"], runs=others, progress=False)
     grown = IndexBundle.load(out.path)
     assert grown.count == len(runs) and grown.index.ntotal == 4 * len(runs)
+
+
+def test_a_tree_says_how_its_windows_laid_scans_only_where_its_runs_agree(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The bundle's G and window settings come from the runs' prepare records: the same in
+    every run, they are the tree's; G differing refuses the build, windows differing leave
+    the bundle without window settings (and say so)."""
+    import json
+    from types import SimpleNamespace
+
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.index.build import tree_accumulation, tree_preprocess_config
+
+    def record(run: str, points: int, g: dict) -> SimpleNamespace:
+        d = tmp_path / "area" / run
+        d.mkdir(parents=True, exist_ok=True)
+        doc = {"max_points_per_scan": points, "min_scan_spacing_m": 0.05, "max_range_m": None,
+               "g_config": g}  # fmt: skip
+        (d / ".prepare-pointcloud_20m.json").write_text(json.dumps(doc))
+        return SimpleNamespace(path=f"area/{run}/pointcloud_20m/1.bin", kind="test")
+
+    g = {"target_points": 4096}
+    same = [record("a", 8000, g), record("b", 8000, g)]
+    assert tree_accumulation(tmp_path, same) == {"max_points_per_scan": 8000,
+                                                 "min_scan_spacing_m": 0.05}  # fmt: skip
+    assert tree_preprocess_config(tmp_path, same) == g
+    mixed = [*same, record("c", 3000, g)]
+    with caplog.at_level("WARNING"):
+        assert tree_accumulation(tmp_path, mixed) is None
+    assert "area/c differs" in caplog.text
+    with pytest.raises(InputError, match="area/d differs"):
+        tree_preprocess_config(tmp_path, [*same, record("d", 8000, {"target_points": 1024})])
