@@ -284,21 +284,39 @@ def figure(results: list[tuple[Source, rl.ScanStats, rl.ScanStats, str]], png: P
 def ablation_steps(spec: Any) -> list[tuple[str, Any]]:
     """The realistic ``spec`` (the ``benchmark`` preset) reached from its ``_v1`` in steps of
     one change each (#37): the real beam tables alone (failures off), then the sensors'
-    failures, then street detail and vehicle shapes."""
+    failures, street detail and vehicle shapes, the vehicle's own roof in the lowest beams,
+    ground cover and structures (grass, bridges, building fronts), and hills with the sensor
+    leaning on them."""
     from pnvlad_service.synth.generate import get_preset
     from pnvlad_service.synth.sensors import REAL_FAILURES, LidarConfig
 
-    def perfect(sensor: Any) -> Any:
-        fields = sensor.model_dump()
-        fields.update({k: LidarConfig.model_fields[k].default for k in REAL_FAILURES})
-        return LidarConfig.model_validate(fields)
+    def sensors(drop: Any, roof: bool) -> list[Any]:
+        out = []
+        for sensor in spec.lidars:
+            fields = sensor.model_dump()
+            fields.update({k: LidarConfig.model_fields[k].default for k in drop})
+            if not roof:
+                fields["ego_roof_drop"] = 0.0
+            out.append(LidarConfig.model_validate(fields))
+        return out
 
     old = get_preset(f"{spec.name}_v1")
+    flat = spec.conditions.model_copy(update={"follow_ground": False})
+    covers = ("grass_verges", "lawns", "bridges_per_km", "facade_bays", "balconies")
+    detail = spec.city.model_copy(update=dict.fromkeys((*covers, "hills"), 0.0))
+    covered = spec.city.model_copy(update={"hills": 0.0})
+    street = spec.model_copy(
+        update={"lidars": sensors((), roof=False), "conditions": flat, "city": detail}
+    )
+    roofed = street.model_copy(update={"lidars": spec.lidars})
     return [
         ("v1", old),
-        ("beam tables", old.model_copy(update={"lidars": [perfect(s) for s in spec.lidars]})),
-        ("sensor failures", old.model_copy(update={"lidars": spec.lidars})),
-        ("street detail", spec),
+        ("beam tables", old.model_copy(update={"lidars": sensors(REAL_FAILURES, roof=False)})),
+        ("sensor failures", old.model_copy(update={"lidars": sensors((), roof=False)})),
+        ("street detail", street),
+        ("own roof", roofed),
+        ("grass and structures", roofed.model_copy(update={"city": covered})),
+        ("hills", spec),
     ]
 
 

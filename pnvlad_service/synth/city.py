@@ -48,7 +48,7 @@ def _stable_id(text: str) -> int:
     return int.from_bytes(text.encode("utf-8")[:8].ljust(8, b"\0"), "little") % (2**31)
 
 
-def _make_ground(cfg: WorldConfig, rng: np.random.Generator) -> Ground:
+def _make_ground(cfg: WorldConfig, rng: np.random.Generator, seed: int, sid: int) -> Ground:
     ang = rng.uniform(0, 2 * np.pi)
     gradient = cfg.ground_slope * rng.uniform(0.3, 1.0) * np.array([np.cos(ang), np.sin(ang)])
     k = 3
@@ -56,7 +56,25 @@ def _make_ground(cfg: WorldConfig, rng: np.random.Generator) -> Ground:
     dirs = rng.uniform(0, 2 * np.pi, k)
     wavevector = (2 * np.pi / wavelengths)[:, None] * np.stack([np.cos(dirs), np.sin(dirs)], 1)
     amplitude = cfg.ground_relief * rng.uniform(0.3, 1.0, k) / k
-    return Ground(gradient, amplitude, wavevector, rng.uniform(0, 2 * np.pi, k))
+    ground = Ground(gradient, amplitude, wavevector, rng.uniform(0, 2 * np.pi, k))
+    if cfg.detail.hills > 0:  # from a stream of their own: the gentle ground stays as it was
+        ground = _add_hills(ground, cfg.detail.hills, _rng(seed, sid, 5))
+    return ground
+
+
+def _add_hills(ground: Ground, amplitude: float, rng: np.random.Generator) -> Ground:
+    """``ground`` with two hill waves 160-320 m long, each up to half ``amplitude`` metres."""
+    k = 2
+    wavelengths = rng.uniform(160.0, 320.0, k)
+    dirs = rng.uniform(0, 2 * np.pi, k)
+    wave = (2 * np.pi / wavelengths)[:, None] * np.stack([np.cos(dirs), np.sin(dirs)], 1)
+    amp = amplitude * rng.uniform(0.5, 1.0, k) / k
+    return Ground(
+        ground.gradient,
+        np.concatenate([ground.amplitude, amp]),
+        np.concatenate([ground.wavevector, wave]),
+        np.concatenate([ground.phase, rng.uniform(0, 2 * np.pi, k)]),
+    )
 
 
 def _connected(n: int, edges: list[tuple[int, int]]) -> bool:
@@ -294,6 +312,14 @@ class _Placer:
     def _z(self, c: np.ndarray) -> float:
         return float(self.ground.height(c[0], c[1]))
 
+    def _foot(self, c: np.ndarray, half: np.ndarray, yaw: float) -> float:
+        """Where a building's box starts: half a metre under the ground at its centre, or, in
+        hilly areas, under its lowest corner (so that no side floats above a slope)."""
+        if self.cfg.detail.hills <= 0:
+            return self._z(c) - 0.5
+        corners = box_samples(c, half, yaw, step=max(float(half.max()), 1.0))
+        return float(self.ground.height(corners[:, 0], corners[:, 1]).min()) - 0.5
+
     def side(self, street: Street, side: float) -> None:
         """Everything along one side of one street, in the order the stream is drawn."""
         rng, style = self.rng, self.style
@@ -325,7 +351,8 @@ class _Placer:
             if self.occ.free(samples) and self.clear_of_roads(samples, 0.6):
                 self.occ.mark(samples)
                 z = self._z(c)
-                self.b.box(c[0], c[1], w / 2, d / 2, z - 0.5, z + hgt, yaw, KIND_BUILDING)
+                foot = self._foot(c, np.array([w / 2, d / 2]), yaw)
+                self.b.box(c[0], c[1], w / 2, d / 2, foot, z + hgt, yaw, KIND_BUILDING)
                 if tpl["wing"]:
                     self.wing(tpl, c, n, t, w, d, hgt, yaw)
                 if rng.random() < self.style.fence_share:
@@ -353,8 +380,9 @@ class _Placer:
         if self.occ.free(ws) and self.clear_of_roads(ws, 0.6):
             self.occ.mark(ws)
             z2 = self._z(wc)
+            foot = self._foot(wc, np.array([ww / 2, wd / 2]), yaw)
             self.b.box(
-                wc[0], wc[1], ww / 2, wd / 2, z2 - 0.5, z2 + hgt * tpl["wing_h"], yaw, KIND_BUILDING
+                wc[0], wc[1], ww / 2, wd / 2, foot, z2 + hgt * tpl["wing_h"], yaw, KIND_BUILDING
             )
 
     def wall(self, street: Street, side: float) -> None:
@@ -368,14 +396,16 @@ class _Placer:
                 self.b.box(c[0], c[1], 4.0, 0.15, z - 0.2, z + 2.2, yaw, KIND_WALL)
 
     def kerbs(self, street: Street, side: float) -> None:
-        """Kerb stones in 10 m pieces, except near junctions."""
-        for s0 in np.arange(0.0, street.total, 10.0):
-            p, t = street.at(min(s0 + 5.0, street.total))
+        """Kerb stones in 10 m pieces (4 m in hilly areas, to follow the slope), except near
+        junctions."""
+        piece = 4.0 if self.cfg.detail.hills > 0 else 10.0
+        for s0 in np.arange(0.0, street.total, piece):
+            p, t = street.at(min(s0 + piece / 2, street.total))
             c = p + normal(t, side) * (street.half_width + 0.1)
             if not self.near_junction(p, street.half_width + 10.0):
                 z = self._z(c)
                 yaw = float(np.arctan2(t[1], t[0]))
-                self.b.box(c[0], c[1], 5.0, 0.12, z - 0.1, z + 0.15, yaw, KIND_KERB)
+                self.b.box(c[0], c[1], piece / 2, 0.12, z - 0.1, z + 0.15, yaw, KIND_KERB)
 
     def street_trees(self, street: Street, side: float) -> None:
         """Trees on the pavement every ``street_tree_spacing`` metres, a share of them planted."""
@@ -466,7 +496,7 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
         )
     style = DISTRICTS[cfg.district]
     sid = _stable_id(cfg.district)
-    ground = _make_ground(cfg, _rng(seed, sid, 1))
+    ground = _make_ground(cfg, _rng(seed, sid, 1), seed, sid)
     nodes, roads = _make_roads(cfg, style, _rng(seed, sid, 2))
     placer = _Placer(cfg, style, ground, nodes, roads, _rng(seed, sid, 3))
     for r in roads:
@@ -478,9 +508,11 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
     detail = cfg.detail
     if detail.any:  # a stream of its own: the rest of the city stays where it was
         from pnvlad_service.synth.furniture import clumped_crowns, place_detail
+        from pnvlad_service.synth.structures import place_structures
 
         detail_rng = _rng(seed, sid, 4)
         place_detail(placer, roads, detail, detail_rng)
+        place_structures(placer, roads, detail, detail_rng)
     scene = placer.b.freeze()
     if detail.crown_clumps > 1:
         scene = clumped_crowns(scene, detail.crown_clumps, detail_rng)

@@ -107,11 +107,21 @@ def _areas(route_m: float, size: tuple[float, float], names: tuple[str, ...]) ->
 
 
 #: Run conditions of the realistic presets: the vehicle clear of parked and oncoming cars,
-#: cars of several shapes.
-REAL_CONDITIONS = RunConditions(ego_clearance=0.3, vehicle_shapes=True)
+#: cars of several shapes, the sensor pitched and rolled with the slope.
+REAL_CONDITIONS = RunConditions(ego_clearance=0.3, vehicle_shapes=True, follow_ground=True)
 #: Street detail of the realistic presets.
 REAL_CITY = CityDetail(
-    hedges=0.35, bollard_spacing=1.5, furniture_per_100m=3.0, shrubs_per_1000m2=0.6, crown_clumps=4
+    hedges=0.35,
+    bollard_spacing=1.5,
+    furniture_per_100m=3.0,
+    shrubs_per_1000m2=0.6,
+    crown_clumps=4,
+    grass_verges=0.5,
+    lawns=0.6,
+    hills=3.0,
+    bridges_per_km=0.6,
+    facade_bays=0.5,
+    balconies=0.3,
 )
 
 PRESETS: dict[str, SynthPreset] = {

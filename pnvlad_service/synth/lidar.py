@@ -18,6 +18,7 @@ from pnvlad_service.synth.sensors import LidarConfig
 from pnvlad_service.synth.world import (
     KIND_BUILDING,
     KIND_CAR,
+    KIND_GRASS,
     Boxes,
     Cylinders,
     Ellipsoids,
@@ -25,7 +26,7 @@ from pnvlad_service.synth.world import (
     Scene,
 )
 
-__all__ = ["LidarConfig", "RayBundle", "cast_scan", "ray_bundle"]
+__all__ = ["LidarConfig", "RayBundle", "cast_scan", "on_roof", "ray_bundle"]
 
 
 @dataclass
@@ -63,11 +64,17 @@ def _pairs(
     yaw: float,
     rays: RayBundle,
     max_range: float,
+    tilt: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Candidate (primitive, ray) pairs: primitive index int64 [M], flat ray index int64 [M].
 
     ``center`` [P,2], ``radius`` [P] is each primitive's bounding circle, ``zlo``/``zhi`` [P]
     its vertical extent; only rays whose azimuth and elevation can reach it are kept.
+
+    ``tilt`` (float64 [3, 3]): how the sensor leans, its orientation in the frame of its
+    heading ``yaw`` (None: level). A beam at azimuth a then looks higher in the world by about
+    ``tilt[2, 0] cos a + tilt[2, 1] sin a`` radians, and its azimuth moves by at most the lean
+    times the tangent of its elevation: the windows shift by the first and widen by the rest.
     """
     ncol = len(rays.azimuth)
     nbeam = len(rays.elevation)
@@ -82,9 +89,6 @@ def _pairs(
     theta = np.arctan2(rel[:, 1], rel[:, 0]) - yaw
     inside = dist <= radius * 1.0001
     half = np.where(inside, np.pi, np.arcsin(np.clip(radius / np.maximum(dist, 1e-9), 0, 1)))
-    c0 = np.floor((theta - half) / dcol).astype(np.int64) - 1
-    c1 = np.ceil((theta + half) / dcol).astype(np.int64) + 1
-    ncols = np.minimum(c1 - c0 + 1, ncol)
     # Beam range from the elevation span of the bounding cylinder.
     near = np.maximum(dist - radius, 0.05)
     far = dist + radius
@@ -92,9 +96,20 @@ def _pairs(
     e_lo = np.minimum(np.arctan2(zlo - origin[2], near), np.arctan2(zlo - origin[2], far))
     e_hi = np.where(inside, np.pi / 2, e_hi)
     e_lo = np.where(inside & (zlo < origin[2]), -np.pi / 2, e_lo)
+    margin = 1e-3
+    if tilt is not None:
+        lean = float(np.hypot(tilt[2, 0], tilt[2, 1]))
+        steep = np.minimum(np.maximum(np.abs(e_lo), np.abs(e_hi)), np.abs(rays.elevation).max())
+        half = half + lean * np.tan(steep) + abs(float(tilt[1, 0])) + lean**2
+        low, high = _rise_span(tilt[2, 0], tilt[2, 1], theta, half)
+        e_hi, e_lo = e_hi - low, e_lo - high
+        margin = margin + lean * (1.0 - np.cos(steep)) + lean**2
+    c0 = np.floor((theta - half) / dcol).astype(np.int64) - 1
+    c1 = np.ceil((theta + half) / dcol).astype(np.int64) + 1
+    ncols = np.minimum(c1 - c0 + 1, ncol)
     el = rays.elevation  # descending
-    b0 = np.searchsorted(-el, -e_hi - 1e-3, side="left")
-    b1 = np.searchsorted(-el, -e_lo + 1e-3, side="right")
+    b0 = np.searchsorted(-el, -e_hi - margin, side="left")
+    b1 = np.searchsorted(-el, -e_lo + margin, side="right")
     nb = np.clip(b1 - b0, 0, nbeam)
     ncols = np.where(nb > 0, ncols, 0)
     # Expand primitives → (primitive, column) → (primitive, column, beam).
@@ -107,6 +122,19 @@ def _pairs(
     beam = b0[p2] + (np.arange(len(p2)) - start2)
     ray = beam * ncol + np.repeat(col, nbr)
     return idx[p2], ray
+
+
+def _rise_span(
+    a: float, b: float, theta: np.ndarray, half: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least and most of ``a cos x + b sin x`` for x within ``half`` of ``theta``: how much
+    lower and higher a leaning sensor's beams look over a primitive's azimuth span."""
+    amp, peak = float(np.hypot(a, b)), float(np.arctan2(b, a))
+    ends = amp * np.cos(np.stack([theta - half, theta + half]) - peak)
+    to_peak = np.abs(np.mod(theta - peak + np.pi, 2 * np.pi) - np.pi)  # 0..pi
+    high = np.where(to_peak <= half, amp, ends.max(0))
+    low = np.where(np.pi - to_peak <= half, -amp, ends.min(0))
+    return low, high
 
 
 def _hit_boxes(
@@ -195,6 +223,22 @@ def _hit_ellipsoids(
     return np.where(hit, t, np.inf)
 
 
+def _into_grass(
+    t: np.ndarray,
+    grass: np.ndarray,
+    z: np.ndarray,
+    dz: np.ndarray,
+    depth_m: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Box hits ``t`` with those on grass (``grass``) moved into the blades: an exponential
+    depth of mean ``depth_m`` past the top, at most the ray's way through the layer (its
+    thickness over the ray's slope, the ground beneath stops the rest)."""
+    chord = np.where(grass, (z[:, 1] - z[:, 0]) / np.maximum(np.abs(dz), 0.05), 0.0)
+    step = np.minimum(rng.exponential(depth_m, len(t)), chord)
+    return np.where(grass & np.isfinite(t), t + step, t)
+
+
 def _hit_ground(
     g: Ground, o: np.ndarray, d: np.ndarray, max_range: float, iters: int = 4
 ) -> np.ndarray:
@@ -240,6 +284,61 @@ def _winners(depth: np.ndarray, ray: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.isfinite(t) & (t == depth[ray])
 
 
+def _world_rays(
+    flat: np.ndarray, yaw: float, attitude: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The rays ``flat`` [N, 3] turned into the world by the heading ``yaw`` (a level sensor) or
+    by ``attitude``, and the sensor's lean in the frame of its heading (None when level)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    if attitude is None:
+        world = np.empty_like(flat)
+        world[:, 0] = c * flat[:, 0] - s * flat[:, 1]
+        world[:, 1] = s * flat[:, 0] + c * flat[:, 1]
+        world[:, 2] = flat[:, 2]
+        return world, None
+    attitude = np.asarray(attitude, dtype=np.float64)
+    # by columns: a BLAS product of this shape would take every core for nothing
+    world = flat[:, :1] * attitude[:, 0] + flat[:, 1:2] * attitude[:, 1]
+    world += flat[:, 2:] * attitude[:, 2]
+    return world, np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ attitude
+
+
+def _box_hits(
+    bx: Boxes,
+    o: np.ndarray,
+    yaw: float,
+    world: np.ndarray,
+    rays: RayBundle,
+    cfg: LidarConfig,
+    tilt: np.ndarray | None,
+    rng: np.random.Generator,
+    depth: np.ndarray,
+    hits: list,
+) -> None:
+    """The boxes' nearest hits into ``depth`` (in place) and, for a real sensor, what each hit
+    is made of into ``hits``: vehicles, grass, facades and their glass, anything else."""
+    real = cfg.realistic
+    rad = np.hypot(bx.half[:, 0], bx.half[:, 1])
+    prim, ray = _pairs(bx.center, rad, bx.z[:, 0], bx.z[:, 1], o, yaw, rays, cfg.max_range, tilt)
+    if not len(prim):
+        return
+    t, cos, along = _hit_boxes(bx, prim, o, world[ray], faces=real)
+    kind = bx.kind[prim]
+    grass = kind == KIND_GRASS
+    if cfg.foliage_depth > 0 and grass.any():
+        t = _into_grass(t, grass, bx.z[prim], world[ray, 2], cfg.foliage_depth, rng)
+    np.minimum.at(depth, ray, t)
+    if real:
+        mat = np.where(kind == KIND_CAR, MAT_VEHICLE, MAT_OTHER)
+        mat = np.where(grass, MAT_FOLIAGE, mat)
+        facade = (kind == KIND_BUILDING) & np.isfinite(along)
+        mat = np.where(facade, MAT_FACADE, mat)
+        height = o[2] + np.where(np.isfinite(t), t, 0.0) * world[ray, 2] - bx.z[prim, 0]
+        glass = facade & _windows(np.nan_to_num(along), height)
+        glass &= cfg.glass_loss > 0
+        hits.append((mat, ray, t, cos, glass))
+
+
 def cast_scan(
     scene: Scene,
     ground: Ground,
@@ -250,47 +349,32 @@ def cast_scan(
     rays: RayBundle | None = None,
     motion: tuple[float, float] = (0.0, 0.0),
     rings: bool = False,
+    attitude: np.ndarray | None = None,
 ) -> Any:
     """Simulate one full turn of the sensor at ``position`` (local metres, float64 [3]) with
     heading ``yaw`` (radians from east, sensor level), the vehicle moving at ``motion`` =
     (forward speed m/s, yaw rate rad/s) at that moment (used when ``cfg.deskewed`` is False).
+    ``attitude``: the sensor's full orientation instead (float64 [3, 3], sensor axes in the
+    world, columns x forward, y left, z up), for a vehicle pitched and rolled by the slope it
+    stands on; ``yaw`` is then its heading.
 
     Returns the points in the *sensor* frame (x forward, y left, z up), float32 [N,3], metres,
     with range noise and dropouts applied and rays without a return in range removed; with
     ``rings`` also each point's beam, int64 [N] (0: the top one).
     """
     rays = rays or ray_bundle(cfg)
-    c, s = np.cos(yaw), np.sin(yaw)
     flat = rays.dirs.reshape(-1, 3)
-    world = np.empty_like(flat)
-    world[:, 0] = c * flat[:, 0] - s * flat[:, 1]
-    world[:, 1] = s * flat[:, 0] + c * flat[:, 1]
-    world[:, 2] = flat[:, 2]
+    world, tilt = _world_rays(flat, yaw, attitude)
     o = np.asarray(position, dtype=np.float64)
     depth = _hit_ground(ground, o, world, cfg.max_range)
     real = cfg.realistic
     hits = []  # (material, ray, t, cos, glass) of each primitive kind, for the failures
-
-    bx = scene.boxes
-    if len(bx):
-        rad = np.hypot(bx.half[:, 0], bx.half[:, 1])
-        prim, ray = _pairs(bx.center, rad, bx.z[:, 0], bx.z[:, 1], o, yaw, rays, cfg.max_range)
-        if len(prim):
-            t, cos, along = _hit_boxes(bx, prim, o, world[ray], faces=real)
-            np.minimum.at(depth, ray, t)
-            if real:
-                kind = bx.kind[prim]
-                mat = np.where(kind == KIND_CAR, MAT_VEHICLE, MAT_OTHER)
-                facade = (kind == KIND_BUILDING) & np.isfinite(along)
-                mat = np.where(facade, MAT_FACADE, mat)
-                height = o[2] + np.where(np.isfinite(t), t, 0.0) * world[ray, 2] - bx.z[prim, 0]
-                glass = facade & _windows(np.nan_to_num(along), height)
-                glass &= cfg.glass_loss > 0
-                hits.append((mat, ray, t, cos, glass))
+    if len(scene.boxes):
+        _box_hits(scene.boxes, o, yaw, world, rays, cfg, tilt, rng, depth, hits)
     cy = scene.cylinders
     if len(cy):
         prim, ray = _pairs(
-            cy.center, cy.radius, cy.z[:, 0], cy.z[:, 1], o, yaw, rays, cfg.max_range
+            cy.center, cy.radius, cy.z[:, 0], cy.z[:, 1], o, yaw, rays, cfg.max_range, tilt
         )
         if len(prim):
             t, cos = _hit_cylinders(cy, prim, o, world[ray])
@@ -301,7 +385,7 @@ def cast_scan(
     if len(el):
         zc, rz = el.center[:, 2], el.radii[:, 2]
         prim, ray = _pairs(
-            el.center[:, :2], el.radii[:, 0], zc - rz, zc + rz, o, yaw, rays, cfg.max_range
+            el.center[:, :2], el.radii[:, 0], zc - rz, zc + rz, o, yaw, rays, cfg.max_range, tilt
         )
         if len(prim):
             t = _hit_ellipsoids(el, prim, o, world[ray], rng, cfg.foliage_depth)
@@ -322,6 +406,18 @@ def cast_scan(
     return (pts, idx // len(rays.azimuth)) if rings else pts
 
 
+def on_roof(cfg: LidarConfig, dirs: np.ndarray) -> np.ndarray:
+    """Which sensor-frame rays ``dirs`` [N, 3] meet the vehicle's own roof, ``ego_roof_drop``
+    below the sensor inside the outline through ``ego_roof`` (ahead, behind, to each side):
+    two half ellipses, the front one and the rear one."""
+    ahead, behind, side = cfg.ego_roof
+    down = dirs[:, 2] < -1e-6
+    t = cfg.ego_roof_drop / np.where(down, -dirs[:, 2], 1.0)
+    x, y = t * dirs[:, 0], t * dirs[:, 1]
+    reach = np.where(x >= 0, x / ahead, x / behind) ** 2 + (y / side) ** 2
+    return down & (reach < 1.0)
+
+
 def _real_returns(
     cfg: LidarConfig,
     rng: np.random.Generator,
@@ -336,6 +432,8 @@ def _real_returns(
     """The returns of a real sensor from the nearest hits: dropouts by range, incidence and
     material, glass and recessed windows, range noise growing with range, the sweep's motion;
     float32 [N, 3] and the flat ray index of each."""
+    if cfg.ego_roof_drop > 0:
+        ok &= ~on_roof(cfg, flat)
     cos = np.abs(world[:, 2])  # the ground's: its normal is about vertical
     mat = np.full(len(depth), MAT_GROUND, np.int8)
     glass = np.zeros(len(depth), bool)

@@ -97,6 +97,11 @@ class RunConditions(BaseModel):
         description="cars as a body and a cabin of several shapes, vans as one tall box, "
         "parked ones changing shape from run to run (False: one box each)",
     )
+    follow_ground: bool = Field(
+        False,
+        description="the vehicle, and its sensor, pitched and rolled by the slope it stands "
+        "on, in the scans and the poses (False: the sensor level on any slope)",
+    )
 
 
 @dataclass
@@ -407,6 +412,28 @@ class RunScene:
 EGO_HALF = (2.4, 0.95)
 
 
+def _level(yaw: np.ndarray) -> np.ndarray:
+    """float64 [T, 3, 3]: level orientations turned by ``yaw`` [T] radians about up."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = np.zeros((len(yaw), 3, 3))
+    out[:, 0, 0], out[:, 0, 1] = c, -s
+    out[:, 1, 0], out[:, 1, 1] = s, c
+    out[:, 2, 2] = 1.0
+    return out
+
+
+def ground_attitude(world: World, xy: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """float64 [T, 3, 3]: a vehicle's orientation at ``xy`` [T, 2] heading ``yaw`` [T] on the
+    ground's slope: up along the ground's normal, forward the heading laid onto the ground."""
+    _, gx, gy = world.ground.height_and_grad(xy[:, 0], xy[:, 1])
+    up = np.stack([-gx, -gy, np.ones_like(gx)], 1)
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    head = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], 1)
+    fwd = head - (head * up).sum(1, keepdims=True) * up
+    fwd /= np.linalg.norm(fwd, axis=1, keepdims=True)
+    return np.stack([fwd, np.cross(up, fwd), up], axis=2)
+
+
 def _clear_of(
     centers: np.ndarray, yaw: np.ndarray, half: np.ndarray, ego: np.ndarray, margin: float
 ) -> np.ndarray:
@@ -471,26 +498,31 @@ class SimulatedDrive:
         self.true_z = world.ground.height(true_xy[:, 0], true_xy[:, 1]) + self.lidar.mount_height
         self.times = s / self.speed  # seconds since the start of the run
         self.timestamps = (start_us + np.round(self.times * 1e6)).astype(np.int64)
-        # GNSS/INS error: smooth random walks over distance.
-        en = _smooth_walk(rng, s, cond.position_noise / np.sqrt(2), cond.noise_correlation_m)
-        nn = _smooth_walk(rng, s, cond.position_noise / np.sqrt(2), cond.noise_correlation_m)
-        yn = _smooth_walk(rng, s, np.deg2rad(cond.heading_noise_deg), cond.noise_correlation_m)
-        est_xy = true_xy + np.stack([en, nn], 1)
-        est_yaw = yaw + yn
-        origin = world.origin  # UTM easting, northing of the local origin
-        poses = np.zeros((len(s), 4, 4))
-        c, sn = np.cos(est_yaw), np.sin(est_yaw)
-        poses[:, 0, 0], poses[:, 0, 1] = c, -sn
-        poses[:, 1, 0], poses[:, 1, 1] = sn, c
-        poses[:, 2, 2] = 1.0
-        poses[:, 0, 3] = origin[0] + est_xy[:, 0]
-        poses[:, 1, 3] = origin[1] + est_xy[:, 1]
-        poses[:, 2, 3] = self.true_z
-        poses[:, 3, 3] = 1.0
-        self.poses = poses
+        # The sensor's orientation (sensor axes in the world): level, or on the ground's slope.
+        self.attitude = ground_attitude(world, true_xy, yaw) if cond.follow_ground else _level(yaw)
+        self.poses = self._recorded_poses(rng, s)
         self.scene = RunScene(
             world, cond, route, np.random.default_rng(np.random.SeedSequence([seed, 2]))
         )
+
+    def _recorded_poses(self, rng: np.random.Generator, s: np.ndarray) -> np.ndarray:
+        """float64 [T, 4, 4] sensor→UTM world as the GNSS/INS records them: the true poses
+        with its error, smooth random walks over the distance ``s`` in position and heading."""
+        cond = self.conditions
+        en = _smooth_walk(rng, s, cond.position_noise / np.sqrt(2), cond.noise_correlation_m)
+        nn = _smooth_walk(rng, s, cond.position_noise / np.sqrt(2), cond.noise_correlation_m)
+        yn = _smooth_walk(rng, s, np.deg2rad(cond.heading_noise_deg), cond.noise_correlation_m)
+        est_xy = self.true_xy + np.stack([en, nn], 1)
+        poses = np.zeros((len(s), 4, 4))
+        # the heading error turns about up
+        if cond.follow_ground:
+            poses[:, :3, :3] = _level(yn) @ self.attitude
+        else:
+            poses[:, :3, :3] = _level(self.true_yaw + yn)
+        poses[:, :2, 3] = self.world.origin + est_xy  # UTM easting, northing
+        poses[:, 2, 3] = self.true_z
+        poses[:, 3, 3] = 1.0
+        return poses
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -500,10 +532,8 @@ class SimulatedDrive:
         """float64 [T, 4, 4] sensor→UTM world as the scans were really cast (no GNSS/INS
         error); ``prepare_drive`` records from it each submap's true frame pose."""
         out = np.zeros((len(self), 4, 4))
-        c, s = np.cos(self.true_yaw), np.sin(self.true_yaw)
-        out[:, 0, 0], out[:, 0, 1] = c, -s
-        out[:, 1, 0], out[:, 1, 1] = s, c
-        out[:, 2, 2] = out[:, 3, 3] = 1.0
+        out[:, :3, :3] = self.attitude
+        out[:, 3, 3] = 1.0
         out[:, 0, 3] = self.world.origin[0] + self.true_xy[:, 0]
         out[:, 1, 3] = self.world.origin[1] + self.true_xy[:, 1]
         out[:, 2, 3] = self.true_z
@@ -526,4 +556,5 @@ class SimulatedDrive:
             self._rays,
             motion,
             rings,
+            self.attitude[i] if self.conditions.follow_ground else None,
         )

@@ -13,6 +13,7 @@ The scene is made of three analytic primitive kinds, cheap to ray-cast in bulk:
 - oriented boxes (yaw only): buildings, walls, fences, kerbs, parked cars, sign plates;
 - vertical cylinders: tree trunks, poles, pedestrians, cones;
 - ellipsoids with a foliage density (share of rays that return): tree crowns;
+- grass: thin boxes over the ground that a real sensor's rays reach into;
 
 plus a smooth height-field ground (gentle slopes). This module holds the city's model (the
 district styles, the config, the primitives, :class:`World`);
@@ -33,6 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field
 KIND_BUILDING, KIND_WALL, KIND_FENCE, KIND_KERB, KIND_CAR, KIND_SIGN = 0, 1, 2, 3, 4, 5
 KIND_TRUNK, KIND_POLE, KIND_PEDESTRIAN, KIND_CONE, KIND_CROWN, KIND_BARRIER = 6, 7, 8, 9, 10, 11
 KIND_HEDGE, KIND_BOLLARD, KIND_FURNITURE = 12, 13, 14
+KIND_GRASS, KIND_FACADE, KIND_BRIDGE = 15, 16, 17
 
 
 class DistrictStyle(BaseModel):
@@ -139,6 +141,28 @@ class CityDetail(BaseModel):
     crown_clumps: int = Field(
         1, ge=1, le=6, description="ellipsoids a tree crown is made of (1: one smooth crown)"
     )
+    grass_verges: float = Field(
+        0.0, ge=0, le=1, description="share of pavement stretches with a grass verge by the kerb"
+    )
+    lawns: float = Field(
+        0.0, ge=0, le=1, description="share of the free land within 22 m of a street under grass"
+    )
+    hills: float = Field(
+        0.0,
+        ge=0,
+        le=6,
+        description="amplitude (m) of hills 160-320 m across on top of the gentle ground "
+        "(streets up to about 6 % at 3 m); buildings stand on their lowest corner",
+    )
+    bridges_per_km: float = Field(
+        0.0, ge=0, description="bridges over the streets per km of street (decks on two piers)"
+    )
+    facade_bays: float = Field(
+        0.0, ge=0, le=1, description="share of buildings whose street face has piers and recesses"
+    )
+    balconies: float = Field(
+        0.0, ge=0, le=1, description="share of buildings whose street face has balconies"
+    )
 
     @property
     def any(self) -> bool:
@@ -148,6 +172,11 @@ class CityDetail(BaseModel):
                 or self.bollard_spacing
                 or self.furniture_per_100m
                 or self.shrubs_per_1000m2
+                or self.grass_verges
+                or self.lawns
+                or self.bridges_per_km
+                or self.facade_bays
+                or self.balconies
             )
             or self.crown_clumps > 1
         )

@@ -24,7 +24,8 @@ SMALL = {"district": "residential", "size": (400.0, 300.0)}
 
 
 def test_detail_adds_to_the_city_and_moves_nothing_else() -> None:
-    plain = generate_world(WorldConfig(**SMALL), seed=4)
+    # the same hills (they move the buildings' feet), none of the rest
+    plain = generate_world(WorldConfig(**SMALL, detail=CityDetail(hills=REAL_CITY.hills)), seed=4)
     rich = generate_world(WorldConfig(**SMALL, detail=REAL_CITY), seed=4)
     pb, rb = plain.scene.boxes, rich.scene.boxes
     # every box and cylinder of the plain city comes first, unchanged
@@ -105,8 +106,11 @@ def test_the_benchmark_mixes_sensors_across_runs() -> None:
     assert set(names[0]) == {"HDL-64E", "HDL-32E", "VLP-16", "OS1-128"}
     assert names[0] != names[1]  # each area starts at another sensor
     assert spec.conditions.ego_clearance is not None and spec.city.any
+    assert spec.conditions.follow_ground and spec.city.hills > 0
+    assert all(s.ego_roof_drop > 0 for s in spec.lidars)
     old = get_preset("benchmark_v1")
     assert not old.lidars and not old.city.any and not old.lidar.realistic
+    assert not old.conditions.follow_ground and old.city.hills == 0
     assert CityDetail().any is False
 
 
