@@ -246,15 +246,7 @@ class RunScene:
         # A stream of its own for what the first benchmarks did not draw (their runs unchanged).
         self._extra = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
         parked = self._parked(rng)
-        # Season: crowns grow or shrink about their trunk top, foliage thins.
-        el = sc.ellipsoids
-        scale = rng.uniform(*cond.crown_scale)
-        dens = rng.uniform(*cond.crown_density)
-        per_tree = rng.uniform(0.9, 1.1, len(el))
-        radii = el.radii * (scale * per_tree)[:, None]
-        center = el.center.copy()
-        center[:, 2] = el.center[:, 2] - el.radii[:, 2] + radii[:, 2]  # crowns keep their base
-        crowns = Ellipsoids(center, radii, np.clip(el.density * dens, 0.05, 1.0), el.kind)
+        crowns = self._season(rng)
         # Roadworks: sites along the route; cones and barriers added, street furniture removed.
         n_sites = rng.poisson(cond.roadworks_per_km * route.length / 1000.0)
         site_s = rng.uniform(0.0, route.length, n_sites)
@@ -317,6 +309,17 @@ class RunScene:
             np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(r.points, axis=0), axis=1))]
             for r in world.roads
         ]
+
+    def _season(self, rng: np.random.Generator) -> Ellipsoids:
+        """The run's season: crowns grown or shrunk about their base, their foliage thinned."""
+        el, cond = self.world.scene.ellipsoids, self.conditions
+        scale = rng.uniform(*cond.crown_scale)
+        dens = rng.uniform(*cond.crown_density)
+        per_tree = rng.uniform(0.9, 1.1, len(el))
+        radii = el.radii * (scale * per_tree)[:, None]
+        center = el.center.copy()
+        center[:, 2] = el.center[:, 2] - el.radii[:, 2] + radii[:, 2]  # crowns keep their base
+        return Ellipsoids(center, radii, np.clip(el.density * dens, 0.05, 1.0), el.kind)
 
     def _parked(self, rng: np.random.Generator) -> Boxes:
         """The parked cars of this run: a share of the slots (and with ``vehicle_shapes``
