@@ -32,15 +32,19 @@ __all__ = ["LidarConfig", "RayBundle", "cast_scan", "on_roof", "ray_bundle"]
 @dataclass
 class RayBundle:
     """Unit ray directions in the sensor frame, float64 [beams, columns, 3]; elevation
-    float64 [beams] (radians, descending), azimuth float64 [columns] (radians, from +x)."""
+    float64 [beams] (radians, descending), azimuth float64 [columns] (radians, from +x);
+    ``roof``: which rays (bool [beams * columns], flat) meet the vehicle's own roof, None
+    where the sensor does not see it."""
 
     dirs: np.ndarray
     elevation: np.ndarray
     azimuth: np.ndarray
+    roof: np.ndarray | None = None
 
 
 def ray_bundle(cfg: LidarConfig) -> RayBundle:
-    """The sensor's rays, beam-major."""
+    """The sensor's rays, beam-major, and those its vehicle's roof hides (once a sensor: they
+    are the same rays every scan)."""
     el = np.deg2rad(cfg.elevations())
     az = np.arange(cfg.columns) * (2 * np.pi / cfg.columns)
     ce = np.cos(el)[:, None]
@@ -52,7 +56,8 @@ def ray_bundle(cfg: LidarConfig) -> RayBundle:
         ],
         -1,
     )
-    return RayBundle(d, el, az)
+    roof = on_roof(cfg, d.reshape(-1, 3)) if cfg.ego_roof_drop > 0 else None
+    return RayBundle(d, el, az, roof)
 
 
 def _pairs(
@@ -432,8 +437,8 @@ def _real_returns(
     """The returns of a real sensor from the nearest hits: dropouts by range, incidence and
     material, glass and recessed windows, range noise growing with range, the sweep's motion;
     float32 [N, 3] and the flat ray index of each."""
-    if cfg.ego_roof_drop > 0:
-        ok &= ~on_roof(cfg, flat)
+    if rays.roof is not None:
+        ok &= ~rays.roof
     cos = np.abs(world[:, 2])  # the ground's: its normal is about vertical
     mat = np.full(len(depth), MAT_GROUND, np.int8)
     glass = np.zeros(len(depth), bool)

@@ -130,9 +130,9 @@ def _hdl64e() -> list[float]:
 #: the returns lost at 100 m and a quarter at a grazing incidence, 70 % of facade windows and 30 %
 #: of vehicle paint lost, rays reaching 0.6 m into crowns on average, no de-skewing, and the
 #: vehicle's roof 0.4 m below the sensor, its outline (``ego_roof``'s default) fitted to KITTI's
-#: HDL-64E: of a turn, its
-#: beams at -21.7 to -24.8 degrees return 96, 90, 68, 73, 43, 25 and 5 % of what the beam at
-#: -21.2 does (frames 0, 52, 4501 of sequence 00), the outline 100, 85, 77, 66, 41, 22, 0 %.
+#: HDL-64E: of a turn, its beams at -21.7 to -24.8 degrees return 96, 90, 68, 73, 43, 25 and 5 %
+#: of what the beam at -21.2 does (frames 0, 52, 4501 of sequence 00), the outline 100, 85, 77,
+#: 66, 41, 22 and 0 %.
 REAL_FAILURES = {
     "range_noise_per_100m": 0.02,
     "dropout": 0.03,
