@@ -516,13 +516,17 @@ class SimulatedDrive:
         nn = _smooth_walk(rng, s, cond.position_noise / np.sqrt(2), cond.noise_correlation_m)
         yn = _smooth_walk(rng, s, np.deg2rad(cond.heading_noise_deg), cond.noise_correlation_m)
         est_xy = self.true_xy + np.stack([en, nn], 1)
-        poses = np.zeros((len(s), 4, 4))
         # the heading error turns about up
         if cond.follow_ground:
-            poses[:, :3, :3] = _level(yn) @ self.attitude
-        else:
-            poses[:, :3, :3] = _level(self.true_yaw + yn)
-        poses[:, :2, 3] = self.world.origin + est_xy  # UTM easting, northing
+            return self._poses(_level(yn) @ self.attitude, est_xy)
+        return self._poses(_level(self.true_yaw + yn), est_xy)
+
+    def _poses(self, rotation: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """float64 [T, 4, 4] sensor→UTM world of orientations ``rotation`` [T, 3, 3] at local
+        ``xy`` [T, 2], the sensor at its true height."""
+        poses = np.zeros((len(xy), 4, 4))
+        poses[:, :3, :3] = rotation
+        poses[:, :2, 3] = self.world.origin + xy  # UTM easting, northing
         poses[:, 2, 3] = self.true_z
         poses[:, 3, 3] = 1.0
         return poses
@@ -534,13 +538,7 @@ class SimulatedDrive:
     def true_poses(self) -> np.ndarray:
         """float64 [T, 4, 4] sensor→UTM world as the scans were really cast (no GNSS/INS
         error); ``prepare_drive`` records from it each submap's true frame pose."""
-        out = np.zeros((len(self), 4, 4))
-        out[:, :3, :3] = self.attitude
-        out[:, 3, 3] = 1.0
-        out[:, 0, 3] = self.world.origin[0] + self.true_xy[:, 0]
-        out[:, 1, 3] = self.world.origin[1] + self.true_xy[:, 1]
-        out[:, 2, 3] = self.true_z
-        return out
+        return self._poses(self.attitude, self.true_xy)
 
     def scan(self, i: int, rings: bool = False) -> Any:
         """Points float32 [N, 3] of scan ``i`` in the sensor frame, metres (with ``rings``, and
