@@ -5,14 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from pnvlad_service.synth.lidar import LidarConfig, cast_scan, ray_bundle
-from pnvlad_service.synth.world import (
-    KIND_BUILDING,
-    Boxes,
-    Cylinders,
-    Ellipsoids,
-    Ground,
-    Scene,
-)
+from pnvlad_service.synth.world import KIND_BUILDING, Boxes, Ground, Scene
+from tests.synth.scenes import FLAT, NO_CYL, NO_ELL
 
 
 def _one_box_scene(distance: float) -> tuple[Scene, Ground]:
@@ -23,10 +17,7 @@ def _one_box_scene(distance: float) -> tuple[Scene, Ground]:
         yaw=np.array([0.0]),
         kind=np.array([KIND_BUILDING], np.int8),
     )
-    empty_c = Cylinders(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.int8))
-    empty_e = Ellipsoids(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int8))
-    ground = Ground(np.zeros(2), np.zeros(0), np.zeros((0, 2)), np.zeros(0))
-    return Scene(boxes, empty_c, empty_e), ground
+    return Scene(boxes, NO_CYL, NO_ELL), FLAT
 
 
 def test_lidar_first_surface_and_occlusion_shadow() -> None:

@@ -18,21 +18,8 @@ from pnvlad_service.synth.lidar import (
     ray_bundle,
 )
 from pnvlad_service.synth.sensors import SENSORS, LidarConfig, sensor
-from pnvlad_service.synth.world import (
-    KIND_BUILDING,
-    KIND_CROWN,
-    Boxes,
-    Cylinders,
-    Ellipsoids,
-    Ground,
-    Scene,
-)
-
-FLAT = Ground(np.zeros(2), np.zeros(0), np.zeros((0, 2)), np.zeros(0))
-NO_CYL = Cylinders(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.int8))
-NO_ELL = Ellipsoids(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int8))
-#: A sensor that fails only where a test asks it to.
-CLEAN = {"range_noise": 0.0, "dropout": 0.0, "min_range": 0.5}
+from pnvlad_service.synth.world import KIND_BUILDING, KIND_CROWN, Boxes, Ellipsoids, Scene
+from tests.synth.scenes import CLEAN, FLAT, NO_BOX, NO_CYL, NO_ELL
 
 
 def _wall(x0: float, half_y: float = 20.0) -> Boxes:
@@ -137,14 +124,11 @@ def test_foliage_returns_from_inside_the_crown() -> None:
         np.array([1.0]),
         np.array([KIND_CROWN], np.int8),
     )
-    empty = Boxes(
-        np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int8)
-    )
     cfg = LidarConfig(beams=32, columns=720, **CLEAN)
     o = np.array([0.0, 0.0, 30.0])  # the ground far below
     for depth, (lo, hi) in ((0.0, (2.999, 3.001)), (0.8, (0.0, 3.0001))):
         c = cfg.model_copy(update={"foliage_depth": depth})
-        pts = cast_scan(Scene(empty, NO_CYL, crown), FLAT, o, 0.0, c, np.random.default_rng(0))
+        pts = cast_scan(Scene(NO_BOX, NO_CYL, crown), FLAT, o, 0.0, c, np.random.default_rng(0))
         r = np.linalg.norm(pts + o - crown.center[0], axis=1)
         inside = r < 3.5
         assert inside.sum() > 100 and (r[inside] >= lo).all() and (r[inside] <= hi).all()

@@ -20,17 +20,11 @@ from pnvlad_service.synth.world import (
     KIND_GRASS,
     Boxes,
     CityDetail,
-    Cylinders,
-    Ellipsoids,
-    Ground,
     Scene,
     WorldConfig,
 )
+from tests.synth.scenes import CLEAN, FLAT, NO_BOX, NO_CYL, NO_ELL
 
-FLAT = Ground(np.zeros(2), np.zeros(0), np.zeros((0, 2)), np.zeros(0))
-NO_CYL = Cylinders(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.int8))
-NO_ELL = Ellipsoids(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int8))
-CLEAN = {"range_noise": 0.0, "dropout": 0.0, "min_range": 0.5}
 RICH = CityDetail(grass_verges=1.0, lawns=1.0, hills=4.0, bridges_per_km=3.0, facade_bays=1.0,
                   balconies=1.0)  # fmt: skip
 SMALL = {"district": "residential", "size": (400.0, 300.0)}
@@ -61,10 +55,7 @@ def test_the_lowest_beams_see_the_ground_past_the_roof_corners_only() -> None:
     table = sensor("hdl64e").elevations_deg
     cfg = LidarConfig(beams=64, elevations_deg=table, columns=720, ego_roof_drop=0.4, **CLEAN)
     o = np.array([0.0, 0.0, cfg.mount_height])
-    empty = Boxes(
-        np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int8)
-    )
-    scene = Scene(empty, NO_CYL, NO_ELL)
+    scene = Scene(NO_BOX, NO_CYL, NO_ELL)
     _, beams = cast_scan(scene, FLAT, o, 0.0, cfg, np.random.default_rng(0), rings=True)
     seen = np.bincount(beams, minlength=64) / 720
     # expected: the share of a fine ring of azimuths where the beam meets the roof's plane
