@@ -48,7 +48,7 @@ def _stable_id(text: str) -> int:
     return int.from_bytes(text.encode("utf-8")[:8].ljust(8, b"\0"), "little") % (2**31)
 
 
-def _make_ground(cfg: WorldConfig, rng: np.random.Generator, seed: int, sid: int) -> Ground:
+def _make_ground(cfg: WorldConfig, rng: np.random.Generator) -> Ground:
     ang = rng.uniform(0, 2 * np.pi)
     gradient = cfg.ground_slope * rng.uniform(0.3, 1.0) * np.array([np.cos(ang), np.sin(ang)])
     k = 3
@@ -56,10 +56,7 @@ def _make_ground(cfg: WorldConfig, rng: np.random.Generator, seed: int, sid: int
     dirs = rng.uniform(0, 2 * np.pi, k)
     wavevector = (2 * np.pi / wavelengths)[:, None] * np.stack([np.cos(dirs), np.sin(dirs)], 1)
     amplitude = cfg.ground_relief * rng.uniform(0.3, 1.0, k) / k
-    ground = Ground(gradient, amplitude, wavevector, rng.uniform(0, 2 * np.pi, k))
-    if cfg.detail.hills > 0:  # from a stream of their own: the gentle ground stays as it was
-        ground = _add_hills(ground, cfg.detail.hills, _rng(seed, sid, 5))
-    return ground
+    return Ground(gradient, amplitude, wavevector, rng.uniform(0, 2 * np.pi, k))
 
 
 def _add_hills(ground: Ground, amplitude: float, rng: np.random.Generator) -> Ground:
@@ -496,7 +493,9 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
         )
     style = DISTRICTS[cfg.district]
     sid = _stable_id(cfg.district)
-    ground = _make_ground(cfg, _rng(seed, sid, 1), seed, sid)
+    ground = _make_ground(cfg, _rng(seed, sid, 1))
+    if cfg.detail.hills > 0:  # from a stream of their own: the gentle ground stays as it was
+        ground = _add_hills(ground, cfg.detail.hills, _rng(seed, sid, 5))
     nodes, roads = _make_roads(cfg, style, _rng(seed, sid, 2))
     placer = _Placer(cfg, style, ground, nodes, roads, _rng(seed, sid, 3))
     for r in roads:
