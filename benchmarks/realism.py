@@ -290,13 +290,14 @@ def ablation_steps(spec: Any) -> list[tuple[str, Any]]:
     from pnvlad_service.synth.generate import get_preset
     from pnvlad_service.synth.sensors import REAL_FAILURES, LidarConfig
 
-    def sensors(drop: Any, roof: bool) -> list[Any]:
+    def roofless(drop: Any) -> list[Any]:
+        """The preset's sensors without their roofs, the fields ``drop`` at their defaults."""
         out = []
         for sensor in spec.lidars:
             fields = sensor.model_dump()
-            fields.update({k: LidarConfig.model_fields[k].default for k in drop})
-            if not roof:
-                fields["ego_roof_drop"] = 0.0
+            fields.update(
+                {k: LidarConfig.model_fields[k].default for k in (*drop, "ego_roof_drop")}
+            )
             out.append(LidarConfig.model_validate(fields))
         return out
 
@@ -305,14 +306,12 @@ def ablation_steps(spec: Any) -> list[tuple[str, Any]]:
     covers = ("grass_verges", "lawns", "bridges_per_km", "facade_bays", "balconies")
     detail = spec.city.model_copy(update=dict.fromkeys((*covers, "hills"), 0.0))
     covered = spec.city.model_copy(update={"hills": 0.0})
-    street = spec.model_copy(
-        update={"lidars": sensors((), roof=False), "conditions": flat, "city": detail}
-    )
+    street = spec.model_copy(update={"lidars": roofless(()), "conditions": flat, "city": detail})
     roofed = street.model_copy(update={"lidars": spec.lidars})
     return [
         ("v1", old),
-        ("beam tables", old.model_copy(update={"lidars": sensors(REAL_FAILURES, roof=False)})),
-        ("sensor failures", old.model_copy(update={"lidars": sensors((), roof=False)})),
+        ("beam tables", old.model_copy(update={"lidars": roofless(REAL_FAILURES)})),
+        ("sensor failures", old.model_copy(update={"lidars": roofless(())})),
         ("street detail", street),
         ("own roof", roofed),
         ("grass and structures", roofed.model_copy(update={"city": covered})),
