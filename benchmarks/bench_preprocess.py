@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 from entry import run
 
-from pnvlad_service.data import preprocess as g
-from pnvlad_service.data import voxel
-from pnvlad_service.data.ground import fit_ground_plane, ground_surface, rotation_to_z
 from pnvlad_service.io.readers import read_points
+from pnvlad_service.preprocess import filter_g as g
+from pnvlad_service.preprocess import voxel
+from pnvlad_service.preprocess.ground import fit_ground_plane, ground_surface, rotation_to_z
 
 REPO = Path(__file__).resolve().parents[1]
 SCANS = [
@@ -50,7 +50,7 @@ def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
 def _near_road_share(scan: np.ndarray, points: np.ndarray) -> float:
     """Share of ``points`` within 0.2 m of the road surface estimated from ``scan``."""
     sys.path.insert(0, str(REPO))
-    from tests.data.helpers import road_surface  # the G tests' estimate
+    from tests.preprocess.helpers import road_surface  # the G tests' estimate
 
     surface = road_surface(scan)
     return float(np.mean(np.abs(points[:, 2] - surface(points)) < 0.2))

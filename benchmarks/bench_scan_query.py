@@ -59,7 +59,7 @@ def dense_scans(run_dir: Path, count: int, beams: int, columns: int) -> list[tup
 def window_cost(run_dir: Path, count: int) -> None:
     """What an accumulated 20 m query costs a scan beyond a single scan's G, in this process."""
     from pnvlad_service.data.accumulate import WindowAccumulator
-    from pnvlad_service.data.preprocess import GConfig, apply_g, scan_config
+    from pnvlad_service.preprocess.filter_g import GConfig, apply_g, scan_config
     from pnvlad_service.synth.generate import simulated_drive
     from pnvlad_service.synth.windows import drives_of
 

@@ -70,9 +70,9 @@ def main() -> None:
     if args.busy:
         verify_forever(args.index)
         return
-    from pnvlad_service.index.build import load_encoder
     from pnvlad_service.index.bundle import IndexBundle
     from pnvlad_service.localization.localizer import checked_model
+    from pnvlad_service.models.runtimes import load_encoder
 
     model = args.model or checked_model(args.index).checkpoint
     bundle = IndexBundle.load(args.index)

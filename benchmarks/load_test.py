@@ -167,7 +167,7 @@ def encoder_baseline(
     checkpoint: Path, clouds: list[np.ndarray], repeats: int, runtime: str = "auto"
 ) -> dict:
     """Batch-1 median latency (ms) and batch-32 throughput (clouds/s) of the encoder alone."""
-    from pnvlad_service.index.build import load_encoder
+    from pnvlad_service.models.runtimes import load_encoder
 
     enc = load_encoder(checkpoint, runtime=runtime)
     x1 = clouds[0][None]

@@ -51,7 +51,7 @@ class MemoEncoder:
     (each its runs but one) embed every keyframe once, not once a map."""
 
     def __init__(self, model: Path) -> None:
-        from pnvlad_service.index.build import load_encoder
+        from pnvlad_service.models.runtimes import load_encoder
 
         self.encoder = load_encoder(model)
         self.dim = self.encoder.dim

@@ -45,7 +45,7 @@ def import_command(
     """
     with user_errors():
         from pnvlad_service.data.import_submaps import import_submaps
-        from pnvlad_service.data.preprocess import GConfig
+        from pnvlad_service.preprocess.filter_g import GConfig
 
         config = None if g_config is None else GConfig.from_file(g_config)
         res = import_submaps(

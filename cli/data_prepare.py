@@ -397,8 +397,8 @@ def prepare(
     """
     with user_errors():
         from pnvlad_service.data.prepare import prepare_drive
-        from pnvlad_service.data.preprocess import GConfig, scan_config
         from pnvlad_service.errors import InputError
+        from pnvlad_service.preprocess.filter_g import GConfig, scan_config
 
         if list_topics:
             if rosbag is None:

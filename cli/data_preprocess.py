@@ -10,7 +10,7 @@ import typer
 from pnvlad_cli.common import user_errors
 
 if TYPE_CHECKING:
-    from pnvlad_service.data.preprocess import GConfig
+    from pnvlad_service.preprocess.filter_g import GConfig
 
 _READER_NAMES = "benchmark, kitti, nuscenes, nclt, npy, pcd, ply, las"
 _OPTION_OF = {
@@ -45,8 +45,8 @@ def _g_config(fields: dict[str, Any], **flags: bool) -> GConfig:
     """``GConfig`` of the options given; a refused value is reported under its option name."""
     from pydantic import ValidationError
 
-    from pnvlad_service.data.preprocess import GConfig
     from pnvlad_service.errors import InputError
+    from pnvlad_service.preprocess.filter_g import GConfig
 
     try:
         return GConfig(**fields, **flags)
@@ -122,10 +122,10 @@ def preprocess(
         pnvlad data preprocess kitti/velodyne/000000.bin --reader kitti --out 000000.bin
     """
     with user_errors():
-        from pnvlad_service.data.preprocess import apply_g
         from pnvlad_service.errors import InputError
         from pnvlad_service.io.readers import read_points
         from pnvlad_service.io.submap import write_submap
+        from pnvlad_service.preprocess.filter_g import apply_g
 
         if out.suffix.lower() not in (".bin", ".npy"):
             raise InputError("the submap is written as .bin or .npy", source=out)

@@ -11,12 +11,13 @@ SRC = Path(__file__).resolve().parents[1] / "pnvlad_service"
 #: The stages each stage may import (besides SHARED and the package's __version__).
 ALLOWED: dict[str, set[str]] = {
     "io": set(),
-    "data": {"io"},
-    "synth": {"io", "data"},
+    "preprocess": {"io"},
+    "data": {"io", "preprocess"},
+    "synth": {"io", "preprocess", "data"},
     "models": set(),
-    "index": {"io", "data", "models"},
-    "localization": {"io", "data", "models", "index"},
-    "evaluation": {"io", "data", "models", "localization"},
+    "index": {"io", "preprocess", "data", "models"},
+    "localization": {"io", "preprocess", "data", "models", "index"},
+    "evaluation": {"io", "preprocess", "data", "models", "localization"},
     "training": {"io", "data", "models", "evaluation"},
     "server": {"io", "localization"},
 }

@@ -30,12 +30,12 @@ import numpy as np
 
 from pnvlad_service.data.drive import snap_m
 from pnvlad_service.data.frames import SubmapFrame, frames_path, write_frames_csv
-from pnvlad_service.data.preprocess import GConfig, apply_g
 from pnvlad_service.data.run_folder import claim_folders
 from pnvlad_service.data.tree import LAYOUTS, Kind, read_locations_csv, write_locations_csv
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.readers import read_points
 from pnvlad_service.io.submap import write_submap
+from pnvlad_service.preprocess.filter_g import GConfig, apply_g
 
 log = logging.getLogger(__name__)
 

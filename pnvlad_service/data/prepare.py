@@ -4,7 +4,7 @@ A *drive* is a sequence of LiDAR scans with their poses (the
 :class:`~pnvlad_service.data.drive.Drive` protocol; the sources are in
 :mod:`pnvlad_service.data.sources`). This module accumulates the scans of a stretch of
 trajectory in the world frame, cuts a submap every ``stride`` metres of travelled distance, runs
-the filter G (:mod:`pnvlad_service.data.preprocess`) on each and writes the benchmark's files
+the filter G (:mod:`pnvlad_service.preprocess.filter_g`) on each and writes the benchmark's files
 (see docs/PREPARE.md and BENCHMARK_FORMAT.md)::
 
     <out_run_dir>/pointcloud_20m_10overlap/<timestamp>.bin   training layout, every 10 m
@@ -46,13 +46,13 @@ from pnvlad_service.data.accumulate import ScanCache, accumulate, travelled_dist
 from pnvlad_service.data.cuts import Cut, Kind, Layout, resolve_geometry, submap_cuts
 from pnvlad_service.data.drive import Drive, check_drive, snap_m
 from pnvlad_service.data.frames import SubmapFrame, frames_path, journal_line, write_frames_csv
-from pnvlad_service.data.preprocess import GConfig, GResult, apply_g, scan_config
 from pnvlad_service.data.run_folder import claim_folders, journal_path, recorded_frames
 from pnvlad_service.data.scans import RAW_CSV, RAW_FOLDER, write_raw_scans_csv, write_scan
 from pnvlad_service.data.tree import write_locations_csv
 from pnvlad_service.data.truth import drive_true_poses, true_columns
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import write_submap
+from pnvlad_service.preprocess.filter_g import GConfig, GResult, apply_g, scan_config
 
 log = logging.getLogger(__name__)
 

@@ -30,12 +30,12 @@ import numpy as np
 
 from pnvlad_service.data.dataset import EvalRun
 from pnvlad_service.data.frames import SubmapFrame
-from pnvlad_service.data.preprocess import GConfig, scan_config
 from pnvlad_service.data.run_folder import recorded_g_config
 from pnvlad_service.data.scans import RawScan, has_raw_scans, read_raw_scans
 from pnvlad_service.data.splits.geometry import within_radius
 from pnvlad_service.data.splits.regions import TestRegions
 from pnvlad_service.errors import InputError
+from pnvlad_service.preprocess.filter_g import GConfig, scan_config
 
 log = logging.getLogger(__name__)
 
@@ -162,9 +162,9 @@ def scan_query_set(
 
 def _g_one(args: tuple[str, str, dict[str, Any]]) -> tuple[list[float], float]:
     """G of one raw scan (KITTI .bin) written as a benchmark submap: G's centre and scale."""
-    from pnvlad_service.data.preprocess import apply_g
     from pnvlad_service.io.readers import read_points
     from pnvlad_service.io.submap import write_submap
+    from pnvlad_service.preprocess.filter_g import apply_g
 
     src, dst, cfg = args
     g = apply_g(read_points(src, "kitti"), GConfig.model_validate(cfg), seed=0)

@@ -41,7 +41,8 @@ from pnvlad_service.index.manifest import Manifest, MapRecord, ModelRecord
 from pnvlad_service.io.readers import read_points
 from pnvlad_service.models.config import map_turns
 from pnvlad_service.models.embedding import Embedder, embed_in_chunks, turned_embedder
-from pnvlad_service.models.store import ModelIdentity, model_identity, resolve_model_dir
+from pnvlad_service.models.runtimes import load_encoder
+from pnvlad_service.models.store import model_identity
 
 if TYPE_CHECKING:
     from pnvlad_service.data.frames import SubmapFrame
@@ -126,34 +127,10 @@ def embed_submaps(
     return desc.reshape(len(records) * turns, -1)
 
 
-def load_encoder(
-    model: str | Path,
-    device: str | None = None,
-    identity: ModelIdentity | None = None,
-    *,
-    runtime: str = "auto",
-    threads: int | None = None,
-) -> Any:
-    """The encoder of a model directory or of the training run that made it, on ``runtime``
-    (``auto``: torch when installed, else ONNX Runtime with ``model.onnx``;
-    :mod:`pnvlad_service.models.runtimes`); ``identity``, when the caller has it, spares
-    hashing the weights again; ``threads``: ONNX Runtime's."""
-    from pnvlad_service.models.runtimes import open_encoder
-
-    sha = identity.weights_sha256 if identity is not None else None
-    return open_encoder(
-        resolve_model_dir(model),
-        runtime=runtime,
-        device=device,
-        weights_sha256=sha,
-        threads=threads,
-    )
-
-
 def default_preprocess_config(layout: str = "test") -> dict[str, Any]:
     """The default filter G configuration as JSON (what raw scans go through): G with the
     single-scan range crop for keyframe maps, plain G for submaps."""
-    from pnvlad_service.data.preprocess import GConfig, scan_config
+    from pnvlad_service.preprocess.filter_g import GConfig, scan_config
 
     return (scan_config() if layout == "keyframe" else GConfig()).model_dump(mode="json")
 

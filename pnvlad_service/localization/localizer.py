@@ -36,7 +36,6 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError, NotReadyError
-from pnvlad_service.index.build import load_encoder
 from pnvlad_service.index.bundle import IndexBundle, Match
 from pnvlad_service.io.submap import SUBMAP_POINTS
 from pnvlad_service.localization.answers import Answer, IndexInfo, LocalizerInfo, ModelInfo, Timings
@@ -65,6 +64,7 @@ from pnvlad_service.localization.verify import (
 )
 from pnvlad_service.localization.verify_process import VerifyProcess
 from pnvlad_service.models.runtimes import describe as describe_runtime
+from pnvlad_service.models.runtimes import load_encoder
 from pnvlad_service.models.store import ModelIdentity
 
 log = logging.getLogger(__name__)
@@ -105,7 +105,7 @@ class Localizer:
                 f"encoder output dimension {encoder.dim} != index dimension {bundle.dim}",
                 bundle.path,
             )
-        from pnvlad_service.data.preprocess import GConfig
+        from pnvlad_service.preprocess.filter_g import GConfig
 
         self.bundle = bundle
         self.encoder = encoder
@@ -331,7 +331,7 @@ class Localizer:
         float32 [4096, 3], with G's centre and scale (sensor frame)."""
         if not preprocess:
             return PreparedCloud(points, None, scale, False)
-        from pnvlad_service.data.preprocess import apply_g
+        from pnvlad_service.preprocess.filter_g import apply_g
 
         g = apply_g(points, self._gconfig, seed=0)
         cloud = np.ascontiguousarray(g.points, dtype=np.float32)

@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import importlib.util
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pnvlad_service.errors import InputError, MissingDependencyError
 from pnvlad_service.models.onnx_encoder import ONNX_FILE
+
+if TYPE_CHECKING:
+    from pnvlad_service.models.store import ModelIdentity
 
 #: The values ``runtime`` takes (``--runtime``, ``PNVLAD_RUNTIME``).
 RUNTIMES = ("auto", "torch", "onnx")
@@ -76,6 +79,24 @@ def open_encoder(
     from pnvlad_service.models.inference import Encoder
 
     return Encoder.from_checkpoint(directory, device=device, weights_sha256=weights_sha256)
+
+
+def load_encoder(
+    model: str | Path,
+    device: str | None = None,
+    identity: ModelIdentity | None = None,
+    *,
+    runtime: str = "auto",
+    threads: int | None = None,
+) -> Any:
+    """The encoder of a model directory or of the training run that made it: the one door every
+    stage that embeds goes through (the index builder, the localizer, the benchmarks).
+
+    :func:`open_encoder` on ``runtime`` (``auto``: torch when installed, else ONNX Runtime with
+    ``model.onnx``); ``identity``, when the caller has it, spares hashing the weights again;
+    ``threads``: ONNX Runtime's."""
+    sha = identity.weights_sha256 if identity is not None else None
+    return open_encoder(model, runtime=runtime, device=device, weights_sha256=sha, threads=threads)
 
 
 def describe(encoder: Any) -> str:

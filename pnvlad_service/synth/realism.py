@@ -4,11 +4,11 @@ distance per statistic (``benchmarks/realism.py`` prints them; docs/SYNTH.md, "R
 Every function takes one scan in its *sensor* frame (metres, z up, the sensor at the origin):
 
 - :func:`scan_stats` gathers a scan's statistics into a :class:`ScanStats`: points in the crop
-  window, the sensor's height above the ground plane (:func:`~pnvlad_service.data.ground.
+  window, the sensor's height above the ground plane (:func:`~pnvlad_service.preprocess.ground.
   fit_ground_plane`), the ranges and heights of the returns, the returns per ring, the share
-  of ground (G's own ground, :func:`~pnvlad_service.data.preprocess.ground_mask`), the local
+  of ground (G's own ground, :func:`~pnvlad_service.preprocess.filter_g.ground_mask`), the local
   shape of the returns (:func:`local_shape`), then the same after the filter G of a single scan
-  (:func:`~pnvlad_service.data.preprocess.scan_config`): the points G keeps before its voxel
+  (:func:`~pnvlad_service.preprocess.filter_g.scan_config`): the points G keeps before its voxel
   grid, its leaf size, the ground G lets through, the heights and the shape of its output;
 - rings come from a scan's ring field (:func:`rings_from_field`) or, with none, from each
   return's elevation and the sensor's nominal beams (:func:`rings_by_elevation`);
@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from pnvlad_service.data.ground import fit_ground_plane
-from pnvlad_service.data.preprocess import GConfig, apply_g, ground_mask, scan_config
+from pnvlad_service.preprocess.filter_g import GConfig, apply_g, ground_mask, scan_config
+from pnvlad_service.preprocess.ground import fit_ground_plane
 
 #: The local shapes, in the order of :func:`local_shape`'s columns.
 SHAPES = ("linear", "planar", "scattered")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from pnvlad_service.index.build import load_encoder
+from pnvlad_service.models.runtimes import load_encoder
 from tests.index.helpers import make_world
 
 

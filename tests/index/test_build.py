@@ -19,6 +19,7 @@ from pnvlad_service.index import build as ib
 from pnvlad_service.index.bundle import METADATA_FIELDS, IndexBundle
 from pnvlad_service.index.manifest import Manifest
 from pnvlad_service.io.submap import read_submap
+from pnvlad_service.models.runtimes import load_encoder
 from tests.index.helpers import PER_RUN, RUNS, free_port, make_checkpoint
 
 
@@ -260,8 +261,8 @@ def test_load_encoder_takes_the_known_weights_hash_or_hashes_itself(world) -> No
 
     ident = model_identity(world["ckpt"])
     want = weights_sha256(world["ckpt"])
-    assert ib.load_encoder(world["ckpt"]).weights_sha256 == want
-    assert ib.load_encoder(world["ckpt"], identity=ident).weights_sha256 == want
+    assert load_encoder(world["ckpt"]).weights_sha256 == want
+    assert load_encoder(world["ckpt"], identity=ident).weights_sha256 == want
 
 
 def test_a_bev_netvlad_model_builds_a_bundle_that_finds_each_submap(
@@ -282,7 +283,7 @@ def test_a_bev_netvlad_model_builds_a_bundle_that_finds_each_submap(
     ib.build_bundle(bundle, ckpt, world["tree"], progress=False)
     b = IndexBundle.load(bundle)
     records = ib.list_database_submaps(world["tree"])
-    desc = ib.embed_submaps(ib.load_encoder(ckpt), world["tree"], records, progress=False)
+    desc = ib.embed_submaps(load_encoder(ckpt), world["tree"], records, progress=False)
     dist, ids = b.search(desc, 1)
     assert b.dim == 16 and b.count == len(records)
     assert ids[:, 0].tolist() == list(range(len(records)))

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pnvlad_service.data.accumulate import accumulate
-from pnvlad_service.data.preprocess import GConfig, apply_g
+from pnvlad_service.preprocess.filter_g import GConfig, apply_g
 from pnvlad_service.synth.generate import get_preset, simulated_drive
 from pnvlad_service.synth.runs import SimulatedDrive
 

@@ -19,6 +19,7 @@ from pnvlad_service.index import build as ix
 from pnvlad_service.index.bundle import IndexBundle
 from pnvlad_service.localization.answers import Answer
 from pnvlad_service.localization.localizer import Batching, Localizer, Match
+from pnvlad_service.models.runtimes import load_encoder
 from tests.index.helpers import PER_RUN, read_cloud
 
 
@@ -31,7 +32,7 @@ def loc(world: dict[str, Path]):
 @pytest.fixture(scope="module")
 def plain(world: dict[str, Path]):
     """(encoder, bundle) loaded directly, for expected answers."""
-    return ix.load_encoder(world["ckpt"]), IndexBundle.load(world["bundle"])
+    return load_encoder(world["ckpt"]), IndexBundle.load(world["bundle"])
 
 
 def cloud(world: dict[str, Path], i: int) -> np.ndarray:
@@ -107,7 +108,7 @@ def test_the_library_answers_as_the_server_does(world, loc) -> None:
 
 
 def test_a_raw_scan_goes_through_the_bundles_filter_g(loc, plain) -> None:
-    from pnvlad_service.data.preprocess import GConfig, filter_g
+    from pnvlad_service.preprocess.filter_g import GConfig, filter_g
 
     raw = raw_scan()
     answer = loc.localize(raw, preprocess=True, top_n=3)

@@ -108,8 +108,8 @@ def test_graph_refuses_local_shape_features() -> None:
 @pytest.fixture(scope="module")
 def real_clouds(real_scans: Path) -> np.ndarray:
     """Five real scans (KITTI, nuScenes, NCLT) through the filter G: float32 [5, 4096, 3]."""
-    from pnvlad_service.data.preprocess import GConfig, apply_g
     from pnvlad_service.io.readers import read_points
+    from pnvlad_service.preprocess.filter_g import GConfig, apply_g
 
     files = [
         ("kitti00_000000.bin", "kitti"),

@@ -23,6 +23,7 @@ import pytest
 
 from pnvlad_service.index import build as ix
 from pnvlad_service.index.bundle import IndexBundle
+from pnvlad_service.models.runtimes import load_encoder
 from tests.index.helpers import PER_RUN, free_port, make_checkpoint, make_world, read_cloud
 
 MAX_BODY = 4 * 1024 * 1024
@@ -92,7 +93,7 @@ def client(server: str) -> Iterator[httpx.Client]:
 @pytest.fixture(scope="module")
 def local(world: dict[str, Path]):
     """(encoder, bundle) in this process, for expected answers."""
-    return ix.load_encoder(world["ckpt"]), IndexBundle.load(world["bundle"])
+    return load_encoder(world["ckpt"]), IndexBundle.load(world["bundle"])
 
 
 def cloud(world: dict[str, Path], i: int) -> np.ndarray:
@@ -484,7 +485,7 @@ def test_ops_endpoints(client, local) -> None:
 
 
 def test_raw_scan_with_preprocess_equals_local_filter_g(client, local, real_scans) -> None:
-    preprocess = pytest.importorskip("pnvlad_service.data.preprocess")
+    preprocess = pytest.importorskip("pnvlad_service.preprocess.filter_g")
     from pnvlad_service.io.readers import read_points
 
     # A real KITTI scan of unknown frame (any real scan does: the check is the server's G).

@@ -169,9 +169,9 @@ def serve_without_torch(bundle: Path, port: int) -> subprocess.Popen:
 
 def test_a_server_without_torch_embeds_on_onnx_runtime(maps) -> None:
     pytest.importorskip("onnx")
-    from pnvlad_service.index.build import load_encoder
     from pnvlad_service.index.bundle import IndexBundle
     from pnvlad_service.models.onnx_export import export_onnx
+    from pnvlad_service.models.runtimes import load_encoder
 
     export_onnx(maps["ckpt"])
     port = free_port()

@@ -13,7 +13,7 @@ The steps, in order, each a public function of this module, of :mod:`~.ground` o
    ``ground_window`` metres) follows slopes and kerbs, and every point less than
    ``ground_threshold`` above that surface (or below it) is ground. ``"plane"`` mode is the
    paper's: points within ``ground_threshold`` of the single plane.
-3. :mod:`pnvlad_service.data.voxel`: ``voxel_average`` with the leaf size found by
+3. :mod:`pnvlad_service.preprocess.voxel`: ``voxel_average`` with the leaf size found by
    ``find_leaf_size`` (a bracketed secant/bisection search until the voxel count is closest to
    the target), then ``resample_to`` duplicates or drops seeded random points to hit the
    target exactly (``adaptive_voxel_downsample`` does both).
@@ -33,14 +33,14 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from pnvlad_service.data.ground import fit_ground_plane, ground_surface, rotation_to_z
-from pnvlad_service.data.voxel import (
+from pnvlad_service.errors import InputError
+from pnvlad_service.preprocess.ground import fit_ground_plane, ground_surface, rotation_to_z
+from pnvlad_service.preprocess.voxel import (
     adaptive_voxel_downsample,
     column_mean,
     resample_to,
     voxel_average,
 )
-from pnvlad_service.errors import InputError
 
 log = logging.getLogger(__name__)
 

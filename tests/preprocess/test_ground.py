@@ -1,5 +1,5 @@
-"""data.ground: the ground plane and the sort behind it, against plain loops and hand-made
-scenes (the whole ground step through G's settings: test_preprocess.py)."""
+"""preprocess.ground: the ground plane and the sort behind it, against plain loops and hand-made
+scenes (the whole ground step through G's settings: test_filter_g.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service.data.ground import by_cell_then_height, fit_ground_plane, lowest_per_cell
+from pnvlad_service.preprocess.ground import by_cell_then_height, fit_ground_plane, lowest_per_cell
 
 
 def test_fit_ground_plane_ignores_walls() -> None:

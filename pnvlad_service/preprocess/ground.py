@@ -1,6 +1,6 @@
 """The ground of a cloud, step 2 of the filter G: the ground plane and the height map under the
-points, as plain functions of points and lengths (:func:`~.preprocess.ground_mask` runs them
-with :class:`~.preprocess.GConfig`'s settings; docs/PREPROCESS.md has the figures).
+points, as plain functions of points and lengths (:func:`~.filter_g.ground_mask` runs them
+with :class:`~.filter_g.GConfig`'s settings; docs/PREPROCESS.md has the figures).
 
 - :func:`fit_ground_plane`: a RANSAC plane through the lowest point of each column
   (:func:`lowest_per_cell`), its normal within a tilt of the z axis, either side up;
@@ -18,7 +18,7 @@ from typing import Literal
 
 import numpy as np
 
-from pnvlad_service.data.voxel import column_max, column_mean, column_min
+from pnvlad_service.preprocess.voxel import column_max, column_mean, column_min
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,5 @@
-"""data.voxel: the voxel step of G against plain loops, the exact count by drops and repeats."""
+"""preprocess.voxel: the voxel step of G against plain loops, the exact count by drops and
+repeats."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service.data.voxel import (
+from pnvlad_service.preprocess.voxel import (
     column_max,
     column_min,
     find_leaf_size,

@@ -1,4 +1,5 @@
-"""data.preprocess: the filter G, step by step, against expectations computed independently."""
+"""preprocess.filter_g: the filter G, step by step, against expectations computed
+independently."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from pnvlad_service.data.ground import fit_ground_plane
-from pnvlad_service.data.preprocess import (
+from pnvlad_service.errors import InputError
+from pnvlad_service.io.readers import read_points
+from pnvlad_service.preprocess.filter_g import (
     GConfig,
     apply_g,
     crop_mask,
@@ -20,9 +22,8 @@ from pnvlad_service.data.preprocess import (
     ground_mask,
     normalize,
 )
-from pnvlad_service.errors import InputError
-from pnvlad_service.io.readers import read_points
-from tests.data.helpers import road_surface
+from pnvlad_service.preprocess.ground import fit_ground_plane
+from tests.preprocess.helpers import road_surface
 
 # --- crop ------------------------------------------------------------------------------------
 
