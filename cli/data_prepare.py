@@ -1,24 +1,19 @@
 """`pnvlad data prepare`: a recorded drive -> one benchmark run of submaps (see cli/data.py).
 
-A thin layer over :func:`pnvlad_service.data.prepare.prepare_drive`: the options are declared
-below (so the command's signature stays one screen), checked and turned into a drive from
-:mod:`pnvlad_service.data.sources`; library imports happen inside the command so that
-`pnvlad --help` stays fast.
+Parsing only: the options are declared below (so the command's signature stays one screen),
+the drive is opened by :mod:`pnvlad_service.data.sources.registry` and the run is a
+:class:`pnvlad_service.data.prepare_request.PrepareRequest`; library imports happen inside the
+command so that `pnvlad --help` stays fast.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
 
 import typer
 
 from pnvlad_cli import rosbag as bag_options
 from pnvlad_cli.common import progress_option, user_errors
-
-if TYPE_CHECKING:
-    from pnvlad_service.data.drive import Drive
-    from pnvlad_service.data.prepare import PrepareResult
 
 _INPUT = "Input drive"
 _GEOMETRY = "Submaps"
@@ -222,121 +217,6 @@ def _parse_box(text: str) -> float:
     return sides[0]
 
 
-def _kinds(
-    kitti: Path | None, scans: Path | None, rosbag: Path | None, kind: str
-) -> tuple[str, ...]:
-    """The kinds asked for by ``--kind``, once exactly one drive source is given."""
-    from pnvlad_service.errors import InputError
-
-    if sum(x is not None for x in (kitti, scans, rosbag)) != 1:
-        raise InputError(
-            "give one of --kitti SEQ_DIR, --scans DIR --poses CSV or --rosbag BAG", "--kitti"
-        )
-    aliases = {"both": "train,test", "all": "train,test,keyframe"}
-    kinds = tuple(dict.fromkeys(k.strip() for k in aliases.get(kind, kind).split(",")))
-    bad = [k for k in kinds if k not in ("train", "test", "keyframe")]
-    if bad or not kinds:
-        raise InputError(
-            f"expected train, test, keyframe, a comma list of them, both or all, got {kind!r}",
-            "--kind",
-        )
-    return kinds
-
-
-def _open_drive(
-    kitti: Path | None,
-    scans: Path | None,
-    poses: Path | None,
-    reader: str | None,
-    skip_missing: bool,
-    origin: str | None,
-    yaw: float,
-    rosbag: dict[str, Any],
-) -> Drive:
-    """The drive of ``--kitti``, of ``--scans`` with ``--poses`` or of ``--rosbag`` (its
-    options in ``rosbag``), its options checked."""
-    from pnvlad_service.data.sources.csv_drive import CsvDrive
-    from pnvlad_service.data.sources.kitti import KittiSequence
-    from pnvlad_service.errors import InputError
-
-    bag = rosbag.pop("rosbag")
-    bag_options.check_unused(bag, **rosbag)
-    if bag is not None:
-        if reader is not None or skip_missing or poses is not None:
-            raise InputError(
-                "--poses, --reader and --skip-missing do not apply to --rosbag", "--rosbag"
-            )
-        return bag_options.open_drive(
-            bag,
-            origin_ne=(0.0, 0.0) if origin is None else _parse_origin(origin),
-            yaw_deg=yaw,
-            **rosbag,
-        )
-    if kitti is not None:
-        if reader is not None or skip_missing:
-            raise InputError("--reader and --skip-missing apply to --scans only", "--kitti")
-        drive = KittiSequence(
-            kitti,
-            poses=poses,
-            origin_ne=(0.0, 0.0) if origin is None else _parse_origin(origin),
-            yaw_deg=yaw,
-        )
-        if origin is None:
-            typer.secho(
-                "note: no --origin given, positions are local metres from the first scan",
-                err=True,
-                fg=typer.colors.YELLOW,
-            )
-        return drive
-    if poses is None:
-        raise InputError("--scans needs --poses CSV", "--poses")
-    if origin is not None or yaw != 0.0:
-        raise InputError("--origin and --yaw apply to --kitti and --rosbag only", "--origin")
-    assert scans is not None
-    return CsvDrive(scans, poses, reader=reader, skip_missing=skip_missing)
-
-
-def _strides(
-    kinds: tuple[str, ...],
-    stride: float | None,
-    test_stride: float | None,
-    keyframe_stride: float | None = None,
-) -> dict[str, float]:
-    """Kind -> stride: ``--stride`` for the first submap kind asked for, ``--test-stride`` for
-    test, ``--keyframe-stride`` for keyframes."""
-    from pnvlad_service.errors import InputError
-
-    submaps = [k for k in kinds if k != "keyframe"]
-    if test_stride is not None and submaps != ["train", "test"]:
-        raise InputError("--test-stride goes with --kind both (else use --stride)", "--kind")
-    strides: dict[str, float] = {}
-    if stride is not None and submaps:
-        strides[submaps[0]] = stride
-    if test_stride is not None:
-        strides["test"] = test_stride
-    if keyframe_stride is not None:
-        if "keyframe" not in kinds:
-            raise InputError("goes with --kind keyframe (or all)", "--keyframe-stride")
-        strides["keyframe"] = keyframe_stride
-    return strides
-
-
-def _report(result: PrepareResult, scans: int) -> None:
-    """One line per kind (submaps, written, kept, failed) and one on speed."""
-    for res in result.layouts:
-        line = f"{res.kind:8s} {res.folder}: {res.submaps - res.failed} submaps"
-        extra = [f"{res.written} written"]
-        if res.resumed:
-            extra.append(f"{res.resumed} kept")
-        if res.failed:
-            extra.append(f"{res.failed} failed (see log)")
-        typer.echo(f"{line} ({', '.join(extra)}), locations in {res.csv.name}")
-    typer.echo(
-        f"{scans} scans ({result.scans_read} read) in {result.seconds:.1f} s, "
-        f"{result.submaps_per_second():.2f} submaps/s"
-    )
-
-
 def prepare(
     kitti: Path = _KITTI,
     scans: Path = _SCANS,
@@ -396,58 +276,59 @@ def prepare(
       --out bench/kitti/00   (a keyframe map and single-scan queries beside the submaps)
     """
     with user_errors():
-        from pnvlad_service.data.prepare import prepare_drive
+        from pnvlad_service.data.prepare_request import PrepareRequest, report_lines
+        from pnvlad_service.data.sources.registry import DriveOptions, chosen, close_drive
         from pnvlad_service.errors import InputError
-        from pnvlad_service.preprocess.filter_g import GConfig, scan_config
 
         if list_topics:
             if rosbag is None:
                 raise InputError("applies to --rosbag only", "--list")
             bag_options.print_topics(rosbag)
             return
-        kinds = _kinds(kitti, scans, rosbag, kind)
-        if out is None:
-            raise InputError("missing: the run folder to write", "--out")
-        config = None if g_config is None else GConfig.from_file(g_config)
-        strides = _strides(kinds, stride, test_stride, keyframe_stride)
-        if scan_range is not None and not scan_range > 0:
-            raise InputError(
-                f"must be a positive number of metres, got {scan_range}", "--scan-range"
-            )
-        if scan_range is not None and "keyframe" not in kinds:
-            raise InputError("goes with --kind keyframe (or all)", "--scan-range")
-        keyframe_config = scan_config(config, scan_range) if scan_range else scan_config(config)
-        if resume and overwrite:
-            raise InputError("--resume and --overwrite exclude each other", "--resume")
-        bag = {"rosbag": rosbag, "cloud_topic": cloud_topic, "pose_topic": pose_topic}
-        bag |= {"tf_frame": tf_frame, "max_pose_gap": max_pose_gap}
-        drive = _open_drive(kitti, scans, poses, reader, skip_missing, origin, yaw, bag)
+        source, path = chosen({"kitti": kitti, "csv": scans, "rosbag": rosbag})
+        request = PrepareRequest.checked(
+            out,
+            kind=kind,
+            stride=stride,
+            test_stride=test_stride,
+            keyframe_stride=keyframe_stride,
+            scan_range=scan_range,
+            g_config=g_config,
+            resume=resume,
+            overwrite=overwrite,
+            layout=layout,
+            window_m=window,
+            box_m=None if box is None else _parse_box(box),
+            seed=seed,
+            max_points_per_scan=points_per_scan or None,
+            max_range_m=max_range,
+            scan_step=scan_step,
+            min_scan_spacing_m=min_spacing,
+            raw_scans=raw_scans,
+        )
+        options = DriveOptions(
+            poses=poses,
+            reader=reader,
+            skip_missing=skip_missing,
+            origin_ne=None if origin is None else _parse_origin(origin),
+            yaw_deg=yaw,
+            cloud_topic=cloud_topic,
+            pose_topic=pose_topic,
+            tf_frame=tf_frame,
+            max_pose_gap=max_pose_gap,
+        )
+        drive = source.open(path, options)
+        for note in source.notes(options):
+            typer.secho(f"note: {note}", err=True, fg=typer.colors.YELLOW)
         try:
-            result = prepare_drive(
-                drive,
-                out,
-                layout=layout,  # type: ignore[arg-type]
-                kinds=kinds,  # type: ignore[arg-type]
-                window_m=window,
-                box_m=None if box is None else _parse_box(box),
-                strides_m=strides,
-                g_config=config,
-                keyframe_config=keyframe_config,
-                seed=seed,
-                max_points_per_scan=points_per_scan or None,
-                max_range_m=max_range,
-                scan_step=scan_step,
-                min_scan_spacing_m=min_spacing,
-                raw_scans=raw_scans,
-                resume=resume,
-                overwrite=overwrite,
-                progress=progress,
-            )
+            result = request.run(drive, progress=progress)
         finally:
-            getattr(drive, "close", lambda: None)()
-    _report(result, len(drive))
-    if rosbag is not None:
-        bag_options.report(drive)  # type: ignore[arg-type]
+            close_drive(drive)
+    for line in report_lines(result, len(drive)):
+        typer.echo(line)
+    line = source.report(drive)
+    if line is not None:
+        typer.echo(line)
 
 
 def register(app: typer.Typer) -> None:

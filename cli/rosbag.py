@@ -1,9 +1,9 @@
 """The ROS bag options shared by `pnvlad data prepare --rosbag` and `pnvlad localize --rosbag`.
 
 Options are declared once here (so ``--cloud-topic`` means the same in both commands) with the
-helpers that turn them into a :class:`pnvlad_service.data.sources.rosbag.RosbagDrive`, print a bag's
-topics (``--list``) and report what the drive dropped. Library imports happen inside the
-functions so that `pnvlad --help` stays fast.
+helpers that turn them into a :class:`pnvlad_service.data.sources.rosbag.RosbagDrive` (through the
+drive sources' registry, :mod:`pnvlad_service.data.sources.registry`) and print a bag's topics
+(``--list``). Library imports happen inside the functions so that `pnvlad --help` stays fast.
 """
 
 from __future__ import annotations
@@ -83,30 +83,19 @@ def open_drive(
     yaw_deg: float = 0.0,
     max_pose_gap: float | None = None,
 ) -> RosbagDrive:
-    """The drive of ``--rosbag`` with its topics; InputError naming the missing option."""
-    from pnvlad_service.data.sources.rosbag import RosbagDrive
-    from pnvlad_service.errors import InputError
+    """The drive of ``--rosbag`` with its topics (the registry's ``rosbag`` source);
+    InputError naming the missing option."""
+    from pnvlad_service.data.sources.registry import DriveOptions, open_drive
 
-    if cloud_topic is None:
-        raise InputError(
-            "--rosbag needs --cloud-topic (see the bag's topics with --list)", "--cloud-topic"
-        )
-    if pose_topic is not None and tf_frame is not None:
-        raise InputError("give --pose-topic or --tf, not both", "--tf")
-    if pose_topic is None and tf_frame is None:
-        raise InputError(
-            "--rosbag needs --pose-topic TOPIC or --tf FRAME (see the bag's topics with --list)",
-            "--pose-topic",
-        )
-    return RosbagDrive(
-        rosbag,
-        cloud_topic,
+    options = DriveOptions(
+        cloud_topic=cloud_topic,
         pose_topic=pose_topic,
         tf_frame=tf_frame,
         origin_ne=origin_ne,
         yaw_deg=yaw_deg,
-        max_pose_gap_s=2.0 if max_pose_gap is None else (max_pose_gap or None),
+        max_pose_gap=max_pose_gap,
     )
+    return open_drive("rosbag", rosbag, options)  # type: ignore[return-value]
 
 
 def print_topics(rosbag: Path) -> None:
@@ -127,15 +116,3 @@ def print_topics(rosbag: Path) -> None:
             use = "--tf FRAME"
         msgtype = t.msgtype or "(several types)"
         typer.echo(f"{t.name:<{width}}  {msgtype:<{types}}  {t.count:>9,}  {use}")
-
-
-def report(drive: RosbagDrive) -> None:
-    """One line: clouds read, scans kept, what was dropped and where the poses came from."""
-    s = drive.stats
-    line = f"{drive.bag.name}: {s.scans} of {s.clouds} clouds on {drive.cloud_topic} used"
-    dropped = s.dropped()
-    if dropped:
-        line += f" (dropped: {dropped})"
-    if s.nonfinite_points:
-        line += f"; {s.nonfinite_points:,} NaN returns dropped from {s.scans_with_nonfinite} scans"
-    typer.echo(f"{line}; poses from {drive.pose_source}")
