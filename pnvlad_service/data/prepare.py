@@ -439,7 +439,8 @@ def prepare_drive(
     - ``layout``: ``oxford`` or ``inhouse`` (folder and CSV names, default geometry);
       ``kinds``: ``train``, ``test`` and/or ``keyframe`` (single scans, one every
       ``KEYFRAME_STRIDE_M`` unless ``strides_m`` says otherwise, each whole through
-      ``keyframe_config``: default :func:`~.preprocess.scan_config`, G with a range crop).
+      ``keyframe_config``: default
+      :func:`~pnvlad_service.preprocess.filter_g.scan_config`, G with a range crop).
     - ``window_m``: travelled distance accumulated per submap (default: the layout's, 20 m
       oxford, 25 m inhouse), centred on the submap position.
     - ``box_m``: side of a square crop (UTM-aligned) around the submap position (default: none
