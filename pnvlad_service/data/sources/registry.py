@@ -240,36 +240,24 @@ def rosbag_report(drive: Any) -> str:
     return f"{line}; poses from {drive.pose_source}"
 
 
-register(
+#: The built-in sources: name, option, usage, summary, the options read, the opener.
+for _source in (
     DriveSource(
-        name="kitti",
-        flag="--kitti",
-        usage="--kitti SEQ_DIR",
-        summary="a KITTI-odometry sequence folder: velodyne/*.bin, poses.txt, times.txt, calib.txt",
-        reads=("poses", "origin_ne", "yaw_deg"),
-        opener=_open_kitti,
-        notes=_kitti_notes,
-    )
-)
-register(
+        "kitti", "--kitti", "--kitti SEQ_DIR",
+        "a KITTI-odometry sequence folder: velodyne/*.bin, poses.txt, times.txt, calib.txt",
+        ("poses", "origin_ne", "yaw_deg"), _open_kitti, notes=_kitti_notes,
+    ),
     DriveSource(
-        name="csv",
-        flag="--scans",
-        usage="--scans DIR --poses CSV",
-        summary="a folder of scans named TIMESTAMP.EXT with a CSV of their poses",
-        reads=("poses", "reader", "skip_missing"),
-        opener=_open_csv,
-    )
-)
-register(
+        "csv", "--scans", "--scans DIR --poses CSV",
+        "a folder of scans named TIMESTAMP.EXT with a CSV of their poses",
+        ("poses", "reader", "skip_missing"), _open_csv,
+    ),
     DriveSource(
-        name="rosbag",
-        flag="--rosbag",
-        usage="--rosbag BAG",
-        summary="a ROS 1 or ROS 2 bag: a PointCloud2 topic posed by a pose topic or /tf",
-        reads=("origin_ne", "yaw_deg", "cloud_topic", "pose_topic", "tf_frame", "max_pose_gap"),
-        own=("cloud_topic", "pose_topic", "tf_frame", "max_pose_gap"),
-        opener=_open_rosbag,
+        "rosbag", "--rosbag", "--rosbag BAG",
+        "a ROS 1 or ROS 2 bag: a PointCloud2 topic posed by a pose topic or /tf",
+        ("origin_ne", "yaw_deg", "cloud_topic", "pose_topic", "tf_frame", "max_pose_gap"),
+        _open_rosbag, own=("cloud_topic", "pose_topic", "tf_frame", "max_pose_gap"),
         report=rosbag_report,
-    )
-)
+    ),
+):  # fmt: skip
+    register(_source)
