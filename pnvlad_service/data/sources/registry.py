@@ -4,8 +4,8 @@ Every kind of recording the library reads as a :class:`~pnvlad_service.data.driv
 :class:`DriveSource` in :data:`SOURCES` (``kitti``, ``csv``, ``rosbag``), so a command picks a
 source from a table instead of testing its options one by one. The options of every source are
 one record, :class:`DriveOptions` (``None``, ``False`` or ``0`` when not given); a source reads
-the ones it names in ``reads`` and refuses the others with a one-line :class:`InputError` naming
-the option.
+the ones it names in ``reads`` and refuses the others with a one-line :class:`InputError` (an
+option only another source reads: "applies to --rosbag only", under the option's flag).
 
 Example (a KITTI sequence placed in UTM, then a bag posed by its odometry)::
 
@@ -261,3 +261,4 @@ for _source in (
     ),
 ):  # fmt: skip
     register(_source)
+del _source
