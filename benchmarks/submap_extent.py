@@ -8,8 +8,9 @@ long and short side, the rectangle turned in 1 degree steps, so a cloud turned a
 vertical, as the real Oxford clouds are, measures as it would unturned) and the height
 (max - min of z); the same three between the 5th and 95th percentile of the points along those
 axes (robust to a stray far return). After G (the normalised submap, mean distance 0.5): the
-height, max - min and p5-p95. A row summarises its clouds by the median and, in brackets, the
-5th to 95th percentile over the clouds.
+height, max - min and p5-p95, and G's scale (metres a normalised unit: twice the mean distance
+of G's points from their centroid, so what sets how large a 10 m facade is drawn). A row
+summarises its clouds by the median and, in brackets, the 5th to 95th percentile over them.
 
 Sources:
 
@@ -37,7 +38,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -111,6 +112,7 @@ class Row:
     before: list[Extent]
     after: list[Extent]
     points: list[int]
+    scales: list[float] = field(default_factory=list)
 
 
 def _stat(values: list[float], digits: int = 1) -> str:
@@ -127,8 +129,9 @@ def table(rows: list[Row]) -> str:
     """The Markdown table of ``rows``."""
     lines = [
         "| source | clouds | points before G | long side, m | short side, m | height, m "
-        "| p5-p95: long / short / height, m | height after G: max-min / p5-p95 |",
-        "|---|---|---|---|---|---|---|---|",
+        "| p5-p95: long / short / height, m | G's scale, m a unit "
+        "| height after G: max-min / p5-p95 |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         rob = [float(np.median([e.robust[k] for e in r.before])) for k in range(3)]
@@ -136,7 +139,7 @@ def table(rows: list[Row]) -> str:
             f"| {r.label} | {len(r.before)} | {int(np.median(r.points)):,} "
             f"| {_stat([e.long for e in r.before])} | {_stat([e.short for e in r.before])} "
             f"| {_stat([e.height for e in r.before])} "
-            f"| {rob[0]:.1f} / {rob[1]:.1f} / {rob[2]:.1f} "
+            f"| {rob[0]:.1f} / {rob[1]:.1f} / {rob[2]:.1f} | {_stat(r.scales)} "
             f"| {_stat([e.height for e in r.after], 2)} / "
             f"{float(np.median([e.robust[2] for e in r.after])):.2f} |"
         )
@@ -193,6 +196,8 @@ def tree_rows(root: Path, n: int, boxes: list[float], seed: int) -> list[Row]:
 
     drives = drives_of(root)
     folder = LAYOUTS["oxford"].folder("test")
+    from pnvlad_service.data.frames import frames_path, read_frames_csv
+
     own = Row(f"{root.name}", [], [], [])
     boxed = {b: Row(f"{root.name}, cut to {b:g} m", [], [], []) for b in boxes}
     by_run: dict[tuple[str, str], list[int]] = {}
@@ -218,17 +223,22 @@ def tree_rows(root: Path, n: int, boxes: list[float], seed: int) -> list[Row]:
             max_range_m=rec["max_range_m"],
         )
         g = GConfig.model_validate(rec["g_config"])
+        csv = run_dir / LAYOUTS["oxford"].csv("test")
+        scale = {f.timestamp: abs(f.scale) for f in read_frames_csv(frames_path(csv))}
         for stamp in stamps:
             cut = cuts[stamp]
             local = laid_window(cut, cache, poses, use, rec["box_m"])
             own.before.append(extent(local))
             own.points.append(len(local))
             own.after.append(extent(read_submap(run_dir / folder / f"{stamp}.bin")))
+            own.scales.append(scale[stamp])
             for b, row in boxed.items():
                 cut_pts = box_cut(local, b)
                 row.before.append(extent(cut_pts))
                 row.points.append(len(cut_pts))
-                row.after.append(extent(apply_g(cut_pts, g, seed=rec["seed"] + cut.scan).points))
+                res = apply_g(cut_pts, g, seed=rec["seed"] + cut.scan)
+                row.after.append(extent(res.points))
+                row.scales.append(abs(res.scale))
             done += 1
             print(f"\r{root.name}: {done} submaps", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
@@ -249,7 +259,9 @@ def oxford_row(real: Path) -> Row:
         pts = np.fromfile(real / name, dtype=np.float32).reshape(-1, 6)[:, :3].astype(np.float64)
         row.before.append(extent(pts))
         row.points.append(len(pts))
-        row.after.append(extent(apply_g(pts).points))
+        res = apply_g(pts)
+        row.after.append(extent(res.points))
+        row.scales.append(abs(res.scale))
     return row
 
 
@@ -281,7 +293,8 @@ def kitti_rows(real: Path, boxes: list[float]) -> list[Row]:
     for b in [None, *boxes]:
         pts = cloud if b is None else box_cut(cloud, b)
         name = label if b is None else f"{label}, cut to {b:g} m"
-        rows.append(Row(name, [extent(pts)], [extent(apply_g(pts).points)], [len(pts)]))
+        res = apply_g(pts)
+        rows.append(Row(name, [extent(pts)], [extent(res.points)], [len(pts)], [abs(res.scale)]))
     return rows
 
 

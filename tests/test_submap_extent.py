@@ -62,9 +62,10 @@ def test_box_cut_and_the_table(se) -> None:
     pts = np.array([[0.0, 0, 0], [14.9, -14.9, 1], [15.1, 0, 2], [0, -15.2, 3]])
     np.testing.assert_array_equal(se.box_cut(pts, 30.0), pts[:2])
     e = se.extent(np.random.default_rng(0).uniform(-1, 1, (100, 3)))
-    row = se.Row("hand-made", [e, e], [e, e], [100, 300])
+    row = se.Row("hand-made", [e, e], [e, e], [100, 300], [2.0, 4.0])
     text = se.table([row])
     assert text.splitlines()[2].startswith("| hand-made | 2 | 200 |")
+    assert "| 3.0 [2.1-3.9] |" in text  # the scales' median and 5th-95th percentiles
     with pytest.raises(Exception, match="finite non-empty"):
         se.extent(np.empty((0, 3)))
 
