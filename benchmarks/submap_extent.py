@@ -7,10 +7,12 @@ Per cloud, before G (metres): the sides of the smallest horizontal rectangle tha
 long and short side, the rectangle turned in 1 degree steps, so a cloud turned about the
 vertical, as the real Oxford clouds are, measures as it would unturned) and the height
 (max - min of z); the same three between the 5th and 95th percentile of the points along those
-axes (robust to a stray far return). After G (the normalised submap, mean distance 0.5): the
-height, max - min and p5-p95, and G's scale (metres a normalised unit: twice the mean distance
-of G's points from their centroid, so what sets how large a 10 m facade is drawn). A row
-summarises its clouds by the median and, in brackets, the 5th to 95th percentile over them.
+axes (robust to a stray far return); and max - min along the cloud's own x and y (a submap's
+are the map's east and north; the real Oxford clouds were turned at random). After G (the
+normalised submap, mean distance 0.5): the height, max - min and p5-p95, and G's scale (metres
+a normalised unit: twice the mean distance of G's points from their centroid, so what sets how
+large a 10 m facade is drawn). A row summarises its clouds by the median and, in brackets, the
+5th to 95th percentile over them.
 
 Sources:
 
@@ -67,12 +69,14 @@ KITTI_FRAMES = (94, 95)
 class Extent:
     """One cloud's size: ``long``, ``short`` (sides of the smallest horizontal rectangle),
     ``height`` (max - min z), metres or normalised units; ``robust``: the same three between
-    the 5th and 95th percentiles of the points along the rectangle's axes and z."""
+    the 5th and 95th percentiles of the points along the rectangle's axes and z; ``xy``: max -
+    min along the cloud's own x and y (the map's axes for a submap)."""
 
     long: float
     short: float
     height: float
     robust: tuple[float, float, float]
+    xy: tuple[float, float] = (math.nan, math.nan)
 
 
 def extent(points: np.ndarray, step_deg: float = 1.0, sample: int = 50_000) -> Extent:
@@ -101,7 +105,13 @@ def extent(points: np.ndarray, step_deg: float = 1.0, sample: int = 50_000) -> E
         return float(hi - lo)
 
     sides = sorted([(float(np.ptp(u)), spread(u)), (float(np.ptp(v)), spread(v))], reverse=True)
-    return Extent(sides[0][0], sides[1][0], float(np.ptp(z)), (sides[0][1], sides[1][1], spread(z)))
+    return Extent(
+        sides[0][0],
+        sides[1][0],
+        float(np.ptp(z)),
+        (sides[0][1], sides[1][1], spread(z)),
+        (float(np.ptp(pts[:, 0])), float(np.ptp(pts[:, 1]))),
+    )
 
 
 @dataclass
@@ -129,17 +139,19 @@ def table(rows: list[Row]) -> str:
     """The Markdown table of ``rows``."""
     lines = [
         "| source | clouds | points before G | long side, m | short side, m | height, m "
-        "| p5-p95: long / short / height, m | G's scale, m a unit "
+        "| p5-p95: long / short / height, m | x / y, m | G's scale, m a unit "
         "| height after G: max-min / p5-p95 |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         rob = [float(np.median([e.robust[k] for e in r.before])) for k in range(3)]
+        xy = [float(np.median([e.xy[k] for e in r.before])) for k in range(2)]
         lines.append(
             f"| {r.label} | {len(r.before)} | {int(np.median(r.points)):,} "
             f"| {_stat([e.long for e in r.before])} | {_stat([e.short for e in r.before])} "
             f"| {_stat([e.height for e in r.before])} "
-            f"| {rob[0]:.1f} / {rob[1]:.1f} / {rob[2]:.1f} | {_stat(r.scales)} "
+            f"| {rob[0]:.1f} / {rob[1]:.1f} / {rob[2]:.1f} | {xy[0]:.0f} / {xy[1]:.0f} "
+            f"| {_stat(r.scales)} "
             f"| {_stat([e.height for e in r.after], 2)} / "
             f"{float(np.median([e.robust[2] for e in r.after])):.2f} |"
         )

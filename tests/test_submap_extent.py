@@ -45,6 +45,9 @@ def test_a_turned_slab_measures_its_sides_and_height(se, turn_deg: float) -> Non
     assert e.long == pytest.approx(40.0, abs=1e-6)
     assert e.short == pytest.approx(10.0, abs=1e-6)
     assert e.height == pytest.approx(6.0, abs=1e-9)
+    # The turned slab's bounding box in x, y: 40 cos a + 10 sin a by 40 sin a + 10 cos a.
+    xy = (40 * math.cos(a) + 10 * math.sin(a), 40 * math.sin(a) + 10 * math.cos(a))
+    assert e.xy == pytest.approx(xy, abs=1e-6)
     # Uniform points: 90 % of each side between the 5th and 95th percentiles.
     assert e.robust == pytest.approx((36.0, 9.0, 5.4), rel=0.02)
 
