@@ -11,8 +11,9 @@ axes (robust to a stray far return); and max - min along the cloud's own x and y
 are the map's east and north; the real Oxford clouds were turned at random). After G (the
 normalised submap, mean distance 0.5): the height, max - min and p5-p95, and G's scale (metres
 a normalised unit: twice the mean distance of G's points from their centroid, so what sets how
-large a 10 m facade is drawn). A row summarises its clouds by the median and, in brackets, the
-5th to 95th percentile over them.
+large a 10 m facade is drawn) and G's output taken back to metres by it (long and short side,
+max - min and p5-p95: the ground removed and the cloud cropped to 2 scales across). A row
+summarises its clouds by the median and, in brackets, the 5th to 95th percentile over them.
 
 Sources:
 
@@ -140,18 +141,29 @@ def table(rows: list[Row]) -> str:
     lines = [
         "| source | clouds | points before G | long side, m | short side, m | height, m "
         "| p5-p95: long / short / height, m | x / y, m | G's scale, m a unit "
-        "| height after G: max-min / p5-p95 |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| G's output in metres: long x short (p5-p95) | height after G: max-min / p5-p95 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         rob = [float(np.median([e.robust[k] for e in r.before])) for k in range(3)]
         xy = [float(np.median([e.xy[k] for e in r.before])) for k in range(2)]
+        # G's output back in metres (ground removed, cropped to [-1, 1], so at most 2 scales).
+        out = [
+            float(np.median([v * sc for v, sc in zip(vals, r.scales, strict=True)]))
+            for vals in (
+                [e.long for e in r.after],
+                [e.short for e in r.after],
+                [e.robust[0] for e in r.after],
+                [e.robust[1] for e in r.after],
+            )
+        ]
         lines.append(
             f"| {r.label} | {len(r.before)} | {int(np.median(r.points)):,} "
             f"| {_stat([e.long for e in r.before])} | {_stat([e.short for e in r.before])} "
             f"| {_stat([e.height for e in r.before])} "
             f"| {rob[0]:.1f} / {rob[1]:.1f} / {rob[2]:.1f} | {xy[0]:.0f} / {xy[1]:.0f} "
             f"| {_stat(r.scales)} "
+            f"| {out[0]:.0f} x {out[1]:.0f} ({out[2]:.0f} x {out[3]:.0f}) "
             f"| {_stat([e.height for e in r.after], 2)} / "
             f"{float(np.median([e.robust[2] for e in r.after])):.2f} |"
         )
