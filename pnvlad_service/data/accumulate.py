@@ -22,6 +22,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from pnvlad_service.data.cuts import check_box_m
 from pnvlad_service.data.drive import Drive, snap_m
 from pnvlad_service.errors import InputError
 
@@ -73,7 +74,9 @@ def accumulate(
     ``centre``: float64 [3] world position (UTM). The result has UTM axes (x east, y north,
     z up) and origin ``centre``; translations are snapped and subtracted in float64 before the
     points are added, so large UTM coordinates lose no precision. ``box_m`` keeps only points
-    with |x| and |y| <= box_m / 2 (a square, axis-aligned in UTM).
+    with |x| and |y| <= box_m / 2: a square centred on ``centre``, axis-aligned in the map's
+    frame (UTM), not turned to the heading, so that every run through a place keeps the same
+    ground whatever its direction, lane or heading noise (docs/PREPARE.md).
     """
     c = snap_m(centre)
     parts = []
@@ -185,7 +188,9 @@ class WindowAccumulator:
     ``min_spacing_m`` from the last one kept for its spacing is held only as the newest, until
     the next scan replaces it (as :func:`spaced_scans` keeps scans offline: a robot creeping or
     standing still holds its spaced scans and its newest); each keeps at most
-    ``max_points_per_scan`` points within ``max_range_m`` (prepare's options, default none).
+    ``max_points_per_scan`` points within ``max_range_m`` (prepare's options, default none);
+    ``box_m``: the cloud cut to the square of that side about the newest scan, in the world's
+    axes as the map's submaps were cut (:func:`accumulate`; default none).
     """
 
     window_m: float = 20.0
@@ -194,6 +199,7 @@ class WindowAccumulator:
     max_range_m: float | None = None
     frame: Literal["enu", "sensor"] = "sensor"
     seed: int = 0
+    box_m: float | None = None
     _held: deque[_Held] = field(default_factory=deque, init=False, repr=False)
     _count: int = field(default=0, init=False, repr=False)
 
@@ -210,6 +216,7 @@ class WindowAccumulator:
             raise InputError(f"must be > 0 metres, got {self.max_range_m}", "max_range_m")
         if self.frame not in ("enu", "sensor"):
             raise InputError(f"must be enu or sensor, got {self.frame!r}", "frame")
+        self.box_m = check_box_m(self.box_m)
 
     @classmethod
     def for_map(
@@ -222,10 +229,10 @@ class WindowAccumulator:
         """An accumulator that lays scans as the map's windows were laid: ``map_record`` a
         bundle manifest's ``map`` entry (its JSON, as ``GET /info`` gives it under
         ``manifest``, or an ``index.manifest.MapRecord``) whose ``accumulation`` holds the map's
-        ``max_points_per_scan``, ``max_range_m`` and ``min_scan_spacing_m``; without one the
-        scans are kept whole. Keeping the map's points a scan matters: windows of whole scans
-        found their place at 51.7 % recall@1 where the map's own submaps found it at 93 %
-        (docs/SCANS.md)."""
+        ``max_points_per_scan``, ``max_range_m``, ``min_scan_spacing_m`` and ``box_m``; without
+        one the scans are kept whole and the cloud uncut. Keeping the map's points a scan
+        matters: windows of whole scans found their place at 51.7 % recall@1 where the map's
+        own submaps found it at 93 % (docs/SCANS.md)."""
         acc = getattr(map_record, "accumulation", None)
         if acc is None and isinstance(map_record, dict):
             acc = map_record.get("accumulation")
@@ -241,7 +248,8 @@ class WindowAccumulator:
     ) -> WindowAccumulator:
         """An accumulator that lays scans by ``accumulation`` (a map's, or a prepare record's:
         ``data.run_folder.recorded_accumulation``): its ``max_points_per_scan``,
-        ``max_range_m`` and ``min_scan_spacing_m``; ``None`` keeps the scans whole."""
+        ``max_range_m``, ``min_scan_spacing_m`` and ``box_m``; ``None`` keeps the scans whole
+        and the cloud uncut."""
         acc = dict(accumulation or {})
         return cls(
             window_m=window_m,
@@ -250,6 +258,7 @@ class WindowAccumulator:
             max_range_m=acc.get("max_range_m"),
             frame=frame,
             seed=seed,
+            box_m=acc.get("box_m"),
         )
 
     def add(self, points: np.ndarray, pose: np.ndarray) -> None:
@@ -301,7 +310,7 @@ class WindowAccumulator:
         poses = np.stack([h.pose for h in self._held])
         newest = poses[-1]
         local = accumulate(
-            poses, [h.points for h in self._held], range(len(self._held)), newest[:3, 3]
+            poses, [h.points for h in self._held], range(len(self._held)), newest[:3, 3], self.box_m
         )
         if self.frame == "sensor":
             local = local @ newest[:3, :3]  # rows: R^T p, the newest scan's axes

@@ -78,7 +78,9 @@ def resolve_geometry(
     stride_m: float | None,
 ) -> tuple[str, str, float, float | None, float]:
     """(folder, csv name, window, box, stride) for one layout and kind: the :data:`GEOMETRY`
-    defaults where an argument is ``None`` (a box of 0 or less: none), each checked."""
+    defaults where an argument is ``None`` (a box of 0: none, so the in-house layout's box can
+    be turned off), each checked: a negative, NaN or infinite box is an error naming
+    ``box_m``."""
     if layout not in LAYOUTS or (layout, kind) not in GEOMETRY:
         raise InputError(
             f"unknown layout/kind {layout!r}/{kind!r} (layouts: {', '.join(LAYOUTS)}; kinds: "
@@ -87,16 +89,32 @@ def resolve_geometry(
         )
     geo = GEOMETRY[(layout, kind)]
     window = geo.window_m if window_m is None else float(window_m)
-    box = geo.box_m if box_m is None else (None if box_m <= 0 else float(box_m))
+    box = geo.box_m if box_m is None else check_box_m(box_m, allow_zero=True)
     stride = geo.stride_m if stride_m is None else float(stride_m)
     if not (math.isfinite(window) and (window > 0 or (kind == "keyframe" and window == 0))):
         raise InputError(f"must be a positive number of metres, got {window}", "window_m")
     if not (math.isfinite(stride) and stride > 0):
         raise InputError(f"must be a positive number of metres, got {stride}", "stride_m")
-    if box is not None and not math.isfinite(box):
-        raise InputError(f"must be a finite number of metres, got {box}", "box_m")
     names = LAYOUTS[layout]
     return names.folder(kind), names.csv(kind), window, box, stride
+
+
+def check_box_m(box_m: float | None, *, allow_zero: bool = False) -> float | None:
+    """A submap box side checked: ``None`` stays ``None`` (no box); a finite number of metres
+    > 0 is the side; 0 means no box where ``allow_zero`` (``pnvlad data prepare --box 0``).
+    Anything else (negative, NaN, infinite, 0 where not allowed) is an :class:`InputError`
+    naming ``box_m``."""
+    if box_m is None:
+        return None
+    try:
+        box = float(box_m)
+    except (TypeError, ValueError):
+        raise InputError(f"must be a number of metres, got {box_m!r}", "box_m") from None
+    if allow_zero and box == 0:
+        return None
+    if not (math.isfinite(box) and box > 0):
+        raise InputError(f"must be a positive finite number of metres, got {box_m}", "box_m")
+    return box
 
 
 def submap_cuts(travelled: np.ndarray, window_m: float, stride_m: float) -> list[Cut]:

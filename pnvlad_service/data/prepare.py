@@ -43,7 +43,14 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.data.accumulate import ScanCache, accumulate, travelled_distance, used_scans
-from pnvlad_service.data.cuts import Cut, Kind, Layout, resolve_geometry, submap_cuts
+from pnvlad_service.data.cuts import (
+    Cut,
+    Kind,
+    Layout,
+    check_box_m,
+    resolve_geometry,
+    submap_cuts,
+)
 from pnvlad_service.data.drive import Drive, check_drive, snap_m
 from pnvlad_service.data.frames import SubmapFrame, frames_path, journal_line, write_frames_csv
 from pnvlad_service.data.run_folder import claim_folders, journal_path, recorded_frames
@@ -227,6 +234,31 @@ def _manifest(
     }
 
 
+def laid_window(
+    cut: Cut,
+    cache: ScanCache,
+    poses: np.ndarray,
+    use: np.ndarray,
+    box_m: float | None,
+    *,
+    single: bool = False,
+) -> np.ndarray:
+    """The cloud G is given for ``cut``: float64 [M, 3] metres, UTM axes about the centre
+    scan. The window's scans that ``use`` keeps (and the centre scan), each the ``cache``'s
+    seeded subset, laid by :func:`~.accumulate.accumulate` and cut to ``box_m``; ``single``: the
+    centre scan alone and whole (a keyframe). ``benchmarks/submap_extent.py`` lays windows
+    through it to measure them before G."""
+    if single:
+        scans = {cut.scan: cache.full(cut.scan)}
+        indices = [cut.scan]
+    else:
+        indices = [i for i in range(cut.first, cut.last + 1) if use[i]]
+        if cut.first <= cut.scan <= cut.last and cut.scan not in indices:
+            indices.append(cut.scan)
+        scans = {i: cache.get(i) for i in indices}
+    return accumulate(poses, scans, indices, poses[cut.scan, :3, 3], box_m)
+
+
 def _window_submap(
     window: _Window,
     cache: ScanCache,
@@ -239,15 +271,7 @@ def _window_submap(
     (logged) when G cannot make a submap from its points."""
     cut = window.cut
     cache.evict_before(cut.first)
-    if window.single:
-        scans = {cut.scan: cache.full(cut.scan)}
-        indices = [cut.scan]
-    else:
-        indices = [i for i in range(cut.first, cut.last + 1) if use[i]]
-        if cut.first <= cut.scan <= cut.last and cut.scan not in indices:
-            indices.append(cut.scan)
-        scans = {i: cache.get(i) for i in indices}
-    local = accumulate(poses, scans, indices, poses[cut.scan, :3, 3], window.box_m)
+    local = laid_window(cut, cache, poses, use, window.box_m, single=window.single)
     try:
         if len(local) == 0:
             raise InputError("no points in the window", f"scan {cut.scan}")
@@ -444,7 +468,10 @@ def prepare_drive(
     - ``window_m``: travelled distance accumulated per submap (default: the layout's, 20 m
       oxford, 25 m inhouse), centred on the submap position.
     - ``box_m``: side of a square crop (UTM-aligned) around the submap position (default: none
-      for oxford, 25 m for inhouse; 0 disables it).
+      for oxford, 25 m for inhouse; 0 disables it; negative, NaN or infinite: ``InputError``
+      naming ``box_m``). Recorded in each folder's prepare record, so that ``pnvlad index
+      build`` writes it into the bundle's ``map.accumulation`` and accumulated queries
+      (:class:`~.accumulate.WindowAccumulator`) are cut to the same box.
     - ``strides_m``: kind -> distance travelled between submaps (default: the layout's, 10 m
       train; 20 m test oxford, 25 m test inhouse).
     - ``g_config`` / ``seed``: the filter G's settings; submap ``k`` uses ``seed`` + the index of
@@ -471,6 +498,7 @@ def prepare_drive(
     started = time.perf_counter()
     out = Path(out_run_dir)
     stamps, poses = check_drive(drive)
+    check_box_m(box_m, allow_zero=True)  # checked even where only keyframes (no box) are cut
     opts = _check_options(
         kinds,
         g_config if g_config is not None else GConfig(),

@@ -150,14 +150,15 @@ def recorded_g_config(run_dir: Path, folder: str) -> dict[str, Any] | None:
 
 
 #: How prepare laid each scan into a window (its options), as an accumulated query must too.
-ACCUMULATION_KEYS = ("max_points_per_scan", "max_range_m", "min_scan_spacing_m")
+ACCUMULATION_KEYS = ("max_points_per_scan", "max_range_m", "min_scan_spacing_m", "box_m")
 
 
 def recorded_accumulation(run_dir: Path, folder: str) -> dict[str, Any] | None:
     """How the scans of a layout folder's windows were laid (:data:`ACCUMULATION_KEYS`, as
     its prepare record says); ``None`` where none is recorded. A window asked about must keep
     the same points a scan (``max_points_per_scan``): a window of whole scans is as far from
-    the map's submaps as another place (docs/SCANS.md)."""
+    the map's submaps as another place (docs/SCANS.md); and the same box (``box_m``, where the
+    submaps were cut to one)."""
     doc = _prepare_record(run_dir, folder)
     if doc is None:
         return None

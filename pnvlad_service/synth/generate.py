@@ -10,7 +10,8 @@
     OUT/<area>/<run>/pointcloud_locations_keyframes.csv
     OUT/<area>/<run>/raw_scans/<timestamp>.bin, raw_scans.csv  the raw scan at each test submap
                                                                (sensor frame, KITTI .bin, poses)
-    OUT/<area>/test_regions.json     squares chosen on the area's route (read by `data splits`)
+    OUT/<area>/test_regions.json     squares chosen on the area's route (read by `data splits`),
+                                     or the published ones (an area named oxford laid over them)
     OUT/splits.json                  training tuples and evaluation sets (data.splits)
     OUT/splits_keyframes.json        the same of the keyframe maps (single-scan encoders)
     OUT/synth.json                   preset, seed, parameters, sizes and timings
@@ -31,7 +32,7 @@ import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, Field
@@ -56,6 +57,12 @@ class AreaSpec(BaseModel):
         (620000.0, 5735000.0), description="UTM easting, northing of the area's local origin"
     )
     route_m: float = Field(1500.0, gt=50, description="route length driven by every run, m")
+    test_regions: Literal["route", "published"] = Field(
+        "route",
+        description="route: squares chosen on the area's route (test_share, region_half_size); "
+        "published: the benchmark's own, for an area named oxford laid over Oxford's UTM "
+        "coordinates (its route must pass through some of them)",
+    )
 
 
 class SynthPreset(BaseModel):
@@ -83,6 +90,14 @@ class SynthPreset(BaseModel):
     )
     city: CityDetail = Field(
         default_factory=CityDetail, description="street detail beyond the first benchmarks'"
+    )
+    box_m: float | None = Field(
+        None,
+        gt=0,
+        allow_inf_nan=False,
+        description="submaps cut to the square of this side (metres) centred on the submap's "
+        "location, UTM-aligned, before G (prepare_drive's box_m); None: every return of the "
+        "20 m window, out to the sensor's range",
     )
 
     def run_lidar(self, area_index: int, run: int) -> LidarConfig:
@@ -349,6 +364,7 @@ def _run_job(job: dict[str, Any]) -> dict[str, Any]:
         strides_m={"keyframe": preset.keyframe_stride} if keyframes else None,
         seed=job["run_seed"] % (2**31),
         max_points_per_scan=preset.max_points_per_scan,
+        box_m=preset.box_m,
         raw_scans=preset.raw_scans,
         progress=False,
     )
@@ -398,7 +414,7 @@ def _area_jobs(
     traj_files: dict[tuple[str, int], Path],
 ) -> list[dict[str, Any]]:
     """Write the area's test regions (chosen on its first route) and return one job per run."""
-    from pnvlad_service.data.splits import TestRegions, save_regions
+    from pnvlad_service.data.splits import TestRegions, published_regions_on, save_regions
 
     world = _world(area, seed, spec.city)
     route = (
@@ -406,10 +422,15 @@ def _area_jobs(
         if traj_files
         else make_route(world, area.route_m, seed)
     )
-    local = choose_test_regions(route.points, spec.test_share, spec.region_half_size)
-    centres = tuple((float(y + area.origin[1]), float(x + area.origin[0])) for x, y in local)
+    if area.test_regions == "published":
+        utm = route.points + np.asarray(area.origin)
+        regions = published_regions_on(area.name, utm[:, 1], utm[:, 0])
+    else:
+        local = choose_test_regions(route.points, spec.test_share, spec.region_half_size)
+        centres = tuple((float(y + area.origin[1]), float(x + area.origin[0])) for x, y in local)
+        regions = TestRegions(centres, spec.region_half_size)
     (tmp / area.name).mkdir(parents=True)
-    save_regions(tmp / area.name / "test_regions.json", TestRegions(centres, spec.region_half_size))
+    save_regions(tmp / area.name / "test_regions.json", regions)
     return _run_jobs_of_area(tmp, area_index, area, spec, seed, traj_files)
 
 
@@ -470,10 +491,12 @@ def generate(
     regions and one job per run for every area, the runs (in parallel), the splits, synth.json;
     all under a temporary name renamed when complete.
     """
+    from pnvlad_service.data.cuts import check_box_m
     from pnvlad_service.data.splits import build_splits, save_splits
     from pnvlad_service.fileio import atomic_directory, atomic_write_text
 
     spec = get_preset(preset) if isinstance(preset, str) else preset
+    check_box_m(spec.box_m)  # model_copy(update=...) skips the field's own check
     out = Path(out)
     started = time.perf_counter()
     traj_files = _trajectory_files(spec, trajectories)

@@ -4,10 +4,12 @@ travelled distance."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service.data.cuts import submap_cuts
+from pnvlad_service.data.cuts import check_box_m, resolve_geometry, submap_cuts
+from pnvlad_service.errors import InputError
 from tests.data.helpers import FRAMES, STEP_M, plain_cuts
 
 
@@ -35,3 +37,26 @@ def test_cuts_on_a_regular_drive() -> None:
     assert [c.scan for c in train] == [7, 13, 20, 27]
     assert [c.scan for c in test] == [7, 20]
     assert (train[0].first, train[0].last) == (0, 13)
+
+
+@pytest.mark.parametrize("bad", [-1.0, -0.0001, float("nan"), float("inf"), float("-inf"), "x"])
+def test_a_bad_box_is_one_line_naming_box_m(bad: object) -> None:
+    for allow_zero in (False, True):
+        with pytest.raises(InputError) as exc:
+            check_box_m(bad, allow_zero=allow_zero)  # type: ignore[arg-type]
+        assert exc.value.source == "box_m" and "\n" not in str(exc.value)
+    with pytest.raises(InputError, match="box_m"):
+        resolve_geometry("oxford", "test", None, bad, None)  # type: ignore[arg-type]
+
+
+def test_box_none_is_none_and_zero_is_none_only_where_allowed() -> None:
+    assert check_box_m(None) is None and check_box_m(None, allow_zero=True) is None
+    assert check_box_m(30) == 30.0 and isinstance(check_box_m(30), float)
+    assert check_box_m(0, allow_zero=True) is None
+    with pytest.raises(InputError, match="box_m"):
+        check_box_m(0)
+    # The layouts' defaults where no box is given; 0 turns the in-house box off.
+    assert resolve_geometry("oxford", "train", None, None, None)[3] is None
+    assert resolve_geometry("inhouse", "train", None, None, None)[3] == 25.0
+    assert resolve_geometry("inhouse", "train", None, 0, None)[3] is None
+    assert resolve_geometry("oxford", "test", None, 30, None)[3] == 30.0

@@ -66,6 +66,7 @@ from pnvlad_service.data.splits.regions import (
     TestRegions,
     builtin_regions,
     load_regions,
+    published_regions_on,
     resolve_regions,
     save_regions,
 )
@@ -107,6 +108,7 @@ __all__ = [
     "load_regions",
     "load_splits",
     "pack_lists",
+    "published_regions_on",
     "published_runs",
     "resolve_regions",
     "save_regions",

@@ -115,6 +115,30 @@ def builtin_regions(dataset: str, group: str) -> TestRegions | None:
     return None
 
 
+def published_regions_on(dataset: str, northing: np.ndarray, easting: np.ndarray) -> TestRegions:
+    """The published test regions of ``dataset`` (``oxford``) for a route laid over them (a
+    synthetic area placed at Oxford's UTM coordinates): float64 ``northing``, ``easting`` [N]
+    of the route. :class:`InputError` naming ``test_regions`` where the benchmark published
+    none for ``dataset``, or where the route crosses none of them (no queries) or lies wholly
+    inside them (nothing to train on)."""
+    regions = builtin_regions(dataset, dataset)
+    if regions is None or regions.everything:
+        raise InputError(
+            f"the benchmark published test regions for oxford only, not {dataset!r} (name the "
+            "area oxford, or choose the regions on the route)",
+            "test_regions",
+        )
+    inside = regions.contains(northing, easting)
+    if not inside.any() or inside.all():
+        where = "crosses none of" if not inside.any() else "lies wholly inside"
+        raise InputError(
+            f"the route {where} {dataset}'s published test regions: place the area (its origin "
+            "and size) so that the route passes through some of them",
+            "test_regions",
+        )
+    return regions
+
+
 def load_regions(path: str | Path) -> dict[str, TestRegions] | TestRegions:
     """Read a test-regions file: JSON (docs/SPLITS.md) or CSV ``[dataset,]northing,easting
     [,half_size]``. Returns one ``TestRegions`` for every dataset, or a mapping name -> regions.
