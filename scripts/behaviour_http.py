@@ -41,25 +41,25 @@ class Server:
         return f"http://127.0.0.1:{self.port}"
 
     def start(self) -> None:
-        log = open(self.work / f"serve-{self.name}.log", "wb")  # noqa: SIM115
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "pnvlad_cli.main",
-                "-q",
-                "serve",
-                "--index",
-                str(self.bundle),
-                "--port",
-                str(self.port),
-                "--log-level",
-                "warning",
-            ],
-            env=child_env(self.env),
-            stdout=log,
-            stderr=subprocess.STDOUT,
-        )
+        with open(self.work / f"serve-{self.name}.log", "wb") as log:  # the child keeps its own
+            self.proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "pnvlad_cli.main",
+                    "-q",
+                    "serve",
+                    "--index",
+                    str(self.bundle),
+                    "--port",
+                    str(self.port),
+                    "--log-level",
+                    "warning",
+                ],
+                env=child_env(self.env),
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
 
     def wait_ready(self, timeout_s: float = 240.0) -> None:
         deadline = time.monotonic() + timeout_s
@@ -100,8 +100,8 @@ def request(
 
 @dataclass
 class Ask:
-    """One request of the fixed set: ``server`` map or keys; ``json`` a body (its points
-    arrays), or ``raw`` (content type, bytes); ``note`` what the record says of the body."""
+    """One request of the fixed set: ``server`` map or keys; ``json`` a body (numpy arrays
+    in it are sent as lists), or ``raw`` (content type, bytes)."""
 
     name: str
     server: str
@@ -110,7 +110,6 @@ class Ask:
     json: Any = None
     raw: tuple[str, bytes] | None = None
     headers: dict[str, str] = field(default_factory=dict)
-    note: Any = None
 
 
 def encode(value: Any) -> Any:

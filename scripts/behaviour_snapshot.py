@@ -124,7 +124,8 @@ VOLATILE_TEXT = [
 
 @dataclass
 class Places:
-    """The texts that differ between two snapshots of one code: paths and the ports."""
+    """What differs between two snapshots of one code, made the same: the fixture's and the
+    work folder's paths, the servers' ports (``127.0.0.1:PORT``), times, package versions."""
 
     fixture: Path
     work: Path
@@ -133,7 +134,7 @@ class Places:
     def text(self, s: str) -> str:
         s = s.replace(str(self.work), "<work>").replace(str(self.fixture), "<fixture>")
         for port in self.ports:
-            s = re.sub(rf"\b{port}\b", "<port>", s)
+            s = s.replace(f"127.0.0.1:{port}", "127.0.0.1:<port>")
         for pattern, repl in VOLATILE_TEXT:
             s = pattern.sub(repl, s)
         return s
@@ -266,11 +267,11 @@ def snapshot_commands(
     fixture: Path, record: dict, servers: dict[str, Server], out: Path, places: Places
 ) -> int:
     """cli/*: ``pnvlad localize`` of a file, from a server and in this process."""
+    import numpy as np
+
     q = record["queries"]
     (out / "cli").mkdir(parents=True, exist_ok=True)
     sub = places.work / "submap0.bin"
-    import numpy as np
-
     np.load(fixture / q["submaps"][0]["file"]).astype("<f8").tofile(sub)
     scan = places.work / "scan0.npy"
     shutil.copyfile(fixture / q["scans"][0]["file"], scan)
@@ -383,8 +384,7 @@ def snapshot(fixture: Path, out: Path, keep_work: bool) -> None:
         for s in servers.values():
             s.wait_ready()
         times["servers ready"] = time.perf_counter() - t0
-        doc = request(servers["map"].url, "GET", "/openapi.json")[2]
-        doc = places.json(json.loads(doc))
+        doc = json.loads(request(servers["map"].url, "GET", "/openapi.json")[2])
         doc.get("info", {})["version"] = "<version>"  # the package's: not the contract
         write_json(out / "openapi.json", doc)
         counts["http"] = run_asks(servers, fixture, record["queries"], out, places)
