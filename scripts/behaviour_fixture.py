@@ -31,17 +31,19 @@ FIXED_ENV = {
     "PNVLAD_THREADS": "2",
 }
 
-# --------------------------------------------------------------------------------------------
-# fixture
-# --------------------------------------------------------------------------------------------
+#: The commands that make the fixture (the held-out run is the first of the city's three).
+SYNTH = "-q synth --preset tiny --seed 3 --workers 2 --no-progress"
+TRAIN = "-q train -c compact --max-steps 2 --seed 0 --workers 2 --no-progress"
+INDEX = "-q index build --no-progress --layout"
+BAG = "--preset tiny --seed 3 --run 0 --max-scans 30"
 
 
-def pnvlad(*args: str, env: dict[str, str] | None = None, cwd: Path | None = None) -> str:
-    """Run ``pnvlad ARGS`` with this python; its stdout (CalledProcessError with its output)."""
+def pnvlad(*args: str) -> str:
+    """Run ``pnvlad ARGS`` with this python; its stdout (SystemExit with its output if it
+    fails)."""
     done = subprocess.run(
         [sys.executable, "-m", "pnvlad_cli.main", *args],
-        env=env or child_env(),
-        cwd=cwd,
+        env=child_env(),
         capture_output=True,
         text=True,
     )
@@ -54,6 +56,7 @@ def pnvlad(*args: str, env: dict[str, str] | None = None, cwd: Path | None = Non
 
 
 def child_env(extra: dict[str, str] | None = None) -> dict[str, str]:
+    """This process's environment without PNVLAD_* variables, with FIXED_ENV and ``extra``."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("PNVLAD_")}
     return {**env, **FIXED_ENV, **(extra or {})}
 
@@ -65,78 +68,24 @@ def build_fixture(out: Path) -> None:
 
     if out.exists():
         raise SystemExit(f"{out}: exists; remove it first (a fixture is built once)")
-    work = out
-    work.mkdir(parents=True)
-    t0 = time.perf_counter()
+    out.mkdir(parents=True)
+    work, t0 = out, time.perf_counter()
     city, model = work / "city", work / "train" / "model"
-    log = print
-    log("synth: pnvlad synth --preset tiny --seed 3")
-    pnvlad(
-        "-q",
-        "synth",
-        "--preset",
-        "tiny",
-        "--seed",
-        "3",
-        "--workers",
-        "2",
-        "--out",
-        str(city),
-        "--no-progress",
-    )
+    print(f"synth: pnvlad {SYNTH}")
+    pnvlad(*SYNTH.split(), "--out", str(city))
     runs = sorted(p.name for p in (city / "business").iterdir() if p.is_dir())
     held, mapped = runs[0], runs[1:]
-    log("train: pnvlad train -c compact --max-steps 2")
-    pnvlad(
-        "-q",
-        "train",
-        "-c",
-        "compact",
-        "--root",
-        str(city),
-        "--max-steps",
-        "2",
-        "--seed",
-        "0",
-        "--workers",
-        "2",
-        "-o",
-        str(work / "train"),
-        "--no-progress",
-    )
+    print(f"train: pnvlad {TRAIN}")
+    pnvlad(*TRAIN.split(), "--root", str(city), "-o", str(work / "train"))
     for name, layout in (("map.index", "test"), ("keys.index", "keyframe")):
-        log(f"index: pnvlad index build --layout {layout} -o {name}")
-        pnvlad(
-            "-q",
-            "index",
-            "build",
-            "-m",
-            str(model),
-            "-r",
-            str(city),
-            "-o",
-            str(work / name),
-            "--layout",
-            layout,
-            *(a for r in mapped for a in ("--run", r)),
-            "--no-progress",
-        )
-    log("drive: benchmarks/make_rosbag.py --preset tiny --seed 3 --run 0 --max-scans 30")
+        print(f"index: pnvlad {INDEX} {layout} -o {name}")
+        runs_args = [a for r in mapped for a in ("--run", r)]
+        where = ["-m", str(model), "-r", str(city), "-o", str(work / name)]
+        pnvlad(*INDEX.split(), layout, *where, *runs_args)
+    print(f"drive: benchmarks/make_rosbag.py {BAG}")
+    script = str(REPO / "benchmarks" / "make_rosbag.py")
     made = subprocess.run(
-        [
-            sys.executable,
-            str(REPO / "benchmarks" / "make_rosbag.py"),
-            "--out",
-            str(work / "drive"),
-            "--preset",
-            "tiny",
-            "--seed",
-            "3",
-            "--run",
-            "0",
-            "--max-scans",
-            "30",
-        ],
+        [sys.executable, script, *BAG.split(), "--out", str(work / "drive")],
         env=child_env(),
         capture_output=True,
         text=True,
@@ -158,7 +107,7 @@ def build_fixture(out: Path) -> None:
         "files": digests(work),
     }
     (work / "fixture.json").write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
-    log(f"fixture: {out} in {time.perf_counter() - t0:.0f} s")
+    print(f"fixture: {out} in {time.perf_counter() - t0:.0f} s")
 
 
 #: The servers' settings (a 2-step model: every candidate may be registered, a low threshold,

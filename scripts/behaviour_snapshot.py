@@ -277,17 +277,8 @@ def snapshot_commands(
     shutil.copyfile(fixture / q["scans"][0]["file"], scan)
     table = run_cli(["localize", str(sub), "--url", servers["map"].url, "-n", "3"], places)
     (out / "cli" / "localize-submap-url.txt").write_text(table)
-    text = run_cli(
-        [
-            "localize",
-            str(scan),
-            "--index",
-            str(fixture / record["maps"]["keys"]),
-            "--preprocess",
-            "--json",
-        ],
-        places,
-    )
+    local = ["--index", str(fixture / record["maps"]["keys"]), "--preprocess", "--json"]
+    text = run_cli(["localize", str(scan), *local], places)
     status, _, body = text.partition("\n")
     try:
         answer: Any = places.json(json.loads(body))
@@ -297,57 +288,33 @@ def snapshot_commands(
     return 2
 
 
+#: The bag's topics: its scans, its odometry.
+TOPICS = "--cloud-topic /points --pose-topic /odom"
+
+
 def snapshot_drives(
     fixture: Path, record: dict, servers: dict[str, Server], out: Path, places: Places
 ) -> int:
     """drives/NAME.csv (the rows) and drives/NAME.txt (what the command printed)."""
     bag, kitti = record["bag"], record["kitti"]
-    keys = str(fixture / record["maps"]["keys"])
-    topics = [
-        "--rosbag",
-        str(fixture / bag["path"]),
-        "--cloud-topic",
-        "/points",
-        "--pose-topic",
-        "/odom",
-        "--origin",
-        bag["origin"],
-        "--no-plot",
-        "--no-progress",
-    ]
+    keys, submaps = (str(fixture / record["maps"][m]) for m in ("keys", "map"))
+    quiet = ["--no-plot", "--no-progress"]
+    topics = ["--rosbag", str(fixture / bag["path"]), *TOPICS.split(), "--origin", bag["origin"]]
+    truth = ["--truth-topic", "/ground_truth"]
     keys_url = ["--url", servers["keys"].url, "--map", keys]
+    map_url = ["--url", servers["map"].url, "--map", submaps]
+    placed = ["--origin", kitti["origin"], "--yaw", kitti["yaw"]]
     drives = {
-        "follow-bag": [*topics, "--truth-topic", "/ground_truth", *keys_url],
-        "follow-bag-index": [*topics, "--truth-topic", "/ground_truth", "--index", keys],
-        "follow-kitti": [
-            "--kitti",
-            str(fixture / kitti["path"]),
-            "--origin",
-            kitti["origin"],
-            "--yaw",
-            kitti["yaw"],
-            "--no-plot",
-            "--no-progress",
-            *keys_url,
-        ],
+        "follow-bag": [*topics, *truth, *keys_url],
+        "follow-bag-index": [*topics, *truth, "--index", keys],
+        "follow-kitti": ["--kitti", str(fixture / kitti["path"]), *placed, *keys_url],
         "replay-bag": [*topics, "--per-scan", "--every", "5", *keys_url],
-        "replay-windows": [
-            *topics,
-            "--per-scan",
-            "--every",
-            "10",
-            "--window",
-            "20",
-            "--url",
-            servers["map"].url,
-            "--map",
-            str(fixture / record["maps"]["map"]),
-        ],
+        "replay-windows": [*topics, "--per-scan", "--every", "10", "--window", "20", *map_url],
     }
     (out / "drives").mkdir(parents=True, exist_ok=True)
     for name, args in drives.items():
         raw = places.work / name
-        printed = run_cli(["localize", *args, "--out", str(raw)], places)
+        printed = run_cli(["localize", *args, *quiet, "--out", str(raw)], places)
         (out / "drives" / f"{name}.txt").write_text(printed)
         rows = raw.with_name(raw.name + ".csv")
         text = rows.read_text(encoding="utf-8") if rows.is_file() else "(no CSV written)\n"
