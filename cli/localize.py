@@ -1,8 +1,9 @@
 """`pnvlad localize`: where was this scan taken, or where was this drive, scan by scan?
 
-Three modes (``--mode``, or told by the arguments as before it existed): ``scan`` (one file,
-asked of a server or a bundle in this process: a table or the JSON answer), ``follow`` and
-``per-scan`` (a drive, cli/replay.py). The command parses its options and calls the library;
+Three modes, said by ``--mode`` or told by the arguments (a SCAN file; ``--rosbag`` /
+``--kitti``, with ``--follow`` / ``--per-scan``): ``scan`` (one file, asked of a server or a
+bundle in this process: a table or the JSON answer), ``follow`` and ``per-scan`` (a drive,
+cli/replay.py). The command parses its options and calls the library;
 library imports happen inside the functions so that `pnvlad --help` stays fast.
 """
 

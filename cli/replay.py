@@ -138,14 +138,10 @@ def check_per_scan(
     failures: int | None,
     window: float | None = None,
 ) -> None:
-    """InputError when an option of following is given with ``--per-scan`` (``--odometry
-    kiss-icp`` goes with ``--window``)."""
+    """InputError when an option of following is given with ``--per-scan`` (``--odometry``
+    goes with ``--window``: it poses the window; the window's own checks are the config's)."""
     from pnvlad_service.errors import InputError
 
-    if window is not None and not window > 0:
-        raise InputError(f"must be a positive number of metres, got {window}", "--window")
-    if window is not None and odometry not in ("auto", "poses", "kiss-icp"):
-        raise InputError("a window is posed by the bag's poses or kiss-icp", "--odometry")
     given = {
         "--truth-topic": truth_topic,
         "--radius": radius,
