@@ -47,7 +47,8 @@ class Reply:
     best match (``None``: no match); ``confidence`` and ``reason``: the verification's
     (``None`` without one); ``fitness``, ``sigma_m`` (metres), ``correction_m`` (how far the
     registration moved the prior) and ``uncertain``: a prior answer's registration;
-    ``timings_ms``: the service's stages, milliseconds."""
+    ``timings_ms``: the service's stages, milliseconds. ``==`` compares every field but the
+    ``pose`` (an array)."""
 
     mode: str = "search"
     verified: bool | None = None
