@@ -29,8 +29,8 @@ import numpy as np
 from entry import run
 from local_server import start_server
 
+from pnvlad_service.client import LocalizeClient
 from pnvlad_service.data.scans import read_raw_scans
-from pnvlad_service.localization.client import LocalizeClient
 
 STAGES = ("parse", "preprocess", "queue", "embed", "search", "verify")
 

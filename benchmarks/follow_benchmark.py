@@ -67,7 +67,7 @@ def main() -> int:
     from typer.testing import CliRunner
 
     from pnvlad_cli.main import app
-    from pnvlad_service.localization.follow import read_follow_csv
+    from pnvlad_service.localization.drive.rows import read_rows
 
     proc, url = start_server(args.index)
     try:
@@ -91,7 +91,7 @@ def main() -> int:
     if res.exit_code != 0:
         raise SystemExit(f"the follow failed:\n{res.output}")
     print(res.stdout.strip())
-    rows = read_follow_csv(f"{args.out}.csv")
+    rows = read_rows(f"{args.out}.csv")
     per_scan = np.array([r.read_ms + r.odometry_ms + r.step_ms for r in rows])
     period_ms = 1000.0 / args.rate
     here_cpu = (here1.ru_utime - here0.ru_utime) + (here1.ru_stime - here0.ru_stime)

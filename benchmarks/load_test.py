@@ -62,7 +62,7 @@ import numpy as np
 from entry import run
 from local_server import start_server
 
-from pnvlad_service.localization.client import LocalizeClient, ServerError
+from pnvlad_service.client import LocalizeClient, ServerError
 from pnvlad_service.server.metrics import STAGES
 
 

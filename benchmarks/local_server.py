@@ -23,7 +23,7 @@ def free_port() -> int:
 
 def wait_ready(port: int, proc: subprocess.Popen, timeout: float = 120.0) -> None:
     """Poll GET /readyz until it answers 200; exit if the server dies or takes too long."""
-    from pnvlad_service.localization.client import LocalizeClient
+    from pnvlad_service.client import LocalizeClient
 
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

@@ -122,7 +122,8 @@ def invoke(args: list[str], what: str):
 
 def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
     """Map, bag and the followed drive of one run; its figures."""
-    from pnvlad_service.localization.follow import read_follow_csv, summarise_follow
+    from pnvlad_service.localization.drive.report import summarise
+    from pnvlad_service.localization.drive.rows import read_rows
 
     bundle = map_of(root, model, out, area, name)
     bag, origin, drive = bag_of(root, out, area, name, every)
@@ -134,7 +135,7 @@ def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: 
     t0 = time.perf_counter()
     res = invoke(args, f"following {area}/{name}")
     wall = time.perf_counter() - t0
-    s = summarise_follow(read_follow_csv(f"{dest}.csv"), wall)
+    s = summarise(read_rows(f"{dest}.csv"), "tracked", wall)
     return {"area": area, "run": name, "reverse": bool(drive.reverse), "summary": s,
             "line": res.stdout.strip().splitlines()[-1]}  # fmt: skip
 

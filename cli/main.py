@@ -46,7 +46,7 @@ def _root(
 def _register() -> None:
     # Imported here so each module stays importable on its own; none of them imports heavy
     # libraries at module level.
-    from pnvlad_cli import data, evaluate, index, model, serve, synth, train
+    from pnvlad_cli import data, evaluate, index, localize, model, serve, synth, train
 
     app.add_typer(data.app, name="data", rich_help_panel="Data")
     app.command("synth", rich_help_panel="Data")(synth.synth)
@@ -55,7 +55,7 @@ def _register() -> None:
     app.add_typer(model.app, name="model", rich_help_panel="Model")
     app.add_typer(index.app, name="index", rich_help_panel="Service")
     app.command("serve", rich_help_panel="Service")(serve.serve)
-    app.command("localize", rich_help_panel="Service")(serve.localize)
+    app.command("localize", rich_help_panel="Service")(localize.localize)
 
 
 _register()

@@ -1,25 +1,29 @@
-"""`pnvlad localize --rosbag` / `--kitti`: follow a drive against the service, a CSV and a PNG.
+"""`pnvlad localize --rosbag` / `--kitti`: a drive against the service, a CSV and a PNG.
 
-Called by `pnvlad localize` (cli/serve.py) when ``--rosbag`` or ``--kitti`` is given. By default
-the drive is *followed* (:mod:`pnvlad_service.localization.follow`): every scan goes to a
-:class:`~pnvlad_service.localization.tracking.DriveLocalizer` that searches until a fix is
-confirmed, then tracks (a registration near the pose its odometry predicts), and says when it
-is lost. With ``--per-scan`` every Nth scan is asked alone, as a raw-scan query
-(:mod:`pnvlad_service.localization.replay`). The service is a server (``--url``) or a bundle
-in this process (``--index``). Library imports happen inside the functions so that
-`pnvlad --help` stays fast.
+The options of `pnvlad localize`'s two drive modes (cli/localize.py): ``follow`` (the default:
+every scan goes to the drive localiser, which searches until a fix is confirmed, then tracks
+by registration near the pose its odometry predicts, and says when it is lost) and
+``per-scan`` (every Nth scan asked alone). The command fills a
+:class:`~pnvlad_service.localization.drive.config.DriveConfig` (:func:`drive_config`) and
+calls :func:`run`, which opens the source (:func:`open_source`, the one place that knows the
+kinds of drive) and the service, and hands both to
+:func:`pnvlad_service.localization.drive.job.run_job`. Library imports happen inside the
+functions so that `pnvlad --help` stays fast.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 
 from pnvlad_cli import rosbag as bag_options
+
+if TYPE_CHECKING:
+    from pnvlad_service.localization.drive.config import DriveConfig, ServiceConfig, SourceConfig
 
 PANEL = "Replay (with --rosbag)"
 
@@ -44,12 +48,13 @@ EVERY = typer.Option(
     rich_help_panel=PANEL,
 )
 FOLLOW = typer.Option(
-    True,
+    None,
     "--follow/--per-scan",
     help="With --rosbag or --kitti: follow the drive (search until a fix is confirmed by the "
     "odometry, then track by registration near the prediction, say when lost; default), or "
-    "ask with every Nth scan alone.",
+    "ask with every Nth scan alone: --mode follow or --mode per-scan.",
     rich_help_panel=PANEL,
+    show_default=False,
 )
 TRUTH_TOPIC = typer.Option(
     None,
@@ -133,14 +138,10 @@ def check_per_scan(
     failures: int | None,
     window: float | None = None,
 ) -> None:
-    """InputError when an option of following is given with ``--per-scan`` (``--odometry
-    kiss-icp`` goes with ``--window``)."""
+    """InputError when an option of following is given with ``--per-scan`` (``--odometry``
+    goes with ``--window``: it poses the window; the window's own checks are the config's)."""
     from pnvlad_service.errors import InputError
 
-    if window is not None and not window > 0:
-        raise InputError(f"must be a positive number of metres, got {window}", "--window")
-    if window is not None and odometry not in ("auto", "poses", "kiss-icp"):
-        raise InputError("a window is posed by the bag's poses or kiss-icp", "--odometry")
     given = {
         "--truth-topic": truth_topic,
         "--radius": radius,
@@ -162,176 +163,130 @@ def parse_origin(text: str | None) -> tuple[float, float]:
     return _parse_origin(text)
 
 
-@contextmanager
-def _service(
-    url: str | None, index: Path | None, model: Path | None, api_key: str | None, top_n: int
-) -> Iterator[Callable[[Any], dict[str, Any]]]:
-    """``ask(points, kind="scan") -> answer`` for raw scans (or windows), from a server or
-    from a local bundle."""
-    if url is not None:
-        from pnvlad_service.localization.client import LocalizeClient
+#: The option of each field of a DriveConfig that the library names in its errors.
+FLAGS = {
+    "every": "--every",
+    "odometry": "--odometry",
+    "window_m": "--window",
+    "tracking.radius_m": "--radius",
+    "tracking.confirm": "--confirm",
+    "tracking.failures": "--failures",
+}
 
-        with LocalizeClient(url, api_key=api_key) as client:
-            yield lambda points, kind="scan": client.localize(points, top_n, kind=kind)
+
+@contextmanager
+def flags() -> Iterator[None]:
+    """The library's errors that name a field of the config, naming its option instead."""
+    from pydantic import ValidationError
+
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.localization.drive.config import config_error
+
+    try:
+        yield
+    except ValidationError as exc:
+        err = config_error(exc)
+        raise InputError(err.detail, FLAGS.get(err.source or "", err.source)) from None
+    except InputError as exc:
+        if exc.source not in FLAGS:
+            raise
+        raise InputError(exc.detail, FLAGS[exc.source]) from None
+
+
+def drive_config(policy: str, *, tracking: dict[str, Any], **sections: Any) -> DriveConfig:
+    """The :class:`~pnvlad_service.localization.drive.config.DriveConfig` of the options
+    (``tracking``: the tracker's rules given, ``None`` for its defaults)."""
+    from pnvlad_service.localization.drive.config import DriveConfig
+
+    given = {k: v for k, v in tracking.items() if v is not None}
+    with flags():
+        return DriveConfig(policy=policy, tracking=given, **sections)  # type: ignore[arg-type]
+
+
+def run(config: DriveConfig) -> None:
+    """The whole drive: open the source and the service, run it, print what it made."""
+    from pnvlad_service.localization.drive.job import run_job
+
+    with flags():
+        config.check()
+        drive, where, truth = open_source(config.source)
+        try:
+            with open_service(config.service) as service:
+                result = run_job(config, drive, service, source=where, truth=truth)
+        finally:
+            close = getattr(drive, "close", None)
+            if close is not None:
+                close()
+    for line in result.lines():
+        typer.echo(line)
+
+
+@contextmanager
+def open_service(config: ServiceConfig) -> Iterator[Any]:
+    """The :class:`~pnvlad_service.localization.drive.service.Service` of a server
+    (``--url``) or of a bundle in this process (``--index``)."""
+    from pnvlad_service.localization.drive import service
+
+    if config.url is not None:
+        from pnvlad_service.client import LocalizeClient
+
+        with LocalizeClient(config.url, api_key=config.api_key) as client:
+            yield service.http_service(client, config.top_n)
         return
-    from pnvlad_service.localization.limits import Limits
     from pnvlad_service.localization.localizer import Localizer
 
-    assert index is not None
-    with Localizer.load(index, model) as loc:
-
-        def ask(points: Any, kind: str = "scan") -> dict[str, Any]:
-            # A local query is bounded by the bundle, not by the server's request limits.
-            limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)))
-            return loc.localize(points, kind=kind, top_n=top_n, limits=limits).to_json()
-
-        yield ask
+    assert config.index is not None
+    with Localizer.load(config.index, config.model) as loc:
+        yield service.local_service(loc, config.index, config.top_n)
 
 
-def _map_positions(bundle: Path | None) -> Any:
-    """float [M, 2] (northing, easting) of a bundle's submaps, or None."""
-    if bundle is None:
-        return None
-    import numpy as np
-
-    from pnvlad_service.index.bundle import METADATA_FILE, Metadata
-
-    meta = Metadata.load(Path(bundle) / METADATA_FILE)
-    return np.c_[meta.northing, meta.easting]
-
-
-def _map_record(bundle: Path | None, url: str | None, api_key: str | None) -> Any:
-    """The serving map's ``map`` entry (how its windows laid each scan): from the bundle's
-    manifest, else from the server's ``GET /info``; None where neither says."""
-    if bundle is not None:
-        from pnvlad_service.index.manifest import Manifest
-
-        return Manifest.read(bundle).map_record.to_json()
-    if url is not None:
-        from pnvlad_service.localization.client import LocalizeClient
-
-        with LocalizeClient(url, api_key=api_key) as client:
-            return client.info()["manifest"].get("map")
-    return None
-
-
-def replay_rosbag(
-    *,
-    rosbag: Path,
-    cloud_topic: str | None,
-    pose_topic: str | None,
-    tf_frame: str | None,
-    origin_ne: tuple[float, float],
-    yaw_deg: float,
-    max_pose_gap: float | None,
-    url: str | None,
-    index: Path | None,
-    model: Path | None,
-    api_key: str | None,
-    every: int | None,
-    out: Path | None,
-    map_bundle: Path | None,
-    plot: bool,
-    top_n: int = 5,
-    progress: bool = True,
-    window: float | None = None,
-    odometry: str = "auto",
-) -> None:
-    """The whole replay: open the bag, ask, write OUT.csv and OUT.png, print the summary;
-    with ``window``, each query the last ``window`` metres of the drive (:class:`Windows`)."""
-    from pnvlad_service.data.sources.rosbag import RosbagClouds
+def open_source(source: SourceConfig) -> tuple[Any, Path, Any]:
+    """(the drive, the file or folder it came from, its true poses from ``--truth-topic`` or
+    ``None``): the KITTI sequence, or the bag's clouds with the poses of ``--pose-topic`` /
+    ``--tf`` when given. The one place that knows the kinds of drive."""
     from pnvlad_service.errors import InputError
-    from pnvlad_service.localization.replay import (
-        Windows,
-        plot_replay,
-        replay,
-        summarise,
-        write_replay_csv,
-    )
 
-    every = 10 if every is None else every
-    if every < 1:
-        raise InputError(f"must be >= 1, got {every}", "--every")
-    if pose_topic is None and tf_frame is None:
-        if cloud_topic is None:
+    if source.kitti is not None:
+        from pnvlad_service.data.sources.kitti import KittiSequence
+
+        if source.truth_topic is not None:
+            raise InputError("applies to --rosbag only (a KITTI sequence's poses are its truth)",
+                             "--truth-topic")  # fmt: skip
+        drive = KittiSequence(source.kitti, origin_ne=source.origin_ne, yaw_deg=source.yaw_deg)
+        return drive, source.kitti, None
+    assert source.rosbag is not None
+    if source.pose_topic is None and source.tf_frame is None:
+        from pnvlad_service.data.sources.rosbag import RosbagClouds
+
+        if source.cloud_topic is None:
             raise InputError("--rosbag needs --cloud-topic (see `pnvlad data prepare "
                              "--rosbag BAG --list`)", "--cloud-topic")  # fmt: skip
-        drive: Any = RosbagClouds(rosbag, cloud_topic)
-    else:
-        drive = bag_options.open_drive(
-            rosbag, cloud_topic, pose_topic, tf_frame, origin_ne=origin_ne, yaw_deg=yaw_deg,
-            max_pose_gap=max_pose_gap,
-        )  # fmt: skip
-    if out is None:
-        out = rosbag.with_name(f"{drive.name}.replay")
-    try:
-        map_ne = _map_positions(index if index is not None else map_bundle)
-        windows = None
-        if window is not None:
-            posed = odometry == "kiss-icp" or (odometry == "auto" and pose_topic is None
-                                               and tf_frame is None)  # fmt: skip
-            map_record = _map_record(index if index is not None else map_bundle, url, api_key)
-            windows = Windows(window, odometry=posed, map_record=map_record)
-        with _service(url, index, model, api_key, top_n) as ask:
-            rows = replay(drive, ask, every=every, progress=progress, window=windows)
-    finally:
-        drive.close()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    csv_path = write_replay_csv(rows, out.with_name(out.name + ".csv"))
-    written = [str(csv_path)]
-    if plot:
-        poses = getattr(drive, "poses", None)
-        png = plot_replay(
-            rows,
-            out.with_name(out.name + ".png"),
-            map_ne=map_ne,
-            trajectory_ne=None if poses is None else poses[:, [1, 0], 3],
-            title=f"{drive.name}: {cloud_topic}, one scan in {every}"
-            + ("" if window is None else f", the last {window:g} m a query"),
-        )
-        written.append(str(png))
-    typer.echo(f"wrote {', '.join(written)}")
-    typer.echo(summarise(rows).line())
+        return RosbagClouds(source.rosbag, source.cloud_topic), source.rosbag, None
+    drive = _bag_drive(source, source.pose_topic, source.tf_frame)
+    truth = None
+    if source.truth_topic is not None:
+        try:
+            truth = _truth_at(source, drive.timestamps)
+        except BaseException:
+            drive.close()
+            raise
+    return drive, source.rosbag, truth
 
 
-@contextmanager
-def _follow_service(
-    url: str | None, index: Path | None, model: Path | None, api_key: str | None, top_n: int
-) -> Iterator[Any]:
-    """``ask(points, prior) -> answer`` (:data:`~pnvlad_service.localization.tracking.Ask`)
-    from a server or from a local bundle."""
-    from pnvlad_service.localization import tracking
-
-    if url is not None:
-        from pnvlad_service.localization.client import LocalizeClient
-
-        with LocalizeClient(url, api_key=api_key) as client:
-            yield tracking.http_ask(client, top_n)
-        return
-    from pnvlad_service.localization.localizer import Localizer
-
-    assert index is not None
-    with Localizer.load(index, model) as loc:
-        yield tracking.local_ask(loc, top_n)
+def _bag_drive(source: SourceConfig, pose_topic: str | None, tf_frame: str | None) -> Any:
+    assert source.rosbag is not None
+    return bag_options.open_drive(
+        source.rosbag, source.cloud_topic, pose_topic, tf_frame, origin_ne=source.origin_ne,
+        yaw_deg=source.yaw_deg, max_pose_gap=source.max_pose_gap,
+    )  # fmt: skip
 
 
-def _truth_at(
-    rosbag: Path,
-    cloud_topic: str,
-    truth_topic: str,
-    stamps: Any,
-    origin_ne: tuple[float, float],
-    yaw_deg: float,
-    max_pose_gap: float | None,
-) -> Any:
-    """float64 [T, 4, 4] of ``truth_topic`` at each of the drive's ``stamps`` (NaN where the
+def _truth_at(source: SourceConfig, stamps: Any) -> Any:
+    """float64 [T, 4, 4] of ``--truth-topic`` at each of the drive's ``stamps`` (NaN where the
     topic has no pose for that scan)."""
     import numpy as np
 
-    truth = bag_options.open_drive(
-        rosbag, cloud_topic, truth_topic, None, origin_ne=origin_ne, yaw_deg=yaw_deg,
-        max_pose_gap=max_pose_gap,
-    )  # fmt: skip
+    truth = _bag_drive(source, source.truth_topic, None)
     try:
         by_stamp = {int(t): p for t, p in zip(truth.timestamps, truth.poses, strict=True)}
     finally:
@@ -342,191 +297,3 @@ def _truth_at(
         if pose is not None:
             out[k] = pose
     return out
-
-
-def _odometry_choice(choice: str, has_poses: bool) -> str:
-    """``--odometry``: ``auto`` resolved (poses, else KISS-ICP when installed, else none)."""
-    from pnvlad_service.errors import InputError
-
-    if choice not in ("auto", "poses", "kiss-icp", "none"):
-        raise InputError(f"must be auto, poses, kiss-icp or none, got {choice!r}", "--odometry")
-    if choice == "poses" and not has_poses:
-        raise InputError("the drive has no poses: give --pose-topic or --tf, or choose "
-                         "kiss-icp or none", "--odometry")  # fmt: skip
-    if choice != "auto":
-        return choice
-    if has_poses:
-        return "poses"
-    import importlib.util
-
-    return "kiss-icp" if importlib.util.find_spec("kiss_icp") is not None else "none"
-
-
-def follow(
-    *,
-    rosbag: Path | None,
-    kitti: Path | None,
-    cloud_topic: str | None,
-    pose_topic: str | None,
-    tf_frame: str | None,
-    truth_topic: str | None,
-    origin_ne: tuple[float, float],
-    yaw_deg: float,
-    max_pose_gap: float | None,
-    url: str | None,
-    index: Path | None,
-    model: Path | None,
-    api_key: str | None,
-    every: int | None,
-    out: Path | None,
-    map_bundle: Path | None,
-    plot: bool,
-    odometry: str = "auto",
-    radius: float | None = None,
-    confirm: int | None = None,
-    failures: int | None = None,
-    top_n: int = 5,
-    progress: bool = True,
-) -> None:
-    """Follow a bag's or a KITTI sequence's drive: open it, follow it, write OUT.csv and
-    OUT.png, print the summary line and the stages' times."""
-    import time
-
-    from pnvlad_service.errors import InputError
-    from pnvlad_service.localization.follow import follow_drive
-
-    every = 1 if every is None else every
-    if every < 1:
-        raise InputError(f"must be >= 1, got {every}", "--every")
-    config = _tracker_config(radius, confirm, failures)
-    drive, source = _open_followed(
-        rosbag, kitti, cloud_topic, pose_topic, tf_frame, truth_topic, origin_ne, yaw_deg,
-        max_pose_gap,
-    )  # fmt: skip
-    try:
-        poses = getattr(drive, "poses", None)
-        how = _odometry_choice(odometry, poses is not None)
-        truth = poses
-        if truth_topic is not None:
-            assert rosbag is not None and cloud_topic is not None
-            truth = _truth_at(rosbag, cloud_topic, truth_topic, drive.timestamps, origin_ne,
-                              yaw_deg, max_pose_gap)  # fmt: skip
-        if out is None:
-            out = source.with_name(f"{drive.name}.follow")
-        bundle = index if index is not None else map_bundle
-        positions, map_ne, known = _followed_map(bundle, truth is not None)
-        with _follow_service(url, index, model, api_key, top_n) as ask:
-            t0 = time.perf_counter()
-            rows = follow_drive(
-                drive, ask, every=every, odometry=how, truth=truth, config=config,  # type: ignore[arg-type]
-                positions=positions, truth_of_map=known, progress=progress,
-            )  # fmt: skip
-            wall = time.perf_counter() - t0
-    finally:
-        close = getattr(drive, "close", None)
-        if close is not None:
-            close()
-    _report_followed(rows, wall, out, how, plot=plot, map_ne=map_ne,
-                     title=f"{drive.name}: every scan" if every == 1 else
-                     f"{drive.name}: one scan in {every}")  # fmt: skip
-
-
-def _tracker_config(radius: float | None, confirm: int | None, failures: int | None) -> Any:
-    """The :class:`~pnvlad_service.localization.tracking.TrackerConfig` with ``--radius``,
-    ``--confirm`` and ``--failures`` where given (InputError naming the flag it refuses)."""
-    from dataclasses import replace
-
-    from pnvlad_service.errors import InputError
-    from pnvlad_service.localization.tracking import TrackerConfig
-
-    config = TrackerConfig()
-    for flag, name, value in (("--radius", "radius_m", radius), ("--confirm", "confirm", confirm),
-                              ("--failures", "failures", failures)):  # fmt: skip
-        if value is None:
-            continue
-        try:
-            config = replace(config, **{name: value})
-        except ValueError as exc:
-            raise InputError(str(exc), flag) from None
-    return config
-
-
-def _open_followed(
-    rosbag: Path | None,
-    kitti: Path | None,
-    cloud_topic: str | None,
-    pose_topic: str | None,
-    tf_frame: str | None,
-    truth_topic: str | None,
-    origin_ne: tuple[float, float],
-    yaw_deg: float,
-    max_pose_gap: float | None,
-) -> tuple[Any, Path]:
-    """(the drive to follow, the file or folder it came from): the KITTI sequence, or the bag's
-    clouds with the poses of ``pose_topic`` / ``tf_frame`` when given."""
-    from pnvlad_service.errors import InputError
-
-    if kitti is not None:
-        from pnvlad_service.data.sources.kitti import KittiSequence
-
-        if truth_topic is not None:
-            raise InputError("applies to --rosbag only (a KITTI sequence's poses are its truth)",
-                             "--truth-topic")  # fmt: skip
-        return KittiSequence(kitti, origin_ne=origin_ne, yaw_deg=yaw_deg), kitti
-    assert rosbag is not None
-    if pose_topic is None and tf_frame is None:
-        from pnvlad_service.data.sources.rosbag import RosbagClouds
-
-        if cloud_topic is None:
-            raise InputError("--rosbag needs --cloud-topic (see `pnvlad data prepare "
-                             "--rosbag BAG --list`)", "--cloud-topic")  # fmt: skip
-        return RosbagClouds(rosbag, cloud_topic), rosbag
-    drive = bag_options.open_drive(
-        rosbag, cloud_topic, pose_topic, tf_frame, origin_ne=origin_ne, yaw_deg=yaw_deg,
-        max_pose_gap=max_pose_gap,
-    )  # fmt: skip
-    return drive, rosbag
-
-
-def _followed_map(bundle: Path | None, with_truth: bool) -> tuple[Any, Any, Any]:
-    """(the map's positions, float [M, 2] northing and easting of its entries, its own truth
-    when the drive has truth) of the bundle at ``bundle``; ``None`` for each without one."""
-    if bundle is None:
-        return None, None, None
-    import numpy as np
-
-    from pnvlad_service.index.bundle import METADATA_FILE, Metadata
-    from pnvlad_service.localization.follow import map_truth
-    from pnvlad_service.localization.prior import MapPositions
-
-    meta = Metadata.load(Path(bundle) / METADATA_FILE)
-    positions = MapPositions.of_metadata(meta)
-    map_ne = np.c_[meta.northing, meta.easting]
-    known = map_truth(bundle) if with_truth else None
-    return positions, map_ne, known
-
-
-def _report_followed(
-    rows: Any, wall: float, out: Path, how: str, *, plot: bool, map_ne: Any, title: str
-) -> None:
-    """Write OUT.csv (and OUT.png), print the odometry, the stages' mean times and the
-    summary line."""
-    from pnvlad_service.localization.follow_report import (
-        plot_follow,
-        stage_means,
-        summarise_follow,
-        write_follow_csv,
-    )
-
-    out.parent.mkdir(parents=True, exist_ok=True)
-    written = [str(write_follow_csv(rows, out.with_name(out.name + ".csv")))]
-    if plot:
-        png = plot_follow(rows, out.with_name(out.name + ".png"), map_ne=map_ne, title=title)
-        written.append(str(png))
-    typer.echo(f"wrote {', '.join(written)}")
-    typer.echo(f"odometry: {how}")
-    for mode, means in stage_means(rows).items():
-        parts = ", ".join(f"{k} {v:.1f}" for k, v in means.items() if k != "scans")
-        what = "searching" if mode == "search" else "tracking"
-        typer.echo(f"stages, {what} ({int(means['scans'])} scans), mean ms: {parts}")
-    typer.echo(summarise_follow(rows, wall).line())

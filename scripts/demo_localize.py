@@ -26,13 +26,13 @@ from typing import Any
 
 import numpy as np
 
-from pnvlad_cli.serve import verdict
+from pnvlad_cli.localize import verdict
+from pnvlad_service.client import LocalizeClient
 from pnvlad_service.data.frames import SubmapFrame
 from pnvlad_service.data.splits import resolve_regions
 from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.errors import PnvladError
 from pnvlad_service.io.readers import read_points
-from pnvlad_service.localization.client import LocalizeClient
 
 
 def pose_line(answer: dict, frame: SubmapFrame | None) -> str:

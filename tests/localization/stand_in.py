@@ -1,6 +1,7 @@
 """A stand-in drive and service for the drive localiser's tests (test_tracking.py,
 test_follow.py, test_follow_report.py): a street with a turn, the robot's odometry in a frame of
-its own, a service whose answers are set scan by scan, and the rows of the drive followed."""
+its own, a service whose typed replies are set scan by scan, and the rows of the drive
+followed."""
 
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.follow import follow_drive
+from pnvlad_service.localization.drive.runner import run_drive
+from pnvlad_service.localization.drive.service import Place, Reply
+from pnvlad_service.localization.drive.tracking import DriveScan
 from pnvlad_service.localization.prior import MapPositions, Prior
-from pnvlad_service.localization.tracking import DriveScan
 
 ORIGIN = np.array([620000.0, 5735000.0, 40.0])
 STEP_M = 2.5  # metres between scans
@@ -47,16 +49,11 @@ def cloud(i: int) -> np.ndarray:
     return np.full((5, 3), float(i))
 
 
-def answer(p: np.ndarray | None, mode: str, reason: str | None = None, **prior: Any) -> dict:
-    return {
-        "mode": mode,
-        "verified": p is not None,
-        "pose": None if p is None else {"transform": p.tolist()},
-        "matches": [{"submap_id": f"city/run/{mode}"}],
-        "verification": {"confidence": 0.5 if p is not None else 0.0, "reason": reason},
-        "prior": prior or None,
-        "timings_ms": {"total": 1.0},
-    }
+def answer(p: np.ndarray | None, mode: str, reason: str | None = None, **prior: Any) -> Reply:
+    top = Place(f"city/run/{mode}", 0, "run", "keyframe", 0.0, 0.0, None)
+    return Reply(mode=mode, verified=p is not None, pose=p, top=top,
+                 confidence=0.5 if p is not None else 0.0, reason=reason,
+                 timings_ms={"total": 1.0}, **prior)  # fmt: skip
 
 
 class Service:
@@ -78,7 +75,9 @@ class Service:
         self.reach, self.refuse, self.truth = reach, set(refuse), scan_truth
         self.calls: list[tuple[int, Prior | None]] = []
 
-    def __call__(self, points: np.ndarray, prior: Prior | None) -> dict:
+    def __call__(
+        self, points: np.ndarray, prior: Prior | None = None, kind: str = "scan"
+    ) -> Reply:
         i = int(points[0, 0])
         self.calls.append((i, prior))
         if i in self.refuse:
@@ -134,6 +133,6 @@ def map_without(hole: range, n: int = N) -> MapPositions:
 
 def followed(**kw) -> tuple[list, Service]:
     svc = Service(right={2, 3, 30, 31}, off_map=set(range(18, 27)))
-    rows = follow_drive(StandInDrive(), svc, truth=true_poses(), progress=False,
-                        positions=map_without(range(18, 27)), **kw)  # fmt: skip
+    rows = run_drive(StandInDrive(), svc, "tracked", truth=true_poses(), progress=False,
+                     positions=map_without(range(18, 27)), **kw)  # fmt: skip
     return rows, svc

@@ -14,7 +14,8 @@ import pytest
 from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
-from pnvlad_service.localization.follow import COLUMNS, GOOD_DEG, GOOD_M, WRONG_POSE_M
+from pnvlad_service.localization.drive.report import GOOD_DEG, GOOD_M, WRONG_POSE_M
+from pnvlad_service.localization.drive.rows import COLUMNS
 from tests.index.helpers import free_port
 from tests.server.test_app import start_server, stop_server
 
@@ -97,7 +98,8 @@ def test_follow_a_bag_against_a_real_server(tiny_maps: dict, bag: dict, tmp_path
     lines = res.stdout.strip().splitlines()
     assert lines[0] == f"wrote {out}.csv, {out}.png" and lines[1] == "odometry: poses"
     rows = read_rows(Path(f"{out}.csv"))
-    assert tuple(rows[0]) == COLUMNS and [int(r["scan"]) for r in rows] == list(range(SCANS))
+    assert tuple(rows[0]) == COLUMNS["tracked"]
+    assert [int(r["scan"]) for r in rows] == list(range(SCANS))
     assert {r["state"] for r in rows} <= {"searching", "tracking", "lost"}
     truth = bag["truth"]
     for r in rows:  # the truth from /ground_truth, the errors from the columns
@@ -149,4 +151,51 @@ def test_follow_here_and_the_options_refused(tiny_maps: dict, bag: dict, tmp_pat
         assert res.exit_code == 2, (args, res.output)
         errors = [line for line in res.output.splitlines() if line.startswith("error: ")]
         assert len(errors) == 1 and message in errors[0], (args, res.output)
+    assert not list(tmp_path.glob("bad*"))
+
+
+def same_rows(a: list[dict[str, str]], b: list[dict[str, str]]) -> bool:
+    """The rows alike but for the times (and a registration's last digits)."""
+    timed = {"read_ms", "odometry_ms", "step_ms", "server_ms"}
+    if len(a) != len(b) or (a and list(a[0]) != list(b[0])):
+        return False
+    for x, y in zip(a, b, strict=True):
+        for k in x:
+            if k in timed or x[k] == y[k]:
+                continue
+            if not (x[k] and y[k] and math.isclose(float(x[k]), float(y[k]), rel_tol=1e-9)):
+                return False
+    return True
+
+
+def test_the_modes_old_and_new_spellings(tiny_maps: dict, bag: dict, tmp_path: Path) -> None:
+    """--mode follow / --mode per-scan make the rows the old spellings (nothing, --follow,
+    --per-scan) make; a mode that contradicts the other options is refused."""
+    base = ["localize", "--rosbag", str(bag["bag"]), "--cloud-topic", "/points",
+            "--pose-topic", "/odom", "--origin", bag["origin"], "--index", str(tiny_maps["keys"]),
+            "--every", "5", "--no-plot", "--no-progress"]  # fmt: skip
+    spellings = {
+        "tracked": ([], ["--mode", "follow"], ["--follow", "--mode", "follow"]),
+        "per-scan": (["--per-scan"], ["--mode", "per-scan"]),
+    }
+    for policy, ways in spellings.items():
+        tables = []
+        for k, extra in enumerate(ways):
+            out = tmp_path / f"{policy}{k}"
+            res = CliRunner().invoke(app, [*base, *extra, "--out", str(out)])
+            assert res.exit_code == 0, (extra, res.output)
+            tables.append(read_rows(Path(f"{out}.csv")))
+        assert tuple(tables[0][0]) == COLUMNS[policy] and len(tables[0]) == SCANS // 5
+        assert all(same_rows(tables[0], t) for t in tables[1:]), policy
+    cases = [
+        (["--mode", "follow", "--per-scan"], "--per-scan: contradicts --mode follow"),
+        (["--mode", "per-scan", "--follow"], "--follow: contradicts --mode per-scan"),
+        (["--mode", "scan"], "--rosbag: --mode scan asks with a SCAN file, not a drive"),
+        (["--mode", "drive"], "--mode: must be scan, follow or per-scan, got 'drive'"),
+        (["--mode", "per-scan", "--radius", "5"], "--radius: applies to following"),
+    ]
+    for extra, message in cases:
+        res = CliRunner().invoke(app, [*base, *extra, "--out", str(tmp_path / "bad")])
+        errors = [line for line in res.output.splitlines() if line.startswith("error: ")]
+        assert res.exit_code == 2 and len(errors) == 1 and message in errors[0], res.output
     assert not list(tmp_path.glob("bad*"))

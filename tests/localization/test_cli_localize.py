@@ -83,3 +83,18 @@ def test_usage_errors_exit_2(world: dict[str, Path], tmp_path: Path) -> None:
     assert res.exit_code == 2 and "cannot reach" in res.output
     res = runner.invoke(app, local_args({"bundle": tmp_path / "none"}, scan))
     assert res.exit_code == 2 and "not found" in res.output
+    res = runner.invoke(app, ["localize", "--mode", "follow", "--index", str(world["bundle"])])
+    assert res.exit_code == 2 and "--mode: --mode follow needs a drive: --rosbag" in res.output
+
+
+def test_mode_scan_is_the_old_spelling(world: dict[str, Path]) -> None:
+    """`pnvlad localize --mode scan SCAN` answers what `pnvlad localize SCAN` answers."""
+    rec = ix.list_database_submaps(world["tree"])[PER_RUN + 2]
+    scan = str(world["tree"] / rec.path)
+    answers = []
+    for extra in ([], ["--mode", "scan"]):
+        res = CliRunner().invoke(app, [*local_args(world, scan, "--json", "-n", "3"), *extra])
+        assert res.exit_code == 0, res.output
+        answers.append(json.loads(res.stdout))
+    old, new = ([(m["submap_id"], m["distance"]) for m in a["matches"]] for a in answers)
+    assert old == new and old[0][0] == rec.submap_id

@@ -20,6 +20,7 @@ import pytest
 from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
+from pnvlad_service.localization.drive.rows import COLUMNS
 from tests.index.helpers import make_checkpoint
 from tests.kitti00 import TR_LINE, pose_line, velodyne_pose
 
@@ -100,3 +101,21 @@ def test_a_kitti_drive_is_followed(real_scans: Path, tmp_path: Path) -> None:
         ("tracking", "fix", "search"),
         ("tracking", "registered", "prior"),
     ]
+    # --mode per-scan asks with each scan of a KITTI sequence alone, the rows those of a bag
+    # asked scan by scan; --per-scan without --mode follows a KITTI sequence, as it always did.
+    first = placed(real_scans, 4501)
+    place = ["--origin", f"{float(first[1, 3])!r},{float(first[0, 3])!r}", "--yaw",
+             repr(math.degrees(math.atan2(first[1, 0], first[0, 0]))), "--index", str(bundle),
+             "-m", str(model), "--no-progress", "--no-plot"]  # fmt: skip
+    seq = str(sequence(tmp_path, real_scans, [4501, 4501]))
+    out = tmp_path / "per-scan"
+    lines = run_cli(["localize", "--mode", "per-scan", "--kitti", seq, "--every", "1", *place,
+                     "--out", str(out)]).strip().splitlines()  # fmt: skip
+    assert lines[0] == f"wrote {out}.csv" and lines[-1].startswith("replay: 2 of 2 queries")
+    with open(f"{out}.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0]) == COLUMNS["per-scan"] and [r["status"] for r in rows] == ["ok"] * 2
+    assert float(rows[0]["true_northing"]) == pytest.approx(first[1, 3], abs=1e-3)
+    lines = run_cli(["localize", "--per-scan", "--kitti", seq, *place,
+                     "--out", str(tmp_path / "old")]).strip().splitlines()  # fmt: skip
+    assert lines[1] == "odometry: poses" and lines[-1].startswith("follow: 2 scans in ")

@@ -1,6 +1,6 @@
-"""What is made of a followed drive's rows (localization/follow_report.py), on the stand-in
-drive followed: the CSV and back, the summary's figures recomputed from the rows, the stages'
-times, the PNG."""
+"""What is made of a tracked drive's rows (localization/drive/rows.py, report.py, plot.py), on
+the stand-in drive followed: the CSV and back, the summary's figures recomputed from the rows,
+the stages' times, the PNG."""
 
 from __future__ import annotations
 
@@ -11,22 +11,15 @@ import numpy as np
 import pytest
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization import follow
-from pnvlad_service.localization.follow_report import (
-    COLUMNS,
-    FollowRow,
-    plot_follow,
-    read_follow_csv,
-    stage_means,
-    summarise_follow,
-    write_follow_csv,
-)
+from pnvlad_service.localization.drive.plot import plot_drive
+from pnvlad_service.localization.drive.report import stage_means, summarise
+from pnvlad_service.localization.drive.rows import COLUMNS, DriveRow, read_rows, write_rows
 from tests.localization.stand_in import DT_US, STEP_M, N, followed
 
 
 def test_summary_figures_recomputed_from_the_rows() -> None:
     rows, _ = followed()
-    s = summarise_follow(rows, wall_s=2.0, off_map_m=3.0)
+    s = summarise(rows, "tracked", 2.0, off_map_m=3.0)
     after = rows[3:]
     verified = [r for r in after if r.verified]
     assert (s.first_fix_scan, s.first_fix_s) == (3, pytest.approx(3 * DT_US / 1e6))
@@ -65,17 +58,19 @@ def test_summary_figures_recomputed_from_the_rows() -> None:
 
 def test_csv_round_trip_and_the_png(tmp_path: Path) -> None:
     rows, _ = followed()
-    path = write_follow_csv(rows, tmp_path / "f.csv")
+    path = write_rows(rows, tmp_path / "f.csv", "tracked")
     with open(path, newline="") as fh:
         back = list(csv.DictReader(fh))
-    assert tuple(back[0]) == COLUMNS and len(back) == N
+    assert tuple(back[0]) == COLUMNS["tracked"] and len(back) == N
     assert [b["state"] for b in back] == [r.state for r in rows]
     assert [b["verified"] == "true" for b in back] == [r.verified for r in rows]
     assert float(back[10]["pose_northing"]) == pytest.approx(rows[10].pose_northing)
-    again = read_follow_csv(path)
-    assert summarise_follow(again, 2.0, 3.0).line() == summarise_follow(rows, 2.0, 3.0).line()
+    again = read_rows(path)
+    assert summarise(again, "tracked", 2.0, off_map_m=3.0).line() == (
+        summarise(rows, "tracked", 2.0, off_map_m=3.0).line()
+    )
     assert [a.reason for a in again] == [r.reason for r in rows]
-    png = plot_follow(rows, tmp_path / "f.png", map_ne=np.c_[[5735000.0], [620000.0]])
+    png = plot_drive(rows, tmp_path / "f.png", "tracked", map_ne=np.c_[[5735000.0], [620000.0]])
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
     means = stage_means(rows)
     assert set(means) == {"search", "prior"}
@@ -86,7 +81,7 @@ def test_a_jump_of_the_truth_is_timed_to_lost_and_to_the_next_fix() -> None:
     rows = []
     for i in range(12):
         jumped = 400.0 if i >= 5 else 0.0
-        r = FollowRow(i, i * 100_000, i * 0.1, true_northing=5735000.0 + i + jumped,
+        r = DriveRow(i, i * 100_000, i * 0.1, true_northing=5735000.0 + i + jumped,
                       true_easting=620000.0)  # fmt: skip
         r.state, r.how = ("tracking", "registered") if i < 7 else ("searching", None)
         r.verified = i < 7
@@ -95,7 +90,7 @@ def test_a_jump_of_the_truth_is_timed_to_lost_and_to_the_next_fix() -> None:
     rows[7].verified = False
     rows[10].how, rows[10].event, rows[10].state = "fix", "relocalised", "tracking"
     rows[10].verified = True
-    s = summarise_follow(rows, 1.0)
+    s = summarise(rows, "tracked", 1.0)
     assert s.jumps == ((2, pytest.approx(0.2), 5, pytest.approx(0.5)),)
     assert "the truth jumped: lost 2 scans (0.2 s) after it, a fix 5 scans (0.5 s) after it" in (
         s.line()
@@ -104,10 +99,4 @@ def test_a_jump_of_the_truth_is_timed_to_lost_and_to_the_next_fix() -> None:
 
 def test_no_rows_to_summarise() -> None:
     with pytest.raises(InputError, match="no rows"):
-        summarise_follow([], 1.0)
-
-
-def test_the_report_names_are_still_imported_from_follow() -> None:
-    for name in ("COLUMNS", "FollowRow", "FollowSummary", "GOOD_M", "summarise_follow",
-                 "read_follow_csv", "write_follow_csv", "plot_follow", "stage_means"):  # fmt: skip
-        assert name in follow.__all__ and hasattr(follow, name), name
+        summarise([], "tracked", 1.0)

@@ -183,7 +183,7 @@ def test_many_threads_share_batches_and_get_their_own_answers(world, loc) -> Non
 def test_the_library_imports_no_web_framework() -> None:
     code = (
         "import sys\n"
-        "import pnvlad_service.localization.localizer, pnvlad_service.localization.client\n"
+        "import pnvlad_service.localization.localizer, pnvlad_service.client\n"
         "import pnvlad_service.localization.limits, pnvlad_service.localization.batching\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('fastapi', 'starlette'))\n"
         "assert not bad, bad\n"

@@ -1,5 +1,6 @@
-"""Tests of pnvlad_service.localization.replay (a drive replayed against the service) with a
-stand-in service; the CLI against a real server lives in test_cli_replay.py."""
+"""A drive asked scan by scan (localization/drive/runner.py, policy ``per-scan``) with a
+stand-in service: the rows, their CSV, the summary and the PNG; then `pnvlad localize --rosbag
+--per-scan` against a real server on 127.0.0.1 and against a bundle in this process."""
 
 from __future__ import annotations
 
@@ -11,12 +12,11 @@ import numpy as np
 import pytest
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.replay import (
-    plot_replay,
-    replay,
-    summarise,
-    write_replay_csv,
-)
+from pnvlad_service.localization.drive.plot import plot_drive
+from pnvlad_service.localization.drive.report import summarise
+from pnvlad_service.localization.drive.rows import COLUMNS, read_rows, write_rows
+from pnvlad_service.localization.drive.runner import run_drive
+from pnvlad_service.localization.drive.service import Place, Reply
 
 
 class LineDrive:
@@ -25,6 +25,7 @@ class LineDrive:
     def __init__(self, n: int, poses: bool = True) -> None:
         self.name = "line"
         self.timestamps = np.arange(n, dtype=np.int64) * 1_000_000 + 5_000_000
+        self.poses = None
         if poses:
             self.poses = np.tile(np.eye(4), (n, 1, 1))
             self.poses[:, 1, 3] = 5_735_000.0 + 10.0 * np.arange(n)
@@ -37,33 +38,44 @@ class LineDrive:
         return np.full((100, 3), float(i), dtype=np.float32)
 
 
-def fake_service(points: np.ndarray) -> dict:
+def pose_at(northing: float, easting: float, yaw_deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    out = np.eye(4)
+    out[:2, :2] = [[c, -s], [s, c]]
+    out[:2, 3] = [easting, northing]
+    return out
+
+
+def fake_service(points: np.ndarray, prior=None, kind: str = "scan") -> Reply:
     """Answers scan i as the server does: a submap 3 m east of it (scan 4: 40 m off, scan 6:
     refused, scan 8: no match); scans 0 and 4 verified, with a pose 0.5 m north of the truth
     and turned 2 degrees (scan 4's: 40 m off, a wrong verified pose)."""
+    assert prior is None and kind == "scan"
     i = int(points[0, 0])
     if i == 6:
         raise InputError("only 3 points left after G", "points")
     if i == 8:
-        return {"matches": []}
+        return Reply()
     north = 5_735_000.0 + 10.0 * i + (40.0 if i == 4 else 0.0)
-    top = {"rank": 1, "timestamp": 1000 + i, "run": "r0", "northing": north,
-           "easting": 620_003.0, "distance": 0.25 * i, "submap_id": "x", "kind": "keyframe",
-           "score": 0.4}  # fmt: skip
+    top = Place("x", 1000 + i, "r0", "keyframe", north, 620_003.0, 0.25 * i)
     verified = i % 4 == 0
-    pose = {"northing": north + 0.5, "easting": 620_000.0,
-            "yaw_deg": 2.0, "height": 1.0}  # fmt: skip
-    return {
-        "matches": [top, {**top, "rank": 2}],
-        "verified": verified,
-        "verification": {"confidence": 0.3 if verified else 0.01},
-        "pose": pose if verified else None,
-    }
+    return Reply(
+        verified=verified,
+        pose=pose_at(north + 0.5, 620_000.0, 2.0) if verified else None,
+        top=top,
+        confidence=0.3 if verified else 0.01,
+        timings_ms={"total": 2.0},
+    )
 
 
-def test_replay_rows_csv_and_summary(tmp_path: Path) -> None:
+def per_scan(drive: LineDrive, every: int) -> list:
+    return run_drive(drive, fake_service, "per-scan", every=every, truth=drive.poses,
+                     progress=False)  # fmt: skip
+
+
+def test_per_scan_rows_csv_and_summary(tmp_path: Path) -> None:
     drive = LineDrive(10)
-    rows = replay(drive, fake_service, every=2, progress=False)
+    rows = per_scan(drive, 2)
     assert [r.scan for r in rows] == [0, 2, 4, 6, 8]
     assert [r.status for r in rows[:3]] == ["ok", "ok", "ok"]
     assert rows[3].status == "refused: only 3 points left after G"
@@ -73,21 +85,23 @@ def test_replay_rows_csv_and_summary(tmp_path: Path) -> None:
     # verified and the pose are the answer's (not its top match's, which has neither)
     assert [r.verified for r in rows] == [True, False, True, None, None]
     assert [r.confidence for r in rows] == [0.3, 0.01, 0.3, None, None]
-    assert rows[0].pose_error_m == pytest.approx(0.5) and rows[0].pose_yaw_error_deg == 2.0
+    assert rows[0].pose_error_m == pytest.approx(0.5)
+    assert rows[0].pose_yaw_error_deg == pytest.approx(2.0)
     assert rows[1].pose_northing is None and rows[1].pose_error_m is None
     assert rows[2].pose_error_m == pytest.approx(40.5)
     assert rows[0].kind == "keyframe"
-    s = summarise(rows)
-    assert (s.queries, s.answered, s.within, s.verified, s.beyond_m) == (5, 3, 2, 2, 1)
-    assert s.median_error_m == pytest.approx(3.0)
-    assert s.median_pose_error_m == pytest.approx(np.median([0.5, 40.5]))
-    assert s.wrong_verified == 1
+    assert [r.asked for r in rows] == ["search", "search", "search", None, "search"]
+    s = summarise(rows, "per-scan")
+    assert (s.scans, s.answered, s.within, s.verified, s.beyond_m) == (5, 3, 2, 2, 1)
+    assert s.median_place_error_m == pytest.approx(3.0)
+    assert s.median_error_m == pytest.approx(np.median([0.5, 40.5]))
+    assert s.wrong == 1
     assert s.line() == (
         "replay: 3 of 5 queries answered, 2 within 25 m, 2 verified; median error 3.0 m, 1 "
         "beyond 25 m; verified poses 20.50 m / 2.00 deg off (median), 1 more than 5 m off"
     )
 
-    path = write_replay_csv(rows, tmp_path / "answers.csv")
+    path = write_rows(rows, tmp_path / "answers.csv", "per-scan")
     with open(path, newline="") as fh:
         table = list(csv.DictReader(fh))
     assert list(table[0]) == ["scan", "timestamp", "time_s", "status", "submap", "run", "kind",
@@ -95,44 +109,54 @@ def test_replay_rows_csv_and_summary(tmp_path: Path) -> None:
                               "pose_northing", "pose_easting", "pose_yaw_deg", "true_northing",
                               "true_easting", "true_yaw_deg", "error_m", "pose_error_m",
                               "pose_yaw_error_deg"]  # fmt: skip
+    assert tuple(table[0]) == COLUMNS["per-scan"]
     assert table[1]["timestamp"] == "7000000" and table[1]["time_s"] == "2.0"
     assert table[1]["submap"] == "1002" and table[1]["verified"] == "false"
     assert table[0]["verified"] == "true" and float(table[0]["pose_error_m"]) == 0.5
     assert table[1]["pose_northing"] == "" and table[3]["verified"] == ""
     assert float(table[2]["error_m"]) == pytest.approx(math.hypot(40.0, 3.0))
     assert table[3]["northing"] == "" and table[3]["status"].startswith("refused")
-    # The summary's figures follow from the CSV alone.
+    # The summary's figures follow from the CSV alone, and the CSV reads back to the rows.
     errors = sorted(float(r["error_m"]) for r in table if r["error_m"])
-    assert s.median_error_m == pytest.approx(float(np.median(errors)))
+    assert s.median_place_error_m == pytest.approx(float(np.median(errors)))
+    again = read_rows(path)
+    assert [(a.status, a.verified, a.submap) for a in again] == [
+        (r.status, r.verified, r.submap) for r in rows
+    ]
+    assert summarise(again, "per-scan").line() == s.line()
 
 
-def test_replay_without_poses_and_bad_every(tmp_path: Path) -> None:
-    rows = replay(LineDrive(3, poses=False), fake_service, every=1, progress=False)
+def test_per_scan_without_poses_and_bad_every(tmp_path: Path) -> None:
+    rows = per_scan(LineDrive(3, poses=False), 1)
     assert all(r.error_m is None and r.true_northing is None for r in rows)
-    s = summarise(rows)
-    assert s.median_error_m is None and s.beyond_m is None and s.within is None
-    assert s.median_pose_error_m is None
+    s = summarise(rows, "per-scan")
+    assert s.median_place_error_m is None and s.beyond_m is None and s.within is None
+    assert s.median_error_m is None
     assert (
         s.line()
         == "replay: 3 of 3 queries answered, 1 verified (no poses in the bag: errors unknown)"
     )
     with pytest.raises(InputError, match=">= 1"):
-        replay(LineDrive(3), fake_service, every=0)
+        run_drive(LineDrive(3), fake_service, "per-scan", every=0)
+    with pytest.raises(InputError, match="no scans to replay"):
+        run_drive(LineDrive(0), fake_service, "per-scan")
+    with pytest.raises(InputError, match="policy: must be per-scan or tracked"):
+        run_drive(LineDrive(3), fake_service, "sometimes")  # type: ignore[arg-type]
 
 
-def test_plot_replay_writes_a_png(tmp_path: Path) -> None:
+def test_the_per_scan_png(tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
     drive = LineDrive(10)
-    rows = replay(drive, fake_service, every=1, progress=False)
+    rows = per_scan(drive, 1)
     map_ne = np.c_[5_735_000.0 + 10.0 * np.arange(12), np.full(12, 620_003.0)]
-    out = plot_replay(rows, tmp_path / "replay.png", map_ne=map_ne,
-                      trajectory_ne=drive.poses[:, [1, 0], 3], title="line")  # fmt: skip
+    out = plot_drive(rows, tmp_path / "replay.png", "per-scan", map_ne=map_ne,
+                     trajectory_ne=drive.poses[:, [1, 0], 3], title="line")  # fmt: skip
     data = out.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
     assert not list(tmp_path.glob("*.tmp"))
     # Without poses: the map panel only.
-    rows = replay(LineDrive(4, poses=False), fake_service, every=1, progress=False)
-    assert plot_replay(rows, tmp_path / "b.png").stat().st_size > 5_000
+    rows = per_scan(LineDrive(4, poses=False), 1)
+    assert plot_drive(rows, tmp_path / "b.png", "per-scan").stat().st_size > 5_000
 
 
 # --------------------------------------------------------------------------------------------
@@ -173,7 +197,7 @@ def city(tmp_path_factory: pytest.TempPathFactory) -> dict:
             "origin": f"{north!r},{east!r}", "drive": drive}  # fmt: skip
 
 
-def read_rows(path: Path) -> list[dict[str, str]]:
+def read_csv(path: Path) -> list[dict[str, str]]:
     with open(path, newline="") as fh:
         return list(csv.DictReader(fh))
 
@@ -220,7 +244,7 @@ def test_replay_a_bag_against_a_real_server(city: dict, tmp_path: Path) -> None:
     assert res.exit_code == 0, res.output
     lines = res.stdout.strip().splitlines()
     assert lines[-2] == f"wrote {out}.csv, {out}.png"
-    rows = read_rows(Path(f"{out}.csv"))
+    rows = read_csv(Path(f"{out}.csv"))
     drive = city["drive"]
     assert [int(r["scan"]) for r in rows] == [0, 5, 10, 15, 20]
     assert [int(r["timestamp"]) for r in rows] == drive.timestamps[[0, 5, 10, 15, 20]].tolist()
@@ -243,7 +267,7 @@ def test_replay_a_bag_against_a_real_server(city: dict, tmp_path: Path) -> None:
     args[args.index(str(out))] = str(local)
     res = CliRunner().invoke(app, [*args, "--index", str(city["bundle"]), "-m", str(city["ckpt"])])
     assert res.exit_code == 0, res.output
-    again = read_rows(Path(f"{local}.csv"))
+    again = read_csv(Path(f"{local}.csv"))
     assert [r["submap"] for r in again] == [r["submap"] for r in rows]
     check_summary(res.stdout.strip().splitlines()[-1], again)
 
@@ -258,7 +282,7 @@ def test_replay_without_poses_and_bad_options(city: dict, tmp_path: Path) -> Non
     res = CliRunner().invoke(app, [*base, "--cloud-topic", "/points", "--every", "12",
                                    "--out", str(out), "--no-plot"])  # fmt: skip
     assert res.exit_code == 0, res.output
-    rows = read_rows(Path(f"{out}.csv"))
+    rows = read_csv(Path(f"{out}.csv"))
     assert len(rows) == 2 and all(r["error_m"] == "" and r["true_northing"] == "" for r in rows)
     assert not Path(f"{out}.png").exists()
     assert res.stdout.strip().splitlines()[-1] == (
@@ -306,7 +330,7 @@ def test_replay_with_windows_asks_with_the_last_stretch(city: dict, tmp_path: Pa
     out = tmp_path / "subs"
     res = CliRunner().invoke(app, [*base, "--index", str(city["bundle"]), "--out", str(out)])
     assert res.exit_code == 0, res.output
-    rows = read_rows(Path(f"{out}.csv"))
+    rows = read_csv(Path(f"{out}.csv"))
     assert [int(r["scan"]) for r in rows] == [0, 8, 16]
     assert all(r["status"] == "ok" and r["kind"] == "submap" for r in rows)
     keys = tmp_path / "keys.index"
@@ -314,7 +338,7 @@ def test_replay_with_windows_asks_with_the_last_stretch(city: dict, tmp_path: Pa
     out = tmp_path / "keys"
     res = CliRunner().invoke(app, [*base, "--index", str(keys), "--out", str(out)])
     assert res.exit_code == 0, res.output
-    rows = read_rows(Path(f"{out}.csv"))
+    rows = read_csv(Path(f"{out}.csv"))
     assert len(rows) == 3 and all(r["status"].startswith("refused") for r in rows)
     assert "keyframe" in rows[0]["status"]
     # A window without poses cannot be laid; --window does not go with following.

@@ -1,4 +1,4 @@
-"""The drive localiser (localization/tracking.py) against a stand-in service whose answers are
+"""The drive localiser (localization/drive/tracking.py) against a stand-in service whose answers are
 set scan by scan: when a fix is accepted, what tracking asks and keeps, when it is lost, and
 how bad input sends it back to searching without raising. The poses expected are computed here
 from the scenario, not by the localiser's own helpers."""
@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pnvlad_service.localization.tracking import (
+from pnvlad_service.localization.drive.tracking import (
     LOST,
     SEARCHING,
     TRACKING,
@@ -137,7 +137,7 @@ def test_bad_input_sends_it_back_to_searching_and_never_raises() -> None:
     assert steps[1].how == "fix"
     out_of_order = steps[4]
     assert (out_of_order.state, out_of_order.event) == (SEARCHING, "reset")
-    assert "out of time order" in out_of_order.reason and out_of_order.answer is None
+    assert "out of time order" in out_of_order.reason and out_of_order.reply is None
     assert all(c[0] != 4 for c in svc.calls)  # skipped, not asked
     assert steps[5].state == SEARCHING  # searching again after the reset
     gap = steps[6]

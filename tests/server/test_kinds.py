@@ -130,7 +130,7 @@ def test_a_window_is_laid_as_the_served_maps_windows_were(tiny_maps: dict) -> No
     says from the tree's prepare record (windows of whole scans missed their place: #34)."""
     import json
 
-    from pnvlad_service.localization.client import LocalizeClient
+    from pnvlad_service.client import LocalizeClient
 
     tree = tiny_maps["tree"].root
     run = next(p for p in (tree / "business").iterdir() if p.is_dir())

@@ -14,14 +14,10 @@ import httpx
 import numpy as np
 import pytest
 
-from pnvlad_service.localization.client import LocalizeClient, ServerRefused
+from pnvlad_service.client import LocalizeClient, ServerRefused
+from pnvlad_service.localization.drive.service import http_ask
+from pnvlad_service.localization.drive.tracking import SEARCHING, DriveLocalizer, DriveScan
 from pnvlad_service.localization.prior import Prior
-from pnvlad_service.localization.tracking import (
-    SEARCHING,
-    DriveLocalizer,
-    DriveScan,
-    http_ask,
-)
 from tests.index.helpers import free_port
 from tests.server.test_app import start_server, stop_server
 
@@ -198,4 +194,4 @@ def test_a_drive_followed_through_the_server_survives_bad_input(server: str, dri
         jump[0, 3] = 500.0
         late = loc.step(DriveScan(7, int(stamps[7]), drive.scan(7), jump @ odo[7]))
         assert late.event == "reset" and late.reason.startswith("odometry jumped")
-        assert late.answer is not None and late.answer["mode"] == "search"
+        assert late.reply is not None and late.reply.mode == "search"

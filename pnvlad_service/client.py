@@ -1,4 +1,5 @@
-"""The HTTP client of ``pnvlad serve`` (standard library only): one keep-alive connection.
+"""The HTTP client of ``pnvlad serve`` (standard library and numpy only): one keep-alive
+connection. ``from pnvlad_service.client import LocalizeClient``.
 
 :class:`LocalizeClient` sends a cloud as a binary body (little-endian xyz, float64 when the
 array is float64, else float32) and returns the server's JSON answer; ``ready()`` and
@@ -86,11 +87,10 @@ class LocalizeClient:
         ask for (true) or skip (false) the verification (default: the server's); ``scale``:
         metres per unit of a preprocessed cloud; ``kind``: ``submap``, ``scan`` or ``window`` (a
         scan or window is raw: ``preprocess`` need not be said). ``prior``: where the raw
-        scan's sensor is thought to be (a :class:`~.prior.Prior`, or a mapping with its
-        ``northing``, ``easting``, ``yaw_deg`` and optional ``height``, ``radius_m`` and
-        ``run``): the
-        server registers the scan to its map near there instead of searching (``mode``
-        ``prior``); the scan is then sent raw."""
+        scan's sensor is thought to be (a ``Prior`` of :mod:`pnvlad_service.localization.prior`,
+        or a mapping with its ``northing``, ``easting``, ``yaw_deg`` and optional ``height``,
+        ``radius_m`` and ``run``): the server registers the scan to its map near there instead
+        of searching (``mode`` ``prior``); the scan is then sent raw."""
         arr = np.asarray(points)
         dtype = "float64" if arr.dtype == np.float64 else "float32"
         body = np.ascontiguousarray(arr, dtype="<f8" if dtype == "float64" else "<f4")

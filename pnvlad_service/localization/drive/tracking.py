@@ -11,8 +11,8 @@ registration near it, :mod:`.prior`), so a fleet scales by replicas.
 The localiser consumes scans in time order (:class:`DriveScan`: points, timestamp and, when the
 caller has it, an odometry pose) and knows nothing of where they come from (a bag, a KITTI
 folder, a live sensor), nor of where the answers come from: ``ask(points, prior)`` is a server
-(:func:`http_ask`) or a bundle in this process (:func:`local_ask`), ``prior`` ``None`` for a
-search. States:
+or a bundle in this process (:mod:`.service`), ``prior`` ``None`` for a search; it reads the
+typed :class:`~.service.Reply`. States:
 
 - ``searching``: each scan is searched for (retrieval and verification). A verified answer is a
   *candidate* fix; it is accepted only when ``confirm`` candidates agree with the odometry
@@ -38,13 +38,14 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, field_validator
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.localization.drive.service import Ask, Reply
 from pnvlad_service.localization.prior import DEFAULT_RADIUS_M, Prior
 
 SEARCHING = "searching"
@@ -52,13 +53,8 @@ TRACKING = "tracking"
 LOST = "lost"
 STATES = (SEARCHING, TRACKING, LOST)
 
-#: ``ask(points, prior) -> answer``: the service's JSON answer of a raw scan, searched for
-#: (``prior`` None) or registered near ``prior``.
-Ask = Callable[[np.ndarray, Prior | None], dict[str, Any]]
 
-
-@dataclass(frozen=True)
-class TrackerConfig:
+class TrackerConfig(BaseModel):
     """The localiser's rules; distances in metres, angles in degrees, times in seconds.
 
     ``radius_m``: the map entries within this of a prediction are registered to;
@@ -70,8 +66,11 @@ class TrackerConfig:
     failures in a row that make the localiser lost; ``gate_m`` / ``gate_deg``: a registration
     that moves the prediction by more is a failure; ``max_gap_s``: a longer gap between two
     scans starts a search; ``max_speed_mps`` / ``max_turn_dps``: odometry moving faster
-    jumped (a search starts, and its motion is not used).
+    jumped (a search starts, and its motion is not used). A value out of range is a
+    ``ValueError`` (pydantic's ``ValidationError``) naming the field.
     """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     radius_m: float = DEFAULT_RADIUS_M
     confirm: int = 2
@@ -86,13 +85,20 @@ class TrackerConfig:
     max_speed_mps: float = 50.0
     max_turn_dps: float = 180.0
 
-    def __post_init__(self) -> None:
-        if self.confirm < 1 or self.failures < 1:
+    @field_validator("confirm", "failures")
+    @classmethod
+    def _at_least_one(cls, value: int) -> int:
+        if value < 1:
             raise ValueError("confirm and failures must be at least 1")
-        for name in ("radius_m", "agree_m", "agree_deg", "gate_m", "gate_deg", "max_gap_s",
-                     "max_speed_mps", "max_turn_dps", "confirm_within_s"):  # fmt: skip
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        return value
+
+    @field_validator("radius_m", "agree_m", "agree_deg", "gate_m", "gate_deg", "max_gap_s",
+                     "max_speed_mps", "max_turn_dps", "confirm_within_s")  # fmt: skip
+    @classmethod
+    def _positive(cls, value: float, info: Any) -> float:
+        if not value > 0:
+            raise ValueError(f"{info.field_name} must be > 0, got {value}")
+        return value
 
 
 @dataclass(frozen=True)
@@ -119,8 +125,9 @@ class Step:
     largest horizontal standard deviation; ``confidence``: a search answer's; ``anchor``: the
     map entry (``submap_id``) the pose was registered to; ``event``: ``fix`` (the first),
     ``relocalised`` (a later fix), ``lost`` or ``reset`` (bad input: searching again);
-    ``reason``: why the state changed or why the scan has no verified pose; ``answer``: the
-    service's answer (its timings), ``None`` when none was asked; ``seconds``: wall time.
+    ``reason``: why the state changed or why the scan has no verified pose; ``reply``: the
+    service's :class:`~.service.Reply` (its timings), ``None`` when none was asked;
+    ``seconds``: wall time.
     """
 
     scan: int
@@ -135,7 +142,7 @@ class Step:
     anchor: str | None = None
     event: str | None = None
     reason: str | None = None
-    answer: dict[str, Any] | None = field(default=None, repr=False)
+    reply: Reply | None = field(default=None, repr=False)
     seconds: float = 0.0
 
 
@@ -156,14 +163,6 @@ def yaw_of(pose: np.ndarray) -> float:
 
 def wrap_deg(a: float) -> float:
     return (a + 180.0) % 360.0 - 180.0
-
-
-def answer_pose(answer: dict[str, Any]) -> np.ndarray | None:
-    """The verified pose of a service answer as float64 [4, 4], or ``None``."""
-    pose = answer.get("pose") if answer.get("verified") else None
-    if not pose:
-        return None
-    return np.asarray(pose["transform"], dtype=np.float64)
 
 
 def scaled_motion(delta: np.ndarray, factor: float) -> np.ndarray:
@@ -287,19 +286,19 @@ class DriveLocalizer:
         cfg = self.config
         predicted = self._predict(scan.timestamp, motion)
         prior = Prior.of_matrix(predicted, cfg.radius_m, run=self._run)
+        reply: Reply | None
         try:
-            answer = self.ask(scan.points, prior)
+            reply = self.ask(scan.points, prior)
         except InputError as exc:
-            answer, why = None, f"refused: {getattr(exc, 'detail', None) or exc}"
+            reply, why = None, f"refused: {getattr(exc, 'detail', None) or exc}"
         else:
             why = None
-        step = Step(scan.index, scan.timestamp, TRACKING, answer=answer)
-        fit = (answer or {}).get("prior") or {}
-        step.fitness = fit.get("fitness")
-        step.sigma_m = fit.get("sigma_m")
-        pose = None if answer is None else answer_pose(answer)
-        if answer is not None and pose is None:
-            why = (answer.get("verification") or {}).get("reason") or "not verified"
+        step = Step(scan.index, scan.timestamp, TRACKING, reply=reply)
+        if reply is not None:
+            step.fitness, step.sigma_m = reply.fitness, reply.sigma_m
+        pose = None if reply is None else reply.verified_pose
+        if reply is not None and pose is None:
+            why = reply.reason or "not verified"
         elif pose is not None:
             off = float(np.linalg.norm(pose[:2, 3] - predicted[:2, 3]))
             turn = abs(wrap_deg(yaw_of(pose) - yaw_of(predicted)))
@@ -313,12 +312,12 @@ class DriveLocalizer:
             self._failures = 0
             self._set_pose(scan.timestamp, pose)
             step.verified, step.pose, step.how = True, pose, "registered"
-            step.anchor = _anchor(answer)
+            step.anchor = _anchor(reply)
             self._run = _group(step.anchor) or self._run
             return step
         self._set_pose(scan.timestamp, predicted)
         step.pose, step.how = predicted, "predicted"
-        if fit.get("uncertain"):
+        if reply is not None and reply.uncertain:
             # The scan fits the map around the prediction, but not precisely enough along some
             # direction for a verified pose: the odometry carries the pose on, unverified; not
             # a failure (a long street of facades is not being lost).
@@ -346,23 +345,22 @@ class DriveLocalizer:
             self._candidates.popleft()
         step = Step(scan.index, scan.timestamp, SEARCHING)
         try:
-            answer = self.ask(scan.points, None)
+            reply = self.ask(scan.points, None)
         except InputError as exc:
             step.reason = f"refused: {getattr(exc, 'detail', None) or exc}"
             return step
-        step.answer = answer
-        step.confidence = (answer.get("verification") or {}).get("confidence")
-        pose = answer_pose(answer)
+        step.reply = reply
+        step.confidence = reply.confidence
+        pose = reply.verified_pose
         if pose is None:
-            v = answer.get("verification") or {}
-            step.reason = v.get("reason") or (
+            step.reason = reply.reason or (
                 "not verified"
-                if answer.get("verified") is False
+                if reply.verified is False
                 else "the service does not verify (a bundle without geometry?)"
             )
             return step
         odo = None if self._odometry is None else self._odometry.copy()
-        cand = _Candidate(scan.timestamp, pose, odo, _anchor(answer))
+        cand = _Candidate(scan.timestamp, pose, odo, _anchor(reply))
         agree = [c for c in self._candidates if self._agree(c, cand)]
         if len(agree) + 1 < cfg.confirm:
             self._candidates.append(cand)
@@ -412,9 +410,8 @@ def _group(submap_id: str | None) -> str | None:
     return submap_id.rsplit("/", 1)[0]
 
 
-def _anchor(answer: dict[str, Any] | None) -> str | None:
-    matches = (answer or {}).get("matches") or []
-    return matches[0].get("submap_id") if matches else None
+def _anchor(reply: Reply | None) -> str | None:
+    return None if reply is None or reply.top is None else reply.top.submap_id
 
 
 def follow(scans: Any, ask: Ask, config: TrackerConfig | None = None, **kw: Any) -> list[Step]:
@@ -422,32 +419,3 @@ def follow(scans: Any, ask: Ask, config: TrackerConfig | None = None, **kw: Any)
     loc = DriveLocalizer(ask, config, **kw)
     return [loc.step(s) for s in scans]
 
-
-# -- services ----------------------------------------------------------------------------------
-
-
-def local_ask(localizer: Any, top_n: int = 5) -> Ask:
-    """:data:`Ask` of a :class:`~.localizer.Localizer` in this process (a raw scan is bounded by
-    the bundle, not by a server's request limits)."""
-    from pnvlad_service.localization.limits import Limits
-
-    def ask(points: np.ndarray, prior: Prior | None) -> dict[str, Any]:
-        limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)))
-        if prior is not None:
-            limits = replace(limits, max_prior_radius_m=max(limits.max_prior_radius_m,
-                                                            prior.radius_m))  # fmt: skip
-        answer = localizer.localize(
-            points, preprocess=True, top_n=top_n, limits=limits, kind="scan", prior=prior
-        )
-        return answer.to_json()
-
-    return ask
-
-
-def http_ask(client: Any, top_n: int = 5) -> Ask:
-    """:data:`Ask` of a :class:`~.client.LocalizeClient` (a server)."""
-
-    def ask(points: np.ndarray, prior: Prior | None) -> dict[str, Any]:
-        return client.localize(points, top_n, kind="scan", prior=prior)
-
-    return ask
