@@ -212,7 +212,7 @@ def tree_rows(root: Path, n: int, boxes: list[float], seed: int) -> list[Row]:
     from pnvlad_service.data.accumulate import ScanCache, travelled_distance, used_scans
     from pnvlad_service.data.cuts import submap_cuts
     from pnvlad_service.data.prepare import laid_window
-    from pnvlad_service.data.preprocess import GConfig, apply_g
+    from pnvlad_service.preprocess.filter_g import GConfig, apply_g
     from pnvlad_service.data.tree import LAYOUTS
     from pnvlad_service.io.submap import read_submap
     from pnvlad_service.synth.generate import simulated_drive
@@ -276,7 +276,7 @@ def tree_rows(root: Path, n: int, boxes: list[float], seed: int) -> list[Row]:
 
 def oxford_row(real: Path) -> Row:
     """The two RobotCar push-broom clouds as they are (ground included), and after G."""
-    from pnvlad_service.data.preprocess import apply_g
+    from pnvlad_service.preprocess.filter_g import apply_g
 
     row = Row("Oxford RobotCar lms_front (real push-broom)", [], [], [])
     for name in OXFORD_FILES:
@@ -309,7 +309,7 @@ def kitti_cloud(real: Path, frames: tuple[int, ...] = KITTI_FRAMES) -> np.ndarra
 
 
 def kitti_rows(real: Path, boxes: list[float]) -> list[Row]:
-    from pnvlad_service.data.preprocess import apply_g
+    from pnvlad_service.preprocess.filter_g import apply_g
 
     cloud = kitti_cloud(real)
     label = "KITTI 00 frames 94+95 (real HDL-64E)"
