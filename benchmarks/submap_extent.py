@@ -212,9 +212,9 @@ def tree_rows(root: Path, n: int, boxes: list[float], seed: int) -> list[Row]:
     from pnvlad_service.data.accumulate import ScanCache, travelled_distance, used_scans
     from pnvlad_service.data.cuts import submap_cuts
     from pnvlad_service.data.prepare import laid_window
-    from pnvlad_service.preprocess.filter_g import GConfig, apply_g
     from pnvlad_service.data.tree import LAYOUTS
     from pnvlad_service.io.submap import read_submap
+    from pnvlad_service.preprocess.filter_g import GConfig, apply_g
     from pnvlad_service.synth.generate import simulated_drive
     from pnvlad_service.synth.windows import drives_of
 

@@ -1,7 +1,7 @@
 """Registration near a prior pose: where the caller says it is, checked against the map there.
 
 A robot that already knows roughly where it is (the pose of its last verified fix moved on by
-its odometry: :mod:`pnvlad_service.localization.drive.tracking`) need not ask the encoder at all. The
+its odometry: :mod:`pnvlad_service.localization.tracking`) need not ask the encoder at all. The
 map's entries within a radius of the prior are found by a range search over the bundle's
 positions (:class:`MapPositions`, no embedding); their points, from the bundle's geometry, are
 laid together in the frame of the nearest (the *anchor*); the scan is registered to them from

@@ -18,11 +18,11 @@ from pnvlad_service.data.accumulate import (
 )
 from pnvlad_service.data.cuts import submap_cuts
 from pnvlad_service.data.prepare import laid_window, prepare_drive
-from pnvlad_service.preprocess.filter_g import GConfig
 from pnvlad_service.data.run_folder import recorded_accumulation
 from pnvlad_service.errors import InputError
 from pnvlad_service.index.build import tree_accumulation
 from pnvlad_service.index.manifest import MapRecord
+from pnvlad_service.preprocess.filter_g import GConfig
 from tests.data.helpers import ListDrive, tree_bytes
 
 YAW = math.radians(30)  # the drive heads 30 degrees north of east: a turned box would show
