@@ -49,16 +49,22 @@ __all__ = [
 
 def resolve_model_dir(path: str | Path) -> Path:
     """The model directory that ``path`` names: a model directory itself (``model.json`` +
-    ``model.safetensors``, a training checkpoint included) or a training run's output
-    directory, whose final model is ``OUT/model``. Raises :class:`InputError` naming ``path``.
+    ``model.safetensors``, a training checkpoint included), a training run's output
+    directory, whose final model is ``OUT/model``, or ``pretrained:NAME``, a model that ships
+    with pnvlad (:func:`pnvlad_service.models.pretrained.resolve`: its files checked against
+    the catalogue). Raises :class:`InputError` naming ``path``.
     """
+    from pnvlad_service.models import pretrained
+
+    if pretrained.is_pretrained(path):
+        return pretrained.resolve(path)
     path = Path(path)
     if (path / CONFIG_FILE).is_file():
         return path
     if (path / "model" / CONFIG_FILE).is_file():
         return path / "model"
     if not path.exists():
-        raise InputError("model directory not found", source=path)
+        raise InputError("model directory not found" + pretrained.hint(path), source=path)
     if (path / "checkpoints").is_dir():
         raise InputError(
             "a training run without a final model (OUT/model): the run has not finished; "
@@ -108,17 +114,25 @@ def weights_sha256(directory: str | Path) -> str:
 
 
 def write_model_files(
-    directory: str | Path, model: torch.nn.Module, cfg: ModelConfig, meta: dict[str, Any] | None
+    directory: str | Path,
+    model: torch.nn.Module,
+    cfg: ModelConfig,
+    meta: dict[str, Any] | None,
+    *,
+    state: dict[str, Any] | None = None,
 ) -> None:
     """Write ``model.safetensors`` and ``model.json`` into an existing (temporary) directory.
 
     For callers that build a larger directory atomically themselves (the trainer adds
-    ``train_state.pt``); everyone else calls :func:`save_model`.
+    ``train_state.pt``; a pretrained model stores ``state``, the model's tensors some of them
+    in float16, in place of ``model.state_dict()``); everyone else calls :func:`save_model`.
+    :func:`load_model` restores the model's own dtypes.
     """
     from safetensors.torch import save_file
 
     directory = Path(directory)
-    state = {k: v.detach().to("cpu").contiguous() for k, v in model.state_dict().items()}
+    state = model.state_dict() if state is None else state
+    state = {k: v.detach().to("cpu").contiguous() for k, v in state.items()}
     save_file(state, str(directory / WEIGHTS_FILE), metadata={"format": FORMAT})
     default_permissions(directory / WEIGHTS_FILE)  # save_file makes it 0600
     doc: dict[str, Any] = dict(meta or {})
@@ -214,7 +228,7 @@ def load_model(
         raise InputError(f"cannot read safetensors file: {exc}", wpath) from None
     model = build_model(cfg)
     check_state_dict(model, state, wpath)
-    model.load_state_dict(state, strict=True)
+    model.load_state_dict(state, strict=True)  # copies into the model's dtypes: float16 -> 32
     model.eval()
     if device is not None:
         model.to(device)
