@@ -105,7 +105,10 @@ def test_matrices_are_stored_as_float16_and_load_as_float32(
     )
     assert abs(size - (full - matrices // 2)) <= 256  # half the matrices' bytes (header aside)
     model, _ = load_model(directory)
-    for (k, got), want in zip(model.state_dict().items(), original.state_dict().values()):
+    want_state = original.state_dict()
+    assert list(model.state_dict()) == list(want_state)
+    for k, got in model.state_dict().items():
+        want = want_state[k]
         assert got.dtype == want.dtype, k
         if got.is_floating_point():
             # each value is the float16 rounding of the original (or the original itself)
