@@ -92,7 +92,7 @@ def info(
         model, cfg = load_model(model_dir)
         doc = {
             "dir": str(model_dir),
-            **({"pretrained": _entry_json(ref)} if ref != model_dir else {}),
+            **({"pretrained": _entry_json(ref)} if isinstance(ref, str) else {}),
             "model": cfg.model_dump(mode="json"),
             "parameters": sum(p.numel() for p in model.parameters()),
             "gflop_per_cloud": round(cfg.flops_per_cloud() / 1e9, 3),
@@ -116,8 +116,8 @@ def info(
 
 
 def _pretrained_ref(model_dir: Path) -> Path | str:
-    """``model_dir``, or ``pretrained:NAME`` when it is a bare name the catalogue lists and no
-    such path exists (`pnvlad model info bev-benchmark`)."""
+    """``model_dir`` (a Path), or the string ``pretrained:NAME`` when it is one or is a bare
+    name the catalogue lists and no such path exists (`pnvlad model info bev-benchmark`)."""
     from pnvlad_service.errors import PnvladError
     from pnvlad_service.models.pretrained import PREFIX, Catalogue, is_pretrained
 
@@ -251,7 +251,7 @@ def package(
         help="The trained model: a model directory or a training run directory (its model/).",
     ),
     name: str = typer.Option(
-        ..., "--name", "-n", help="Its pretrained name (lower-case, digits, dashes)."
+        ..., "--name", help="Its pretrained name (lower-case, digits, dashes)."
     ),
     kind: str = typer.Option("submap", "--kind", help="The queries it is for: submap or scan."),
     float16: bool = typer.Option(
