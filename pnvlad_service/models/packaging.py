@@ -171,7 +171,10 @@ def package_model(
         if onnx:
             from pnvlad_service.models.onnx_export import export_onnx
 
-            export_onnx(tmp, float16=float16)
+            onnx_cosine = export_onnx(tmp, float16=float16).min_cosine
+        checks = {"fidelity": fid.to_json()}
+        if onnx:
+            checks["onnx_min_cosine"] = round(onnx_cosine, 7)
         files = {
             p.name: FileRecord(sha256=sha256_file(p), bytes=p.stat().st_size)
             for p in sorted(tmp.iterdir())
@@ -188,7 +191,7 @@ def package_model(
             data=card.data,
             figures=dict(card.figures or {}),
             date=card.date or _dt.date.today().isoformat(),
-            extra={"fidelity": fid.to_json(), "packaged_from_weights_sha256": source_sha},
+            extra={**checks, "packaged_from_weights_sha256": source_sha},
         )
         _check_sizes(entry, others, max_model_bytes, max_total_bytes)
     new = Catalogue(cat.path, (*others, entry))
@@ -204,9 +207,10 @@ def _check_sizes(entry: Entry, others: tuple[Entry, ...], max_model: int, max_to
     over the total."""
     mib = 2**20
     if entry.bytes > max_model:
+        fix = "leave model.onnx out" if entry.dtype == "float16" else "store it as float16"
         raise InputError(
             f"{entry.bytes / mib:.1f} MiB, over the limit of {max_model / mib:.0f} MiB a "
-            "pretrained model (store it as float16, or leave model.onnx out)",
+            f"pretrained model ({fix})",
             entry.name,
         )
     total = entry.bytes + sum(e.bytes for e in others)

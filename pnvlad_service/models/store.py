@@ -57,7 +57,7 @@ def resolve_model_dir(path: str | Path) -> Path:
     from pnvlad_service.models import pretrained
 
     if pretrained.is_pretrained(path):
-        return pretrained.resolve(path)
+        return _named(path)
     path = Path(path)
     if (path / CONFIG_FILE).is_file():
         return path
@@ -75,6 +75,16 @@ def resolve_model_dir(path: str | Path) -> Path:
         f"not a model directory (no {CONFIG_FILE}) nor a training run (no model/{CONFIG_FILE})",
         source=path,
     )
+
+
+def _named(directory: str | Path) -> Path:
+    """``directory``, or the directory of the pretrained model ``pretrained:NAME`` names
+    (checked against its catalogue), for the functions that read a model directory as given."""
+    from pnvlad_service.models import pretrained
+
+    if pretrained.is_pretrained(directory):
+        return pretrained.resolve(directory)
+    return Path(directory)
 
 
 @dataclass(frozen=True)
@@ -107,7 +117,7 @@ def model_identity(directory: str | Path) -> ModelIdentity:
 
 def weights_sha256(directory: str | Path) -> str:
     """SHA-256 (hex) of the checkpoint's ``model.safetensors`` file bytes."""
-    path = Path(directory) / WEIGHTS_FILE
+    path = _named(directory) / WEIGHTS_FILE
     if not path.is_file():
         raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
     return sha256_file(path)
@@ -171,7 +181,7 @@ def save_model(
 
 def read_model_json(directory: str | Path) -> tuple[ModelConfig, dict[str, Any]]:
     """Read and check ``model.json``: returns (config, the whole document)."""
-    directory = Path(directory)
+    directory = _named(directory)
     path = directory / CONFIG_FILE
     if not directory.is_dir():
         raise InputError(
@@ -211,7 +221,7 @@ def load_model(
 
     from pnvlad_service.models.factory import build_model
 
-    directory = Path(directory)
+    directory = _named(directory)
     cfg, doc = read_model_json(directory)
     wpath = directory / WEIGHTS_FILE
     if not wpath.is_file():

@@ -123,6 +123,8 @@ def test_stored_descriptors_stay_close_in_torch_and_in_onnx(
     x = np.random.default_rng(0).uniform(-1, 1, (24, 256, 3)).astype(np.float32)
     want = Encoder.from_checkpoint(trained).embed(x)
     got = open_encoder("pretrained:bev-test", runtime="torch").embed(x)
+    # the functions that read a directory as given take the name too (eval, benchmarks)
+    assert np.array_equal(Encoder.from_checkpoint("pretrained:bev-test").embed(x), got)
     ort = open_encoder("pretrained:bev-test", runtime="onnx", threads=1)
     try:
         onnx_got = ort.embed(x)
@@ -133,6 +135,7 @@ def test_stored_descriptors_stay_close_in_torch_and_in_onnx(
     assert _cosines(onnx_got, got).min() >= 0.9999
     fid = packaged.extra["fidelity"]
     assert fid["clouds"] == 64 and fid["min_cosine"] >= 0.999
+    assert packaged.extra["onnx_min_cosine"] >= 0.9999
 
 
 def test_onnx_weights_are_float16_in_the_file(packaged: pretrained.Entry) -> None:
