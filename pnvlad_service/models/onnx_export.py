@@ -120,21 +120,8 @@ def export_onnx(
     path = directory / ONNX_FILE
     ort = OnnxEncoder(path, cfg, sha, threads=threads, check=False, data=data)
     clouds = [seeded] + ([] if points is None else [np.asarray(points, dtype=np.float32)])
-    worst, count = 1.0, 0
     try:
-        for batch in clouds:
-            with torch.inference_mode():
-                want = encoder.embed(batch)
-            for got in (ort.embed(batch), np.concatenate([ort.embed(c) for c in batch])):
-                cos = cosines(got, want)
-                i = int(np.argmin(cos))
-                if not cos[i] >= MIN_COSINE:
-                    raise PnvladError(
-                        f"{directory}: the ONNX graph's descriptor of check cloud {count + i} "
-                        f"is at cosine {cos[i]:.6f} of torch's (< {MIN_COSINE}); nothing written"
-                    )
-                worst = min(worst, float(cos[i]))
-            count += len(batch)
+        worst, count = _check_against_torch(encoder, ort, clouds, directory)
     finally:
         ort.close()
         encoder.close()
@@ -152,6 +139,31 @@ def export_onnx(
         seconds,
     )
     return OnnxExport(path, len(data), worst, count, seconds)
+
+
+def _check_against_torch(
+    encoder: Any, ort: OnnxEncoder, clouds: list[np.ndarray], directory: Path
+) -> tuple[float, int]:
+    """The smallest cosine of ONNX Runtime's descriptors (each batch whole and one cloud at a
+    time) to torch's over ``clouds`` and how many clouds; :class:`PnvladError` naming the
+    first cloud below :data:`MIN_COSINE`."""
+    import torch
+
+    worst, count = 1.0, 0
+    for batch in clouds:
+        with torch.inference_mode():
+            want = encoder.embed(batch)
+        for got in (ort.embed(batch), np.concatenate([ort.embed(c) for c in batch])):
+            cos = cosines(got, want)
+            i = int(np.argmin(cos))
+            if not cos[i] >= MIN_COSINE:
+                raise PnvladError(
+                    f"{directory}: the ONNX graph's descriptor of check cloud {count + i} "
+                    f"is at cosine {cos[i]:.6f} of torch's (< {MIN_COSINE}); nothing written"
+                )
+            worst = min(worst, float(cos[i]))
+        count += len(batch)
+    return worst, count
 
 
 def store_float16(proto: Any) -> int:

@@ -168,6 +168,7 @@ def package_model(
                 f"original's (< {MIN_COSINE}); package without float16",
                 src,
             )
+        _carry_calibration(src, tmp, source_sha)
         if onnx:
             from pnvlad_service.models.onnx_export import export_onnx
 
@@ -200,6 +201,33 @@ def package_model(
     atomic_write_text(cat.path, json.dumps(new.to_json(), indent=2) + "\n")
     log.info("packaged %s as %s (%.1f MiB) in %s", src, name, entry.bytes / 2**20, cat.path)
     return entry
+
+
+#: The verification threshold chosen for a model (``localization/calibration.py``).
+CALIBRATION_FILE = "verification.json"
+
+
+def _carry_calibration(src: Path, tmp: Path, source_sha: str) -> None:
+    """Copy the source model's ``verification.json`` (``pnvlad eval --save-threshold``) into
+    ``tmp``, recorded for the stored weights (their descriptors are the original's within
+    :data:`MIN_COSINE`, so the threshold chosen on them holds) with the original weights'
+    sha256 kept as ``calibrated_on_weights_sha256``; one chosen for other weights is left out
+    with a warning."""
+    import json
+
+    path = src / CALIBRATION_FILE
+    if not path.is_file():
+        return
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"unreadable verification record: {exc}", path) from None
+    if not isinstance(doc, dict) or doc.get("weights_sha256") != source_sha:
+        log.warning("%s was chosen for other weights: not packaged", path)
+        return
+    doc["calibrated_on_weights_sha256"] = source_sha
+    doc["weights_sha256"] = sha256_file(tmp / store.WEIGHTS_FILE)
+    atomic_write_text(tmp / CALIBRATION_FILE, json.dumps(doc, indent=2) + "\n")
 
 
 def _check_sizes(entry: Entry, others: tuple[Entry, ...], max_model: int, max_total: int) -> None:

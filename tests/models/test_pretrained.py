@@ -270,3 +270,81 @@ def test_the_cli_packages_with_figures(trained: Path, catalogue: Path) -> None:
         app, ["model", "package", str(trained), "--name", "x", "--figure", "novalue"]
     )
     assert res.exit_code == 2 and "--figure" in res.output
+
+
+def test_the_models_verification_threshold_goes_with_it(
+    trained: Path, catalogue: Path, tmp_path: Path
+) -> None:
+    import shutil
+
+    from pnvlad_service.localization.calibration import (
+        Calibration,
+        read_calibration,
+        write_calibration,
+    )
+    from pnvlad_service.models.store import weights_sha256
+
+    run = tmp_path / "calibrated"
+    shutil.copytree(trained, run)
+    cal = Calibration(0.25, weights_sha256(run), 10, 99.0, 50, {"precision": 99.5})
+    write_calibration(run, cal)
+    entry = package_model(run, "with-threshold", CARD, onnx=False)
+    assert "verification.json" in entry.files
+    stored = resolve_model_dir("pretrained:with-threshold")
+    got = read_calibration(stored, weights_sha256(stored))
+    assert got is not None and got.threshold == 0.25 and got.candidates == 10
+    # a record chosen for other weights stays behind
+    write_calibration(run, Calibration(0.3, "0" * 64, 10, 99.0, 50, {}))
+    entry = package_model(run, "stale", CARD, onnx=False)
+    assert "verification.json" not in entry.files
+
+
+def test_only_matrices_within_float16s_range_are_halved() -> None:
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from pnvlad_service.models.onnx_export import store_float16
+    from pnvlad_service.models.packaging import half_state
+
+    model = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.Linear(4, 2))
+    with torch.no_grad():
+        model[1].weight[0, 0] = 1e6  # beyond float16's 65504
+    state = half_state(model)
+    assert state["0.weight"].dtype == torch.float16
+    assert state["1.weight"].dtype == torch.float32 and state["0.bias"].dtype == torch.float32
+
+    rng = np.random.default_rng(0)
+    w = rng.normal(size=(3, 4)).astype(np.float32)
+    big = np.full((4, 2), 1e6, dtype=np.float32)
+    inits = [
+        numpy_helper.from_array(w, "w"),
+        numpy_helper.from_array(big, "big"),
+        numpy_helper.from_array(np.ones(2, np.float32), "b"),
+    ]
+    nodes = [
+        helper.make_node("MatMul", ["x", "w"], ["h"]),
+        helper.make_node("MatMul", ["h", "big"], ["m"]),
+        helper.make_node("Add", ["m", "b"], ["y"]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 2])],
+        inits,
+    )
+    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    assert store_float16(proto) == 1
+    onnx.checker.check_model(proto)
+    types = {t.name: t.data_type for t in proto.graph.initializer}
+    assert types == {
+        "w__f16": TensorProto.FLOAT16,
+        "big": TensorProto.FLOAT,
+        "b": TensorProto.FLOAT,
+    }
+    import onnxruntime as ort
+
+    x = rng.normal(size=(1, 3)).astype(np.float32)
+    sess = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    want = x @ w.astype(np.float16).astype(np.float32) @ big + 1
+    np.testing.assert_allclose(sess.run(None, {"x": x})[0], want, rtol=1e-5)
