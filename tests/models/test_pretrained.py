@@ -160,6 +160,17 @@ def test_model_identity_and_index_build_take_the_name(
     assert res.exit_code == 0, res.output
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["model"]["weights_sha256"] == identity.weights_sha256
+    # and the map answers with the model named the same way (localize, as serve loads it)
+    from pnvlad_service.index.build import list_database_submaps
+
+    rec = list_database_submaps(tiny)[5]
+    args = ["localize", str(tiny / rec.path), "--reader", "benchmark", "--index", str(out)]
+    answers = []
+    for model in ("pretrained:bev-test", str(resolve_model_dir("pretrained:bev-test"))):
+        res = CliRunner().invoke(app, [*args, "-m", model, "--json"])
+        assert res.exit_code == 0, res.output
+        answers.append([m["submap_id"] for m in json.loads(res.stdout)["matches"]])
+    assert answers[0] == answers[1] and len(answers[0]) == 5
 
 
 def test_an_unknown_name_lists_the_known_ones(packaged: pretrained.Entry) -> None:
