@@ -34,6 +34,7 @@ from pnvlad_service.models.onnx_encoder import (
     check_clouds,
     cosines,
 )
+from pnvlad_service.models.pretrained import refuse_pretrained
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +90,7 @@ def export_onnx(
     from pnvlad_service.models.inference import Encoder
     from pnvlad_service.models.onnx_graph import build_graph
 
+    refuse_pretrained(directory)
     t0 = time.perf_counter()
     directory = store.resolve_model_dir(directory)
     model, cfg = store.load_model(directory)

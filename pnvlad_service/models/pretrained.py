@@ -64,6 +64,7 @@ __all__ = [
     "FileRecord",
     "default_catalogue",
     "is_pretrained",
+    "refuse_pretrained",
     "resolve",
 ]
 
@@ -283,6 +284,17 @@ def resolve(ref: str | Path, catalogue: str | Path | None = None) -> Path:
             path,
         )
     return cat.directory(entry)
+
+
+def refuse_pretrained(ref: str | Path) -> None:
+    """:class:`InputError` when ``ref`` names a pretrained model, for the functions that would
+    write into the model directory (its files are checked against the catalogue)."""
+    if is_pretrained(ref):
+        raise InputError(
+            "a pretrained model's files are checked against its catalogue and are not "
+            "rewritten: copy its directory (pnvlad model info shows it) and use the copy",
+            str(ref),
+        )
 
 
 def hint(path: str | Path) -> str:

@@ -359,3 +359,9 @@ def test_only_matrices_within_float16s_range_are_halved() -> None:
     sess = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
     want = x @ w.astype(np.float16).astype(np.float32) @ big + 1
     np.testing.assert_allclose(sess.run(None, {"x": x})[0], want, rtol=1e-5)
+
+
+def test_export_does_not_rewrite_a_pretrained_model(packaged: pretrained.Entry) -> None:
+    res = CliRunner().invoke(app, ["model", "export", "pretrained:bev-test"])
+    assert res.exit_code == 2 and "copy its directory" in res.output
+    assert Catalogue.read().problems(packaged) == []
