@@ -27,6 +27,7 @@ when the model is loaded, so the runtime computes in float32 from the rounded we
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -71,8 +72,6 @@ __all__ = [
 
 def default_catalogue() -> Path:
     """The catalogue file in use: ``$PNVLAD_PRETRAINED`` when set, else the package's own."""
-    import os
-
     env = os.environ.get(CATALOGUE_ENV)
     if env:
         return Path(env)
@@ -188,11 +187,8 @@ class Catalogue:
         """The catalogue at ``path`` (default :func:`default_catalogue`). A missing package
         catalogue is an empty one; a missing file named by ``path`` or ``$PNVLAD_PRETRAINED``,
         or a malformed one, is an :class:`InputError` naming it."""
-        explicit = path is not None
+        explicit = path is not None or bool(os.environ.get(CATALOGUE_ENV))
         path = Path(path) if path is not None else default_catalogue()
-        import os
-
-        explicit = explicit or bool(os.environ.get(CATALOGUE_ENV))
         if not path.is_file():
             if explicit:
                 raise InputError("no such pretrained catalogue file", path)

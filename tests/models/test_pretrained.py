@@ -262,6 +262,9 @@ def test_a_malformed_catalogue_is_named(catalogue: Path) -> None:
     catalogue.write_text("{")
     res = CliRunner().invoke(app, ["model", "list"])
     assert res.exit_code == 2 and str(catalogue) in res.output
+    catalogue.unlink()  # named by PNVLAD_PRETRAINED: missing is an error, not an empty list
+    res = CliRunner().invoke(app, ["model", "list"])
+    assert res.exit_code == 2 and "no such pretrained catalogue file" in res.output
 
 
 def test_the_cli_packages_with_figures(trained: Path, catalogue: Path) -> None:
