@@ -242,6 +242,8 @@ def _print_catalogue(cat, rows: list) -> None:
             f"  pretrained:{e.name:22s} {e.kind:7s} {e.encoder:13s} {e.dtype:8s} "
             f"{e.bytes / 2**20:6.1f} MiB  sha256 {state}  {figures}"
         )
+        for problem in problems:
+            typer.echo(f"    {problem}")
 
 
 @app.command("package")
