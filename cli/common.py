@@ -72,8 +72,8 @@ def _command_path() -> str:
 # -m/--model is always a model (a model directory or the training run that made it), -r/--root
 # always a benchmark tree, -c only ever --config (pnvlad train).
 MODEL_HELP = (
-    "A model directory (model.json + model.safetensors, a training checkpoint included) or a "
-    "training run directory (its model/ is used)."
+    "A model directory (model.json + model.safetensors, a training checkpoint included), a "
+    "training run directory (its model/ is used) or pretrained:NAME (pnvlad model list)."
 )
 
 

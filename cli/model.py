@@ -1,5 +1,5 @@
 """`pnvlad model`: import weights from the PyTorch port, inspect a model directory, export it to
-ONNX."""
+ONNX, list the pretrained models that ship with pnvlad and add one to their catalogue."""
 
 from __future__ import annotations
 
@@ -15,7 +15,9 @@ app = typer.Typer(
     help=(
         "Model directories (model.json + model.safetensors): import weights trained with the "
         "PyTorch port of PointNetVLAD, show what a model directory holds, or export its encoder "
-        "to ONNX (model.onnx) for a server without torch."
+        "to ONNX (model.onnx) for a server without torch. Pretrained models ship with pnvlad: "
+        "`pnvlad model list` shows them; any command that takes a model takes "
+        "pretrained:NAME."
     ),
     no_args_is_help=True,
 )
@@ -65,8 +67,8 @@ def import_(
 def info(
     model_dir: Path = typer.Argument(
         ...,
-        help="Model directory (model.json + model.safetensors) or a training run directory "
-        "(its model/ is used).",
+        help="Model directory (model.json + model.safetensors), a training run directory "
+        "(its model/ is used) or pretrained:NAME (pnvlad model list).",
     ),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of text."),
 ) -> None:
@@ -75,7 +77,7 @@ def info(
     Checks the weights against the SHA-256 recorded in model.json and loads them into the model
     (exit 2 if either fails).
 
-    Example: pnvlad model info models/port --json
+    Example: pnvlad model info models/port --json; pnvlad model info pretrained:bev-benchmark
     """
     with user_errors():
         from pnvlad_service.models.store import (
@@ -85,10 +87,12 @@ def info(
             weights_sha256,
         )
 
-        model_dir = resolve_model_dir(model_dir)
+        ref = _pretrained_ref(model_dir)
+        model_dir = resolve_model_dir(ref)
         model, cfg = load_model(model_dir)
         doc = {
             "dir": str(model_dir),
+            **({"pretrained": _entry_json(ref)} if isinstance(ref, str) else {}),
             "model": cfg.model_dump(mode="json"),
             "parameters": sum(p.numel() for p in model.parameters()),
             "gflop_per_cloud": round(cfg.flops_per_cloud() / 1e9, 3),
@@ -106,6 +110,31 @@ def info(
             typer.echo(f"  {k:18s} {v}")
         typer.echo(f"  weights_sha256     {doc['weights_sha256']}")
         typer.echo(f"  config_sha256      {doc['config_sha256']}")
+        for k, v in doc.get("pretrained", {}).items():
+            if k not in ("files", "name", "dir"):
+                typer.echo(f"  {k:18s} {json.dumps(v) if isinstance(v, dict) else v}")
+
+
+def _pretrained_ref(model_dir: Path) -> Path | str:
+    """``model_dir`` (a Path), or the string ``pretrained:NAME`` when it is one or is a bare
+    name the catalogue lists and no such path exists (`pnvlad model info bev-benchmark`)."""
+    from pnvlad_service.errors import PnvladError
+    from pnvlad_service.models.pretrained import PREFIX, Catalogue, is_pretrained
+
+    if is_pretrained(model_dir) or model_dir.exists():
+        return str(model_dir) if is_pretrained(model_dir) else model_dir
+    try:
+        names = Catalogue.read().names
+    except PnvladError:
+        return model_dir
+    return f"{PREFIX}{model_dir}" if str(model_dir) in names else model_dir
+
+
+def _entry_json(ref: str | Path) -> dict:
+    """The catalogue entry of ``pretrained:NAME`` as JSON."""
+    from pnvlad_service.models.pretrained import PREFIX, Catalogue
+
+    return Catalogue.read().get(str(ref)[len(PREFIX) :]).to_json()
 
 
 @app.command("export")
@@ -159,3 +188,149 @@ def export(
             f"wrote {report.path} ({report.bytes / 1e6:.1f} MB): {report.clouds} clouds within "
             f"cosine {report.min_cosine:.6f} of torch (>= 0.9999), {report.seconds:.1f} s"
         )
+
+
+@app.command("list")
+def list_(
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of text."),
+) -> None:
+    """List the pretrained models that ship with pnvlad, and check their files.
+
+    One line a model: name, kind (submap or scan queries), encoder, stored dtype, size, its
+    figures, and whether every file matches the SHA-256 the catalogue records (OK, or what is
+    wrong: exit 2 when any file is missing or corrupt). Select one anywhere a model is taken
+    with pretrained:NAME. PNVLAD_PRETRAINED names another catalogue file.
+
+    Example: pnvlad model list; pnvlad index build -m pretrained:bev-benchmark -r city -o map
+    """
+    with user_errors():
+        from pnvlad_service.models.pretrained import Catalogue
+
+        cat = Catalogue.read()
+        rows = []
+        for e in cat.entries:
+            problems = cat.problems(e)
+            rows.append((e, problems))
+        if as_json:
+            doc = {
+                "catalogue": str(cat.path),
+                "bytes": cat.bytes,
+                "models": [
+                    {**e.to_json(), "bytes": e.bytes, "verified": not p, "problems": p}
+                    for e, p in rows
+                ],
+            }
+            typer.echo(json.dumps(doc, indent=2))
+        else:
+            _print_catalogue(cat, rows)
+        bad = [p for _, p in rows if p]
+        if bad:
+            typer.secho(f"error: {bad[0][0]}", err=True, fg=typer.colors.RED)
+            raise typer.Exit(code=2)
+
+
+def _print_catalogue(cat, rows: list) -> None:
+    """The text of `pnvlad model list`."""
+    if not rows:
+        typer.echo(f"no pretrained models in {cat.path}")
+        return
+    typer.echo(f"{len(rows)} pretrained models, {cat.bytes / 2**20:.1f} MiB ({cat.path}):")
+    for e, problems in rows:
+        figures = ", ".join(f"{k} {v}" for k, v in e.figures.items()) or "no figures recorded"
+        state = "OK" if not problems else f"CORRUPT ({len(problems)} files)"
+        typer.echo(
+            f"  pretrained:{e.name:22s} {e.kind:7s} {e.encoder:13s} {e.dtype:8s} "
+            f"{e.bytes / 2**20:6.1f} MiB  sha256 {state}  {figures}"
+        )
+        for problem in problems:
+            typer.echo(f"    {problem}")
+
+
+@app.command("package")
+def package(
+    source: Path = typer.Argument(
+        ...,
+        help="The trained model: a model directory or a training run directory (its model/).",
+    ),
+    name: str = typer.Option(
+        ..., "--name", help="Its pretrained name (lower-case, digits, dashes)."
+    ),
+    kind: str = typer.Option("submap", "--kind", help="The queries it is for: submap or scan."),
+    float16: bool = typer.Option(
+        True, "--fp16/--fp32", help="Store the weight matrices as float16 (half the size)."
+    ),
+    onnx: bool = typer.Option(
+        True, "--onnx/--no-onnx", help="Write model.onnx too, for a server without torch."
+    ),
+    trained_with: str = typer.Option("", "--trained-with", help="The command that trained it."),
+    data: str = typer.Option("", "--data", help="Its training data, in words."),
+    figure: list[str] = typer.Option(
+        [], "--figure", help="KEY=VALUE, e.g. --figure 'recall@1 (benchmark)=97.1'; repeat."
+    ),
+    check_tree: Path = typer.Option(
+        None, "--check-root", help="A benchmark tree whose submaps join the stored-dtype check."
+    ),
+    check_count: int = typer.Option(
+        256, "--check-count", help="With --check-root: submaps checked (the first ones)."
+    ),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a model of this name."),
+) -> None:
+    """Add a trained model to the pretrained catalogue (pnvlad_service/pretrained/).
+
+    Copies the model under --name with its weight matrices as float16 (--fp16, the default;
+    torch and ONNX Runtime compute in float32 from them) and its model.onnx, checks that the
+    stored model's descriptors stay within cosine 0.999 of the original's on 64 seeded
+    street-like clouds (and --check-root's submaps), holds it to the size limits (48 MiB a
+    model, 64 MiB all together), then writes the directory and the catalogue's entry (files'
+    SHA-256 and sizes, the command, data, figures, today's date) atomically: on any error
+    nothing is written. PNVLAD_PRETRAINED names another catalogue file. Needs torch and onnx.
+
+    Example: pnvlad model package runs/bev --name bev-benchmark --trained-with "pnvlad train -c
+    bev --root bench --splits bench/splits.json -o runs/bev" --data "benchmark preset, seed 1"
+    --figure "recall@1 (benchmark)=97.1"
+    """
+    with user_errors():
+        from pnvlad_service.errors import InputError
+        from pnvlad_service.models.packaging import Card, package_model
+
+        figures = {}
+        for item in figure:
+            key, sep, value = item.partition("=")
+            if not sep or not key.strip():
+                raise InputError(f"expected KEY=VALUE, got {item!r}", "--figure")
+            figures[key.strip()] = _number(value.strip())
+        points = None
+        if check_tree is not None:
+            points = _check_points(check_tree, check_count)
+        card = Card(kind=kind, trained_with=trained_with, data=data, figures=figures)
+        entry = package_model(
+            source, name, card, float16=float16, onnx=onnx, points=points, overwrite=overwrite
+        )
+        fid = entry.extra["fidelity"]
+        typer.echo(
+            f"packaged {source} as pretrained:{entry.name} ({entry.dtype}, "
+            f"{entry.bytes / 2**20:.1f} MiB, {', '.join(entry.files)}): descriptors within "
+            f"cosine {fid['min_cosine']:.6f} of the original's on {fid['clouds']} clouds, "
+            f"top-1 agreement {fid['top1_agreement']:.3f}"
+        )
+
+
+def _number(text: str) -> float | int | str:
+    """``text`` as an int or float when it is one."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def _check_points(tree: Path, count: int):
+    """The first ``count`` database submaps of the benchmark tree ``tree``, float [M, N, 3]."""
+    import numpy as np
+
+    from pnvlad_service.index.build import list_database_submaps
+    from pnvlad_service.io.readers import read_points
+
+    records = list_database_submaps(tree)[:count]
+    return np.stack([read_points(tree / r.path, "benchmark") for r in records])

@@ -34,6 +34,7 @@ from pnvlad_service.models.onnx_encoder import (
     check_clouds,
     cosines,
 )
+from pnvlad_service.models.pretrained import refuse_pretrained
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +71,7 @@ def export_onnx(
     point_tile: int = 512,
     points: np.ndarray | None = None,
     threads: int | None = None,
+    float16: bool = False,
 ) -> OnnxExport:
     """Write ``model.onnx`` into the model directory ``directory`` (atomically, replacing an
     older one) after checking it against the torch encoder on the seeded check clouds and on
@@ -77,7 +79,8 @@ def export_onnx(
     cloud when a descriptor is below cosine 0.9999, and nothing is written.
 
     ``point_tile``: points a tile of the widest per-point layers (0: whole clouds);
-    ``threads``: ONNX Runtime's threads for the check."""
+    ``threads``: ONNX Runtime's threads for the check; ``float16``: store the graph's weight
+    matrices as float16 (:func:`store_float16`; the check then runs on that graph)."""
     require("torch", "torch", "torch", "pnvlad model export")
     onnx = require("onnx", "onnx", "torch", "pnvlad model export")
     import torch
@@ -87,6 +90,7 @@ def export_onnx(
     from pnvlad_service.models.inference import Encoder
     from pnvlad_service.models.onnx_graph import build_graph
 
+    refuse_pretrained(directory)
     t0 = time.perf_counter()
     directory = store.resolve_model_dir(directory)
     model, cfg = store.load_model(directory)
@@ -110,27 +114,16 @@ def export_onnx(
         proto = build_graph(
             cfg, folded_params(model), point_tile=point_tile, metadata=record.metadata()
         )
+    if float16:
+        store_float16(proto)
     data = proto.SerializeToString()
 
     # The check, on the bytes about to be written.
     path = directory / ONNX_FILE
     ort = OnnxEncoder(path, cfg, sha, threads=threads, check=False, data=data)
     clouds = [seeded] + ([] if points is None else [np.asarray(points, dtype=np.float32)])
-    worst, count = 1.0, 0
     try:
-        for batch in clouds:
-            with torch.inference_mode():
-                want = encoder.embed(batch)
-            for got in (ort.embed(batch), np.concatenate([ort.embed(c) for c in batch])):
-                cos = cosines(got, want)
-                i = int(np.argmin(cos))
-                if not cos[i] >= MIN_COSINE:
-                    raise PnvladError(
-                        f"{directory}: the ONNX graph's descriptor of check cloud {count + i} "
-                        f"is at cosine {cos[i]:.6f} of torch's (< {MIN_COSINE}); nothing written"
-                    )
-                worst = min(worst, float(cos[i]))
-            count += len(batch)
+        worst, count = _check_against_torch(encoder, ort, clouds, directory)
     finally:
         ort.close()
         encoder.close()
@@ -148,3 +141,57 @@ def export_onnx(
         seconds,
     )
     return OnnxExport(path, len(data), worst, count, seconds)
+
+
+def _check_against_torch(
+    encoder: Any, ort: OnnxEncoder, clouds: list[np.ndarray], directory: Path
+) -> tuple[float, int]:
+    """The smallest cosine of ONNX Runtime's descriptors (each batch whole and one cloud at a
+    time) to torch's over ``clouds`` and how many clouds; :class:`PnvladError` naming the
+    first cloud below :data:`MIN_COSINE`."""
+    import torch
+
+    worst, count = 1.0, 0
+    for batch in clouds:
+        with torch.inference_mode():
+            want = encoder.embed(batch)
+        for got in (ort.embed(batch), np.concatenate([ort.embed(c) for c in batch])):
+            cos = cosines(got, want)
+            i = int(np.argmin(cos))
+            if not cos[i] >= MIN_COSINE:
+                raise PnvladError(
+                    f"{directory}: the ONNX graph's descriptor of check cloud {count + i} "
+                    f"is at cosine {cos[i]:.6f} of torch's (< {MIN_COSINE}); nothing written"
+                )
+            worst = min(worst, float(cos[i]))
+        count += len(batch)
+    return worst, count
+
+
+def store_float16(proto: Any) -> int:
+    """Store ``proto``'s float32 initializers of two or more dimensions (weight matrices,
+    convolution kernels) as float16, each followed by a ``Cast`` back to float32 at the top of
+    the graph under its old name; ONNX Runtime folds the casts when it loads the file, so it
+    computes in float32 from the rounded weights. Vectors, and matrices with a value outside
+    float16's range, stay float32. Returns the initializers converted."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    graph = proto.graph
+    kept, casts = [], []
+    for init in graph.initializer:
+        if init.data_type == TensorProto.FLOAT and len(init.dims) >= 2:
+            arr = numpy_helper.to_array(init)
+            if np.all(np.abs(arr) <= np.finfo(np.float16).max):
+                half = numpy_helper.from_array(arr.astype(np.float16), f"{init.name}__f16")
+                kept.append(half)
+                casts.append(
+                    helper.make_node("Cast", [half.name], [init.name], to=TensorProto.FLOAT)
+                )
+                continue
+        kept.append(init)
+    nodes = [*casts, *graph.node]
+    del graph.initializer[:]
+    graph.initializer.extend(kept)
+    del graph.node[:]
+    graph.node.extend(nodes)
+    return len(casts)

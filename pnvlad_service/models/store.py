@@ -49,16 +49,22 @@ __all__ = [
 
 def resolve_model_dir(path: str | Path) -> Path:
     """The model directory that ``path`` names: a model directory itself (``model.json`` +
-    ``model.safetensors``, a training checkpoint included) or a training run's output
-    directory, whose final model is ``OUT/model``. Raises :class:`InputError` naming ``path``.
+    ``model.safetensors``, a training checkpoint included), a training run's output
+    directory, whose final model is ``OUT/model``, or ``pretrained:NAME``, a model that ships
+    with pnvlad (:func:`pnvlad_service.models.pretrained.resolve`: its files checked against
+    the catalogue). Raises :class:`InputError` naming ``path``.
     """
+    from pnvlad_service.models import pretrained
+
+    if pretrained.is_pretrained(path):
+        return _named(path)
     path = Path(path)
     if (path / CONFIG_FILE).is_file():
         return path
     if (path / "model" / CONFIG_FILE).is_file():
         return path / "model"
     if not path.exists():
-        raise InputError("model directory not found", source=path)
+        raise InputError("model directory not found" + pretrained.hint(path), source=path)
     if (path / "checkpoints").is_dir():
         raise InputError(
             "a training run without a final model (OUT/model): the run has not finished; "
@@ -69,6 +75,16 @@ def resolve_model_dir(path: str | Path) -> Path:
         f"not a model directory (no {CONFIG_FILE}) nor a training run (no model/{CONFIG_FILE})",
         source=path,
     )
+
+
+def _named(directory: str | Path) -> Path:
+    """``directory``, or the directory of the pretrained model ``pretrained:NAME`` names
+    (checked against its catalogue), for the functions that read a model directory as given."""
+    from pnvlad_service.models import pretrained
+
+    if pretrained.is_pretrained(directory):
+        return pretrained.resolve(directory)
+    return Path(directory)
 
 
 @dataclass(frozen=True)
@@ -101,24 +117,32 @@ def model_identity(directory: str | Path) -> ModelIdentity:
 
 def weights_sha256(directory: str | Path) -> str:
     """SHA-256 (hex) of the checkpoint's ``model.safetensors`` file bytes."""
-    path = Path(directory) / WEIGHTS_FILE
+    path = _named(directory) / WEIGHTS_FILE
     if not path.is_file():
         raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
     return sha256_file(path)
 
 
 def write_model_files(
-    directory: str | Path, model: torch.nn.Module, cfg: ModelConfig, meta: dict[str, Any] | None
+    directory: str | Path,
+    model: torch.nn.Module,
+    cfg: ModelConfig,
+    meta: dict[str, Any] | None,
+    *,
+    state: dict[str, Any] | None = None,
 ) -> None:
     """Write ``model.safetensors`` and ``model.json`` into an existing (temporary) directory.
 
     For callers that build a larger directory atomically themselves (the trainer adds
-    ``train_state.pt``); everyone else calls :func:`save_model`.
+    ``train_state.pt``; a pretrained model stores ``state``, the model's tensors some of them
+    in float16, in place of ``model.state_dict()``); everyone else calls :func:`save_model`.
+    :func:`load_model` restores the model's own dtypes.
     """
     from safetensors.torch import save_file
 
     directory = Path(directory)
-    state = {k: v.detach().to("cpu").contiguous() for k, v in model.state_dict().items()}
+    state = model.state_dict() if state is None else state
+    state = {k: v.detach().to("cpu").contiguous() for k, v in state.items()}
     save_file(state, str(directory / WEIGHTS_FILE), metadata={"format": FORMAT})
     default_permissions(directory / WEIGHTS_FILE)  # save_file makes it 0600
     doc: dict[str, Any] = dict(meta or {})
@@ -157,7 +181,7 @@ def save_model(
 
 def read_model_json(directory: str | Path) -> tuple[ModelConfig, dict[str, Any]]:
     """Read and check ``model.json``: returns (config, the whole document)."""
-    directory = Path(directory)
+    directory = _named(directory)
     path = directory / CONFIG_FILE
     if not directory.is_dir():
         raise InputError(
@@ -197,7 +221,7 @@ def load_model(
 
     from pnvlad_service.models.factory import build_model
 
-    directory = Path(directory)
+    directory = _named(directory)
     cfg, doc = read_model_json(directory)
     wpath = directory / WEIGHTS_FILE
     if not wpath.is_file():
@@ -214,7 +238,7 @@ def load_model(
         raise InputError(f"cannot read safetensors file: {exc}", wpath) from None
     model = build_model(cfg)
     check_state_dict(model, state, wpath)
-    model.load_state_dict(state, strict=True)
+    model.load_state_dict(state, strict=True)  # copies into the model's dtypes: float16 -> 32
     model.eval()
     if device is not None:
         model.to(device)
