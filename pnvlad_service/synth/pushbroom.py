@@ -18,14 +18,19 @@ from ``(seed, block)``, so a line is the same whichever order the lines are aske
 
 from __future__ import annotations
 
+import copy
+from dataclasses import fields
+
 import numpy as np
 
 from pnvlad_service.synth.linescan import cast_line, line_fan, scene_near
 from pnvlad_service.synth.runs import (
     Route,
     RunConditions,
+    RunScene,
     SimulatedDrive,
     _level,
+    _Movers,
     _smooth_walk,
 )
 from pnvlad_service.synth.sensors import PushbroomConfig
@@ -56,6 +61,7 @@ class PushbroomDrive(SimulatedDrive):
         self._block = max(1, int(lines_per_scene))
         self._knot = float(noise_knot_m)
         self._cache: dict[int, list[np.ndarray]] = {}
+        self._segments: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         super().__init__(
             world,
             route,
@@ -111,12 +117,36 @@ class PushbroomDrive(SimulatedDrive):
             self._cache = {block: self._cast_block(block)}  # lines are read in order
         return self._cache[block][i - block * self._block]
 
+    def _movers_near(self, xy: np.ndarray, reach: float) -> RunScene:
+        """The run's scene with only the traffic and pedestrians of the streets that come
+        within ``reach`` (plus the pavements' width) of ``xy``: a mover stays on its street,
+        so the others cannot be in view, and placing them all every block costs most."""
+        if self._segments is None:
+            roads = self.world.roads
+            self._segments = (
+                np.concatenate([r.points[:-1] for r in roads]),
+                np.concatenate([r.points[1:] for r in roads]),
+                np.concatenate([np.full(len(r.points) - 1, i) for i, r in enumerate(roads)]),
+            )
+        a, b, road = self._segments
+        ab = b - a
+        t = np.clip(((xy - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-12), 0.0, 1.0)
+        dist = np.linalg.norm(a + t[:, None] * ab - xy, axis=1)
+        near = np.zeros(len(self.world.roads), bool)
+        near[road[dist < reach + 25.0]] = True
+        view = copy.copy(self.scene)
+        view.cars = _subset(self.scene.cars, near[self.scene.cars.road])
+        view.people = _subset(self.scene.people, near[self.scene.people.road])
+        return view
+
     def _cast_block(self, block: int) -> list[np.ndarray]:
         """The lines of one block, cast in the scene at the block's middle line's time."""
         lines = range(block * self._block, min((block + 1) * self._block, len(self)))
         mid = lines[len(lines) // 2]
         reach = self.lidar.max_range + 5.0 + self._block * self.line_spacing
-        scene = self.scene.scene_at(float(self.times[mid]), self.true_xy[mid], reach)
+        scene = self._movers_near(self.true_xy[mid], reach).scene_at(
+            float(self.times[mid]), self.true_xy[mid], reach
+        )
         scene = scene_near(scene, self.true_xy[mid], reach)
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 3, block]))
         out = []
@@ -128,3 +158,9 @@ class PushbroomDrive(SimulatedDrive):
                 )
             )
         return out
+
+
+def _subset(m: _Movers, keep: np.ndarray) -> _Movers:
+    """The movers ``keep`` (bool [M]) of ``m``."""
+    parts = {f.name: getattr(m, f.name)[keep] for f in fields(m) if f.name != "shapes"}
+    return _Movers(**parts, shapes=None if m.shapes is None else m.shapes.take(keep))
