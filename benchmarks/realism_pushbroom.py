@@ -22,8 +22,11 @@ along the track); the local shapes; after the filter G of a submap (ground remov
 normalised): the height extent and width in its units and the local shapes.
 
 Then the submaps as ``pnvlad synth`` cuts them (the points recorded along 20 m of trajectory,
-before G; the issue's figures): their extent (max - min and 5th to 95th percentile along the
-UTM axes) and the height extent after G, medians over the places.
+before G): their extent (max - min and 5th to 95th percentile along the UTM axes) and the
+height extent after G, and the period of the comb in the ground points of the cloud before it
+is laid (the real clouds went through a voxel grid of about 0.2 m, which hides their lines: the
+comb found in them, and in every laid cloud, is the grid's) beside speed / rate, medians over
+the places.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ import numpy as np
 from entry import run
 
 from pnvlad_service.data.accumulate import accumulate, scan_subset, travelled_distance
+from pnvlad_service.data.ground import fit_ground_plane
 from pnvlad_service.data.preprocess import GConfig, apply_g
 from pnvlad_service.errors import InputError
 from pnvlad_service.synth import realism_cloud as rc
@@ -92,16 +96,28 @@ def synthetic(preset: str, args: argparse.Namespace) -> tuple[rc.CloudStats, dic
             centre = drive.poses[c, :3, 3]
             cloud = accumulate(drive.poses, scans, near, centre)
             disc = int((np.hypot(cloud[:, 0], cloud[:, 1]) <= rc.REAL_RADIUS_M).sum())
+            normal, offset = fit_ground_plane(cloud, rng=np.random.default_rng(c))
+            ground = cloud[np.abs(cloud @ normal + offset) < rc.LINE_GROUND_M, :2]
+            raw_lines = rc.scan_lines(ground)[0]  # before any voxel grid
+            rate = getattr(drive.lidar, "rate_hz", None)
             laid = rc.lay_like_real(cloud, rng)
             stats.append(rc.cloud_stats(laid, raw_points=disc, sample=args.sample, seed=c))
             window = [i for i in near if abs(d[i] - d[c]) <= 10.0]
             sub = accumulate(drive.poses, scans, window, centre)
             g = apply_g(sub, GConfig(), seed=c).points
             p5, p95 = np.percentile(sub[:, :2], 5, axis=0), np.percentile(sub[:, :2], 95, axis=0)
-            subs.append([*np.ptp(sub[:, :2], axis=0), *(p95 - p5), np.ptp(g[:, 2])])
+            subs.append(
+                [
+                    *np.ptp(sub[:, :2], axis=0),
+                    *(p95 - p5),
+                    np.ptp(g[:, 2]),
+                    raw_lines,
+                    drive.speed / rate if rate else np.nan,
+                ]
+            )
             print(f"{preset} run {r} place {c}: {len(sub):,} submap points", file=sys.stderr)
-    med = np.median(np.array(subs), axis=0)
-    keys = ("span_x", "span_y", "p5_95_x", "p5_95_y", "g_height")
+    med = np.nanmedian(np.array(subs), axis=0) if np.isfinite(subs).any() else np.array(subs)[0]
+    keys = ("span_x", "span_y", "p5_95_x", "p5_95_y", "g_height", "lines", "speed_rate")
     return rc.pool(stats), dict(zip(keys, med.tolist(), strict=True)), sensor
 
 
@@ -149,8 +165,11 @@ def submap_table(subs: list[tuple[str, dict[str, float]]]) -> str:
         ("p5_95_x", "extent east, 5-95 % (m)"),
         ("p5_95_y", "extent north, 5-95 % (m)"),
         ("g_height", "height extent after G (its units)"),
+        ("lines", "comb of the ground points before any voxel grid, period (m)"),
+        ("speed_rate", "a line every speed / rate (m)"),
     ):
-        lines.append(f"| {label} | " + " | ".join(f"{s[key]:.2f}" for _, s in subs) + " |")
+        cells = [_value(s[key], "g") for _, s in subs]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

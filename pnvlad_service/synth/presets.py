@@ -100,6 +100,12 @@ def _areas(route_m: float, size: tuple[float, float], names: tuple[str, ...]) ->
 #: Run conditions of the realistic presets: the vehicle clear of parked and oncoming cars,
 #: cars of several shapes, the sensor pitched and rolled with the slope.
 REAL_CONDITIONS = RunConditions(ego_clearance=0.3, vehicle_shapes=True, follow_ground=True)
+#: Run conditions of the push-broom presets: the realistic ones with the GNSS/INS error
+#: decorrelating over 200 m rather than 60 m. A push-broom submap is stitched from 150 lines,
+#: so the error's change along 20 m of trajectory shears it: correlated over 60 m, the position
+#: error drifts about 0.9 m and stretches the line spacing by up to 10 % within a submap (the
+#: comb of its lines at 0.14 m where the lines were 0.128 m apart); over 200 m, 0.5 m.
+PUSHBROOM_CONDITIONS = REAL_CONDITIONS.model_copy(update={"noise_correlation_m": 200.0})
 #: Street detail of the realistic presets.
 REAL_CITY = CityDetail(
     hedges=0.35,
@@ -172,7 +178,7 @@ PRESETS: dict[str, SynthPreset] = {
         areas=_areas(200.0, (360.0, 300.0), ("business",)),
         runs=3,
         pushbroom=pushbroom("lms151"),
-        conditions=REAL_CONDITIONS,
+        conditions=PUSHBROOM_CONDITIONS,
         city=REAL_CITY,
         max_points_per_scan=1000,
         test_share=0.4,
@@ -186,7 +192,7 @@ PRESETS: dict[str, SynthPreset] = {
         areas=_areas(1000.0, (700.0, 600.0), ("business",)),
         runs=4,
         pushbroom=pushbroom("lms151"),
-        conditions=REAL_CONDITIONS,
+        conditions=PUSHBROOM_CONDITIONS,
         city=REAL_CITY,
         max_points_per_scan=1000,
         test_share=0.35,

@@ -6,8 +6,8 @@ line every 0.18 m: the spacing along the street follows the run's speed). Each l
 the scanner's true place on the vehicle (:func:`~pnvlad_service.synth.linescan.cast_line`) and
 given in the vehicle's axes about the scanner (x forward, y left, z up); its pose, the one
 ``prepare_drive`` lays it with, is the run's *recorded* GNSS/INS pose of the scanner, whose
-error drifts smoothly along the run (a random walk drawn every ``noise_knot_m`` metres and
-interpolated between: an INS is smooth from line to line, its drift is not), so the accumulated
+error drifts smoothly along the run (a random walk drawn every ``noise_knot_m`` metres, a cubic
+spline between: an INS is smooth from line to line, its drift is not), so the accumulated
 submaps smear as the real ones do. Everything else (route, lane, speed, traffic, parked cars,
 season, roadworks) is the spinning sensors' run, drawn from the same streams.
 
@@ -56,7 +56,7 @@ class PushbroomDrive(SimulatedDrive):
         conditions: RunConditions | None = None,
         lidar: PushbroomConfig | None = None,
         lines_per_scene: int = 5,
-        noise_knot_m: float = 5.0,
+        noise_knot_m: float = 20.0,
     ) -> None:
         self._block = max(1, int(lines_per_scene))
         self._knot = float(noise_knot_m)
@@ -95,7 +95,7 @@ class PushbroomDrive(SimulatedDrive):
 
     def _recorded_poses(self, rng: np.random.Generator, s: np.ndarray) -> np.ndarray:
         """The true poses with the GNSS/INS error: random walks in position and heading drawn
-        every ``noise_knot_m`` of the run and interpolated at the lines."""
+        every ``noise_knot_m`` of the run, a cubic spline through them at the lines."""
         cond = self.conditions
         knots = np.arange(0.0, (s[-1] if len(s) else 0.0) + self._knot, self._knot)
         corr = cond.noise_correlation_m
@@ -104,7 +104,12 @@ class PushbroomDrive(SimulatedDrive):
             for std in (cond.position_noise / np.sqrt(2),) * 2
             + (np.deg2rad(cond.heading_noise_deg),)
         ]
-        en, nn, yn = (np.interp(s, knots, w) for w in walks)
+        if len(knots) < 2:
+            en, nn, yn = (np.full(len(s), w[0]) for w in walks)
+        else:
+            from scipy.interpolate import CubicSpline
+
+            en, nn, yn = (CubicSpline(knots, w)(s) for w in walks)
         est_xy = self.true_xy + np.stack([en, nn], 1)
         return self._poses(_level(yn) @ self.attitude, est_xy)
 
