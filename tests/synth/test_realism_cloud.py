@@ -62,3 +62,21 @@ def test_the_real_robotcar_clouds_are_tall_and_voxelised(real_scans: Path) -> No
     assert np.percentile(s.heights, 90) > 4.0  # facades and trees to their tops
     assert 0.2 < s.ground_share < 0.7
     assert s.g_height > 0.3  # after G: far taller than a spinning sensor's 0.11
+
+
+def test_the_benchmark_names_missing_real_clouds_in_one_line(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "realism_pushbroom.py"
+    done = subprocess.run(
+        [sys.executable, str(script), "--real", str(tmp_path), "--clouds", "1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2
+    assert done.stderr == (
+        f"error: {tmp_path / 'oxford_lms_front_270.bin'}: not there (--real or "
+        "$PNVLAD_REAL_SCANS)\n"
+    )
