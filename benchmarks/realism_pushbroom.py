@@ -3,7 +3,7 @@ real Oxford RobotCar clouds, of synthetic push-broom clouds and of today's spinn
 clouds, side by side.
 
 Usage: python benchmarks/realism_pushbroom.py [--preset pushbroom_demo] [--spinning demo]
-       [--seed 0] [--clouds 8] [--real DIR]
+       [--seed 0] [--clouds 8] [--real DIR] [--ablation]
 
 Real: ``oxford_lms_front_270.bin`` and ``_456.bin`` of ../shared/data/real_scans (or
 $PNVLAD_REAL_SCANS, or --real), read in place: the RobotCar's front LMS-151 accumulated with
@@ -26,7 +26,8 @@ before G): their extent (max - min and 5th to 95th percentile along the UTM axes
 height extent after G, and the period of the comb in the ground points of the cloud before it
 is laid (the real clouds went through a voxel grid of about 0.2 m, which hides their lines: the
 comb found in them, and in every laid cloud, is the grid's) beside speed / rate, medians over
-the places.
+the places. ``--ablation``: the distances of a few statistics from the perfect scanner laid
+with the true poses, through the real scanner's failures, to the recorded poses (the preset).
 """
 
 from __future__ import annotations
@@ -71,12 +72,14 @@ def _places(drive: Any, count: int, reach: float) -> list[int]:
     return [int(np.searchsorted(d, s)) for s in at]
 
 
-def synthetic(preset: str, args: argparse.Namespace) -> tuple[rc.CloudStats, dict[str, float], str]:
-    """The pooled statistics of ``args.clouds`` clouds of a preset's runs laid like the real
-    ones, the medians of its submaps as cut, and its sensor's name."""
+def synthetic(preset: Any, args: argparse.Namespace) -> tuple[rc.CloudStats, dict[str, float], str]:
+    """The pooled statistics of ``args.clouds`` clouds of a preset's runs (a name or a
+    ``SynthPreset``) laid like the real ones, the medians of its submaps as cut, and its
+    sensor's name."""
     from pnvlad_service.synth.generate import get_preset, simulated_drive
 
-    spec = get_preset(preset)
+    spec = get_preset(preset) if isinstance(preset, str) else preset
+    preset = spec.name
     per_run = -(-args.clouds // spec.runs)
     stats, subs = [], []
     rng = np.random.default_rng(args.seed)
@@ -173,6 +176,59 @@ def submap_table(subs: list[tuple[str, dict[str, float]]]) -> str:
     return "\n".join(lines)
 
 
+#: The rows the ablation follows.
+ABLATION_ROWS = (
+    "ground (G's estimate)",
+    "height above the ground (mean)",
+    "share above 5 m",
+    "extent, minor axis (5-95 %)",
+    "planar shape",
+    "scattered shape",
+    "G: height extent (its units)",
+    "G: planar shape",
+    "G: scattered shape",
+)
+
+
+def ablation_steps(name: str) -> list[tuple[str, Any]]:
+    """The push-broom preset ``name`` reached in steps of one change each: the perfect scanner
+    laid with the true poses, then the real scanner's failures, then the recorded GNSS/INS
+    poses (the preset)."""
+    from pnvlad_service.synth.generate import get_preset
+
+    spec = get_preset(name)
+    perfect = {
+        "dropout": 0.0,
+        "dropout_far": 0.0,
+        "dropout_grazing": 0.0,
+        "glass_loss": 0.0,
+        "dark_loss": 0.0,
+        "foliage_depth": 0.0,
+        "range_noise_per_100m": 0.0,
+    }
+    exact = spec.conditions.model_copy(update={"position_noise": 0.0, "heading_noise_deg": 0.0})
+    failures = spec.model_copy(update={"conditions": exact})
+    clean = failures.model_copy(update={"pushbroom": spec.pushbroom.model_copy(update=perfect)})
+    return [("perfect, true poses", clean), ("failures", failures), ("recorded poses", spec)]
+
+
+def ablation(real: rc.CloudStats, name: str, args: argparse.Namespace) -> str:
+    """Each followed statistic's distance to the real clouds at every step (Markdown)."""
+    steps = ablation_steps(name)
+    cols: list[dict[str, str]] = []
+    for _, spec in steps:
+        stats, _, _ = synthetic(spec, args)
+        cols.append(
+            {r.label: _distance(r.distance, r.distance_unit) for r in rc.compare(real, stats)}
+        )
+    names = " → ".join(n for n, _ in steps)
+    lines = [f"| statistic | {names} |", "|---|---|"]
+    for label in ABLATION_ROWS:
+        cells = [c[label] for c in cols]
+        lines.append(f"| {label} | " + " → ".join([*cells[:-1], f"**{cells[-1]}**"]) + " |")
+    return "\n".join(lines)
+
+
 def _args() -> argparse.Namespace:
     default = os.environ.get("PNVLAD_REAL_SCANS") or str(REPO.parent / "shared/data/real_scans")
     ap = argparse.ArgumentParser(
@@ -185,6 +241,11 @@ def _args() -> argparse.Namespace:
     ap.add_argument("--reach", type=float, default=40.0, help="metres of travel each way")
     ap.add_argument("--real", type=Path, default=Path(default), help="the real clouds' folder")
     ap.add_argument("--sample", type=int, default=5000, help="local shapes per cloud")
+    ap.add_argument(
+        "--ablation",
+        action="store_true",
+        help="also each distance from the perfect scanner on true poses to the preset",
+    )
     return ap.parse_args()
 
 
@@ -205,6 +266,9 @@ def main() -> int:
     print(table(real, synths))
     print()
     print(submap_table(subs))
+    if args.ablation:
+        print()
+        print(ablation(real, args.preset, args))
     return 0
 
 
