@@ -149,8 +149,9 @@ class PushbroomDrive(SimulatedDrive):
         lines = range(block * self._block, min((block + 1) * self._block, len(self)))
         mid = lines[len(lines) // 2]
         reach = self.lidar.max_range + 5.0 + self._block * self.line_spacing
-        scene = self._movers_near(self.true_xy[mid], reach).scene_at(
-            float(self.times[mid]), self.true_xy[mid], reach
+        # about the vehicle, whose footprint no other vehicle overlaps (ego_clearance)
+        scene = self._movers_near(self.vehicle_xy[mid], reach + 5.0).scene_at(
+            float(self.times[mid]), self.vehicle_xy[mid], reach + 5.0
         )
         scene = scene_near(scene, self.true_xy[mid], reach)
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 3, block]))
