@@ -14,8 +14,11 @@ A run is the vehicle driving the area's route once. What differs between runs, e
 - roadworks: cones and barriers added in a few places, and a few street objects removed there.
 
 :class:`SimulatedDrive` implements :class:`pnvlad_service.data.drive.Drive`, so submaps are cut by
-the same ``prepare_drive`` path a user's recorded drive takes. World frame: x = easting,
-y = northing, z = up, UTM metres; scans are in the sensor frame (x forward, y left, z up).
+the same ``prepare_drive`` path a user's recorded drive takes; its sensor hooks
+(``_setup_sensor``, ``_spacing``, ``_place_sensor``, ``scan``) are what
+:class:`pnvlad_service.synth.pushbroom.PushbroomDrive` changes for a line scanner. World frame:
+x = easting, y = northing, z = up, UTM metres; scans are in the sensor frame (x forward, y left,
+z up).
 """
 
 from __future__ import annotations
