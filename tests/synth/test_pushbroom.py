@@ -217,3 +217,40 @@ def test_presets_without_a_line_scanner_dump_as_before() -> None:
         assert "pushbroom" not in get_preset(name).model_dump()
     dump = get_preset("pushbroom_demo").model_dump()
     assert dump["pushbroom"]["rate_hz"] == 50.0 and dump["pushbroom"]["mount"] == LMS_FRONT
+
+
+def test_the_line_scanner_fails_as_the_spinning_sensors_do() -> None:
+    from pnvlad_service.synth.lidar import _windows
+
+    cfg = pushbroom(**PERFECT)
+    h = float(cfg.origin()[2])
+    o = np.array([0.0, 0.0, h])
+
+    def wall_hits(**update: float) -> np.ndarray:
+        c = pushbroom(**{**PERFECT, **update})
+        shifts = [np.array([x, 0.0, 0.0]) for x in np.arange(-10.0, 10.0, 0.1)]
+        rays = [
+            cast_line(_side_wall(8.0), FLAT, o + d, np.eye(3), c, np.random.default_rng(i)) + d
+            for i, d in enumerate(shifts)
+        ]
+        pts = np.concatenate(rays)
+        return pts[np.abs(pts[:, 1] - 8.0) < 1e-4]
+
+    clean = wall_hits()
+    on_glass = _windows(clean[:, 0] + 50.0, clean[:, 2] + h)  # metres along the face, up it
+    assert 0.1 < on_glass.mean() < 0.5
+    # every ray that meets glass lost, the rest of the wall kept
+    glass = wall_hits(glass_loss=1.0)
+    assert not _windows(glass[:, 0] + 50.0, glass[:, 2] + h).any()
+    assert len(glass) == pytest.approx((~on_glass).sum(), abs=2)
+    # dropouts: half the returns lost
+    half = wall_hits(dropout=0.5)
+    assert len(half) == pytest.approx(len(clean) / 2, rel=0.1)
+    # range noise: the wall's hits scattered about it by the noise along each ray
+    noisy = pushbroom(**{**PERFECT, "range_noise": 0.05})
+    pts = cast_line(_side_wall(8.0), FLAT, o, np.eye(3), noisy, np.random.default_rng(0))
+    r = np.linalg.norm(pts, axis=1)
+    unit = pts / r[:, None]
+    wall = (unit[:, 1] > 0.2) & (unit[:, 2] > 0.0)  # rays to the wall above the scanner
+    exact = 8.0 / unit[wall, 1]
+    assert np.std(r[wall] - exact) == pytest.approx(0.05, rel=0.3)
