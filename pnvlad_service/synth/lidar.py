@@ -9,6 +9,7 @@ one numpy pass, then reduced to the nearest hit per ray with ``np.minimum.at``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,7 +27,15 @@ from pnvlad_service.synth.world import (
     Scene,
 )
 
-__all__ = ["LidarConfig", "RayBundle", "cast_scan", "on_roof", "ray_bundle"]
+__all__ = [
+    "LidarConfig",
+    "RayBundle",
+    "cast_scan",
+    "nearest_hits",
+    "on_roof",
+    "ray_bundle",
+    "real_returns",
+]
 
 
 @dataclass
@@ -308,14 +317,17 @@ def _world_rays(
     return world, np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ attitude
 
 
+#: Candidate (primitive, ray) pairs of one primitive kind: from its bounding cylinders (centres
+#: [P, 2], radii [P], bottom and top z [P]) to primitive and flat ray indices, int64 [M] each.
+PairFn = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
 def _box_hits(
     bx: Boxes,
     o: np.ndarray,
-    yaw: float,
     world: np.ndarray,
-    rays: RayBundle,
-    cfg: LidarConfig,
-    tilt: np.ndarray | None,
+    pairs: PairFn,
+    cfg: Any,
     rng: np.random.Generator,
     depth: np.ndarray,
     hits: list,
@@ -324,7 +336,7 @@ def _box_hits(
     is made of into ``hits``: vehicles, grass, facades and their glass, anything else."""
     real = cfg.realistic
     rad = np.hypot(bx.half[:, 0], bx.half[:, 1])
-    prim, ray = _pairs(bx.center, rad, bx.z[:, 0], bx.z[:, 1], o, yaw, rays, cfg.max_range, tilt)
+    prim, ray = pairs(bx.center, rad, bx.z[:, 0], bx.z[:, 1])
     if not len(prim):
         return
     t, cos, along = _hit_boxes(bx, prim, o, world[ray], faces=real)
@@ -342,6 +354,46 @@ def _box_hits(
         glass = facade & _windows(np.nan_to_num(along), height)
         glass &= cfg.glass_loss > 0
         hits.append((mat, ray, t, cos, glass))
+
+
+def nearest_hits(
+    scene: Scene,
+    ground: Ground,
+    o: np.ndarray,
+    world: np.ndarray,
+    pairs: PairFn,
+    cfg: Any,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, list]:
+    """Each ray's nearest surface from ``o`` (float64 [3]) along ``world`` (float64 [N, 3],
+    unit): its distance float64 [N] (inf: none in range) and, for a real sensor
+    (``cfg.realistic``), what each primitive kind's candidate hits are made of, for
+    :func:`real_returns`. ``pairs`` picks the rays each primitive can meet (a spinning
+    sensor's azimuth and elevation windows, a line scanner's fan)."""
+    depth = _hit_ground(ground, o, world, cfg.max_range)
+    real = cfg.realistic
+    hits: list = []  # (material, ray, t, cos, glass) of each primitive kind, for the failures
+    if len(scene.boxes):
+        _box_hits(scene.boxes, o, world, pairs, cfg, rng, depth, hits)
+    cy = scene.cylinders
+    if len(cy):
+        prim, ray = pairs(cy.center, cy.radius, cy.z[:, 0], cy.z[:, 1])
+        if len(prim):
+            t, cos = _hit_cylinders(cy, prim, o, world[ray])
+            np.minimum.at(depth, ray, t)
+            if real:
+                hits.append((np.full(len(t), MAT_OTHER), ray, t, cos, np.zeros(len(t), bool)))
+    el = scene.ellipsoids
+    if len(el):
+        zc, rz = el.center[:, 2], el.radii[:, 2]
+        prim, ray = pairs(el.center[:, :2], el.radii[:, 0], zc - rz, zc + rz)
+        if len(prim):
+            t = _hit_ellipsoids(el, prim, o, world[ray], rng, cfg.foliage_depth)
+            np.minimum.at(depth, ray, t)
+            if real:
+                ones = np.ones(len(t))
+                hits.append((np.full(len(t), MAT_FOLIAGE), ray, t, ones, np.zeros(len(t), bool)))
+    return depth, hits
 
 
 def cast_scan(
@@ -371,33 +423,14 @@ def cast_scan(
     flat = rays.dirs.reshape(-1, 3)
     world, tilt = _world_rays(flat, yaw, attitude)
     o = np.asarray(position, dtype=np.float64)
-    depth = _hit_ground(ground, o, world, cfg.max_range)
+
+    def pairs(
+        center: np.ndarray, radius: np.ndarray, zlo: np.ndarray, zhi: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        return _pairs(center, radius, zlo, zhi, o, yaw, rays, cfg.max_range, tilt)
+
+    depth, hits = nearest_hits(scene, ground, o, world, pairs, cfg, rng)
     real = cfg.realistic
-    hits = []  # (material, ray, t, cos, glass) of each primitive kind, for the failures
-    if len(scene.boxes):
-        _box_hits(scene.boxes, o, yaw, world, rays, cfg, tilt, rng, depth, hits)
-    cy = scene.cylinders
-    if len(cy):
-        prim, ray = _pairs(
-            cy.center, cy.radius, cy.z[:, 0], cy.z[:, 1], o, yaw, rays, cfg.max_range, tilt
-        )
-        if len(prim):
-            t, cos = _hit_cylinders(cy, prim, o, world[ray])
-            np.minimum.at(depth, ray, t)
-            if real:
-                hits.append((np.full(len(t), MAT_OTHER), ray, t, cos, np.zeros(len(t), bool)))
-    el = scene.ellipsoids
-    if len(el):
-        zc, rz = el.center[:, 2], el.radii[:, 2]
-        prim, ray = _pairs(
-            el.center[:, :2], el.radii[:, 0], zc - rz, zc + rz, o, yaw, rays, cfg.max_range, tilt
-        )
-        if len(prim):
-            t = _hit_ellipsoids(el, prim, o, world[ray], rng, cfg.foliage_depth)
-            np.minimum.at(depth, ray, t)
-            if real:
-                ones = np.ones(len(t))
-                hits.append((np.full(len(t), MAT_FOLIAGE), ray, t, ones, np.zeros(len(t), bool)))
 
     ok = np.isfinite(depth) & (depth <= cfg.max_range) & (depth >= cfg.min_range)
     if not real:  # the perfect sensor, as trees made before the failures cast it
@@ -407,7 +440,7 @@ def cast_scan(
         r = depth[idx] + rng.normal(0.0, cfg.range_noise, len(idx))
         pts = (flat[idx] * r[:, None]).astype(np.float32)
     else:
-        pts, idx = _real_returns(cfg, rng, rays, flat, world, depth, ok, hits, motion)
+        pts, idx = real_returns(cfg, rng, rays, flat, world, depth, ok, hits, motion)
     return (pts, idx // len(rays.azimuth)) if rings else pts
 
 
@@ -423,8 +456,8 @@ def on_roof(cfg: LidarConfig, dirs: np.ndarray) -> np.ndarray:
     return down & (reach < 1.0)
 
 
-def _real_returns(
-    cfg: LidarConfig,
+def real_returns(
+    cfg: Any,
     rng: np.random.Generator,
     rays: RayBundle,
     flat: np.ndarray,

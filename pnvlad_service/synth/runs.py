@@ -14,8 +14,11 @@ A run is the vehicle driving the area's route once. What differs between runs, e
 - roadworks: cones and barriers added in a few places, and a few street objects removed there.
 
 :class:`SimulatedDrive` implements :class:`pnvlad_service.data.drive.Drive`, so submaps are cut by
-the same ``prepare_drive`` path a user's recorded drive takes. World frame: x = easting,
-y = northing, z = up, UTM metres; scans are in the sensor frame (x forward, y left, z up).
+the same ``prepare_drive`` path a user's recorded drive takes; its sensor hooks
+(``_setup_sensor``, ``_spacing``, ``_place_sensor``, ``scan``) are what
+:class:`pnvlad_service.synth.pushbroom.PushbroomDrive` changes for a line scanner. World frame:
+x = easting, y = northing, z = up, UTM metres; scans are in the sensor frame (x forward, y left,
+z up).
 """
 
 from __future__ import annotations
@@ -476,12 +479,12 @@ class SimulatedDrive:
         self.seed = seed
         self.conditions = cond = conditions or RunConditions()
         self.lidar = lidar or LidarConfig()
-        self._rays: RayBundle = ray_bundle(self.lidar)
+        self._setup_sensor()
         rng = np.random.default_rng(np.random.SeedSequence([seed, 1]))
         self.speed = float(rng.uniform(*cond.speed))
         self.lane = float(rng.uniform(-cond.lane_offset, cond.lane_offset))
         self.reverse = bool(rng.random() < cond.reverse_share)
-        s = np.arange(0.0, route.length, scan_spacing)
+        s = np.arange(0.0, route.length, self._spacing(scan_spacing))
         p, t, hw = route.at(route.length - s if self.reverse else s)
         if self.reverse:
             t = -t
@@ -498,15 +501,29 @@ class SimulatedDrive:
         self._yaw_rate = (
             np.gradient(np.unwrap(yaw), s) * self.speed if len(s) > 1 else np.zeros(len(s))
         )
-        self.true_z = world.ground.height(true_xy[:, 0], true_xy[:, 1]) + self.lidar.mount_height
         self.times = s / self.speed  # seconds since the start of the run
         self.timestamps = (start_us + np.round(self.times * 1e6)).astype(np.int64)
         # The sensor's orientation (sensor axes in the world): level, or on the ground's slope.
         self.attitude = ground_attitude(world, true_xy, yaw) if cond.follow_ground else _level(yaw)
+        self._place_sensor()
         self.poses = self._recorded_poses(rng, s)
         self.scene = RunScene(
             world, cond, route, np.random.default_rng(np.random.SeedSequence([seed, 2]))
         )
+
+    def _setup_sensor(self) -> None:
+        """What the sensor needs once a run (a spinning sensor: its rays)."""
+        self._rays: RayBundle = ray_bundle(self.lidar)
+
+    def _spacing(self, scan_spacing: float) -> float:
+        """Metres driven between two scans (``self.speed`` is drawn): the preset's."""
+        return scan_spacing
+
+    def _place_sensor(self) -> None:
+        """The sensor's height ``true_z`` [T] above the vehicle's ``true_xy`` (a spinning
+        sensor: ``mount_height`` above the ground there, whatever the slope)."""
+        xy = self.true_xy
+        self.true_z = self.world.ground.height(xy[:, 0], xy[:, 1]) + self.lidar.mount_height
 
     def _recorded_poses(self, rng: np.random.Generator, s: np.ndarray) -> np.ndarray:
         """float64 [T, 4, 4] sensor→UTM world as the GNSS/INS records them: the true poses

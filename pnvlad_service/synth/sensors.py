@@ -18,8 +18,12 @@ VLP-16 16 from +15 to -15 (2 degrees apart); a 128-beam sensor (Ouster OS1-128) 
 
 from __future__ import annotations
 
+from typing import Any, Literal
+
 import numpy as np
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+
+from pnvlad_service.errors import InputError
 
 
 class LidarConfig(BaseModel):
@@ -186,3 +190,165 @@ SENSORS: dict[str, LidarConfig] = {
 def sensor(name: str, **update: object) -> LidarConfig:
     """A catalogue sensor by name (a copy, ``update`` applied), else ``KeyError``."""
     return SENSORS[name].model_copy(update=update, deep=True)
+
+
+#: The Oxford RobotCar's front SICK LMS-151 (the RobotCar SDK's ``extrinsics/lms_front.txt``):
+#: x, y, z (metres) and roll, pitch, yaw (radians) in the vehicle frame the SDK gives every
+#: sensor in (x forward, y right, z down, about the roof's stereo camera), the rotation
+#: ``Rz(yaw) Ry(pitch) Rx(roll)`` taking the scanner's axes into it.
+LMS_FRONT = (1.759, 0.227, 1.041, -0.044, -1.457, 0.036)
+
+#: The vehicle's body (a Nissan LEAF, 4.45 m x 1.77 m x 1.55 m), as boxes in the city's vehicle
+#: frame (x forward, y left, z up, metres; origin on the road below the SDK's reference):
+#: x0, x1, y0, y1, z0, z1. The lower body ends at the front bumper, a few centimetres behind
+#: the scanner; the cabin starts 1.1 m behind it.
+LEAF_BODY = (
+    (-2.75, 1.70, -0.885, 0.885, 0.15, 0.95),
+    (-2.30, 0.60, -0.800, 0.800, 0.95, 1.55),
+)
+
+
+def _finite(values: tuple[float, ...], name: str) -> tuple[float, ...]:
+    if not all(np.isfinite(values)):
+        raise ValueError(f"{name}: must be finite, got {list(values)}")
+    return values
+
+
+class PushbroomConfig(BaseModel):
+    """A 2D line scanner swept along the street by the vehicle's motion (push-broom). Defaults:
+    the SICK LMS-151 (270 degrees in its scan plane, 0.5 degree steps, 50 lines a second,
+    about 50 m) mounted as the Oxford RobotCar's ``lms_front``, with the failures of
+    :data:`REAL_FAILURES` (a line takes 15 ms: nothing to de-skew).
+
+    Each line is the fan of rays at angles ``-fov/2 .. +fov/2`` about the scanner's x axis in its
+    x-y plane; ``mount`` places the scanner in the vehicle frame the RobotCar SDK uses (x
+    forward, y right, z down, about a reference point ``reference_height`` above the road).
+    """
+
+    kind: Literal["pushbroom"] = "pushbroom"
+    name: str = Field("LMS-151", description="the sensor model, for the record")
+    fov_deg: float = Field(270.0, gt=0, le=360, allow_inf_nan=False, description="fan, degrees")
+    step_deg: float = Field(0.5, gt=0, allow_inf_nan=False, description="angular step, degrees")
+    rate_hz: float = Field(50.0, gt=0, allow_inf_nan=False, description="lines a second")
+    max_range: float = Field(50.0, gt=0, allow_inf_nan=False, description="metres")
+    min_range: float = Field(0.5, ge=0, allow_inf_nan=False, description="metres")
+    range_noise: float = Field(0.012, ge=0, description="range noise std, metres")
+    range_noise_per_100m: float = Field(0.02, ge=0, description="std added per 100 m, metres")
+    dropout: float = Field(0.03, ge=0, lt=1, description="share of returns lost")
+    dropout_far: float = Field(0.2, ge=0, lt=1, description="share lost added at max_range")
+    dropout_grazing: float = Field(0.25, ge=0, lt=1, description="share lost at grazing")
+    glass_loss: float = Field(0.7, ge=0, le=1, description="share of window returns lost")
+    dark_loss: float = Field(0.3, ge=0, lt=1, description="share of vehicle returns lost")
+    foliage_depth: float = Field(0.6, ge=0, description="mean depth into tree crowns, metres")
+    mount: tuple[float, float, float, float, float, float] = Field(
+        LMS_FRONT,
+        description="x, y, z (m), roll, pitch, yaw (rad) in the vehicle frame: x forward, "
+        "y right, z down (the RobotCar SDK's extrinsics)",
+    )
+    reference_height: float = Field(
+        1.75,
+        gt=0,
+        allow_inf_nan=False,
+        description="height of the vehicle frame's origin above the road, metres (the "
+        "RobotCar's roof camera: an estimate, the SDK does not give it)",
+    )
+    body: tuple[tuple[float, float, float, float, float, float], ...] = Field(
+        LEAF_BODY,
+        description="the vehicle's body as boxes x0, x1, y0, y1, z0, z1 (m; x forward, y left, "
+        "z up above the road); rays that meet it return nothing",
+    )
+    #: the fields the spinning sensors' failure model reads (real_returns), fixed here
+    deskewed: bool = True
+    rotation_hz: float = 50.0
+    realistic: bool = True
+
+    @field_validator("mount")
+    @classmethod
+    def _mount(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        return _finite(v, "mount")
+
+    @field_validator("body")
+    @classmethod
+    def _body(cls, v: tuple[tuple[float, ...], ...]) -> tuple[tuple[float, ...], ...]:
+        for box in v:
+            _finite(box, "body")
+            if box[0] >= box[1] or box[2] >= box[3] or box[4] >= box[5]:
+                raise ValueError(f"body: a box needs x0 < x1, y0 < y1, z0 < z1, got {box}")
+        return v
+
+    @model_validator(mode="after")
+    def _placed(self) -> PushbroomConfig:
+        if self.min_range >= self.max_range:
+            raise ValueError(f"min_range: {self.min_range} is not below max_range")
+        if self.step_deg > self.fov_deg:
+            raise ValueError(f"step_deg: {self.step_deg} is wider than fov_deg {self.fov_deg}")
+        x, y, z = self.origin()
+        if z <= 0:
+            raise ValueError(f"mount: the scanner is {z:.2f} m above the road (below it)")
+        for box in self.body:
+            if box[0] < x < box[1] and box[2] < y < box[3] and box[4] < z < box[5]:
+                raise ValueError(
+                    f"mount: the scanner at x {x:.2f}, y {y:.2f}, z {z:.2f} m (forward, left, "
+                    "up) lies inside the vehicle body"
+                )
+        return self
+
+    def origin(self) -> np.ndarray:
+        """The scanner's position in the city's vehicle frame (x forward, y left, z up above
+        the road), float64 [3] metres."""
+        x, y, z = self.mount[:3]
+        return np.array([x, -y, self.reference_height - z])
+
+    def axes(self) -> np.ndarray:
+        """The scanner's axes in the city's vehicle frame, float64 [3, 3] (columns: its x, y,
+        z): the SDK's ``Rz Ry Rx`` turned from (forward, right, down) to (forward, left, up)."""
+        roll, pitch, yaw = self.mount[3:]
+        cr, sr, cp, sp, cy, sy = (
+            np.cos(roll),
+            np.sin(roll),
+            np.cos(pitch),
+            np.sin(pitch),
+            np.cos(yaw),
+            np.sin(yaw),
+        )
+        rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+        ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+        rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+        return np.diag([1.0, -1.0, -1.0]) @ (rz @ ry @ rx)
+
+    def angles(self) -> np.ndarray:
+        """Each ray's angle in the scan plane from the scanner's x axis, float64 [R] radians,
+        ascending (toward its y axis)."""
+        n = int(np.floor(self.fov_deg / self.step_deg + 1e-9)) + 1
+        return np.deg2rad(-self.fov_deg / 2 + self.step_deg * np.arange(n))
+
+
+#: Line scanners by short name.
+PUSHBROOMS: dict[str, PushbroomConfig] = {"lms151": PushbroomConfig()}
+
+
+def pushbroom(name: str = "lms151", **update: object) -> PushbroomConfig:
+    """A catalogue line scanner by name with ``update`` applied, checked: an impossible rate,
+    field of view or mounting raises :class:`InputError` naming the field, in one line."""
+    if name not in PUSHBROOMS:
+        raise InputError(
+            f"unknown line scanner {name!r}; choose one of {', '.join(PUSHBROOMS)}", "pushbroom"
+        )
+    return checked_pushbroom({**PUSHBROOMS[name].model_dump(), **update})
+
+
+def checked_pushbroom(fields: dict[str, Any]) -> PushbroomConfig:
+    """A :class:`PushbroomConfig` from ``fields``, or :class:`InputError` naming the first bad
+    field (``pushbroom.rate_hz``, ``pushbroom.mount``, ...) with what is wrong, in one line."""
+    try:
+        return PushbroomConfig.model_validate(fields)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"][:1])
+        msg = str(err["msg"]).removeprefix("Value error, ")
+        if ": " in msg and (not where or msg.startswith(f"{where}: ")):
+            where, msg = msg.split(": ", 1)  # the checks name their field first
+        raise InputError(
+            f"{msg} (got {err.get('input')!r})" if err["loc"] else msg,
+            f"pushbroom.{where}" if where else "pushbroom",
+        ) from None

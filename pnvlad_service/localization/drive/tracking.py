@@ -418,4 +418,3 @@ def follow(scans: Any, ask: Ask, config: TrackerConfig | None = None, **kw: Any)
     """Every :class:`DriveScan` of ``scans`` through one :class:`DriveLocalizer`."""
     loc = DriveLocalizer(ask, config, **kw)
     return [loc.step(s) for s in scans]
-
