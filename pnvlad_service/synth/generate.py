@@ -374,6 +374,9 @@ def generate(
     spec = get_preset(preset) if isinstance(preset, str) else preset
     if spec.pushbroom is not None:  # one line naming the field, before anything is written
         checked_pushbroom(spec.pushbroom.model_dump())
+    from pnvlad_service.data.cuts import check_box_m
+
+    check_box_m(spec.box_m)  # model_copy(update=...) skips the field's own check
     out = Path(out)
     started = time.perf_counter()
     traj_files = _trajectory_files(spec, trajectories)
