@@ -174,8 +174,8 @@ def _service(
         with LocalizeClient(url, api_key=api_key) as client:
             yield lambda points, kind="scan": client.localize(points, top_n, kind=kind)
         return
-    from pnvlad_service.localization.limits import Limits
-    from pnvlad_service.localization.localizer import Localizer
+    from pnvlad_service.localization.query.limits import Limits
+    from pnvlad_service.localization.query.localizer import Localizer
 
     assert index is not None
     with Localizer.load(index, model) as loc:
@@ -308,7 +308,7 @@ def _follow_service(
         with LocalizeClient(url, api_key=api_key) as client:
             yield tracking.http_ask(client, top_n)
         return
-    from pnvlad_service.localization.localizer import Localizer
+    from pnvlad_service.localization.query.localizer import Localizer
 
     assert index is not None
     with Localizer.load(index, model) as loc:
@@ -497,7 +497,7 @@ def _followed_map(bundle: Path | None, with_truth: bool) -> tuple[Any, Any, Any]
 
     from pnvlad_service.index.bundle import METADATA_FILE, Metadata
     from pnvlad_service.localization.follow import map_truth
-    from pnvlad_service.localization.prior import MapPositions
+    from pnvlad_service.localization.verify.prior import MapPositions
 
     meta = Metadata.load(Path(bundle) / METADATA_FILE)
     positions = MapPositions.of_metadata(meta)

@@ -97,7 +97,7 @@ def serve(
     # spinning threads give the cores back to the cloud workers and the registration sooner
     # (docs/SERVICE.md, "How a request runs"). A value the user set is kept. The verification
     # child drops the one set here (the marker says so) and lets its threads sleep instead.
-    from pnvlad_service.localization.verify_process import SPINCOUNT_MARK  # no torch
+    from pnvlad_service.localization.verify.verify_process import SPINCOUNT_MARK  # no torch
 
     if "GOMP_SPINCOUNT" not in os.environ:
         os.environ["GOMP_SPINCOUNT"] = "20000"
@@ -127,7 +127,7 @@ def serve(
 
     from pnvlad_service.errors import InputError
     from pnvlad_service.index.geometry import check_geometry
-    from pnvlad_service.localization.localizer import checked_model
+    from pnvlad_service.localization.query.localizer import checked_model
     from pnvlad_service.models.onnx_encoder import check_onnx_file
     from pnvlad_service.models.runtimes import choose_runtime
     from pnvlad_service.server.settings import ServerSettings
@@ -216,9 +216,9 @@ def _localize_here(
 ) -> dict[str, Any]:
     """Search the bundle in this process: the same answer as the server's. ``check``:
     ``verify``, ``scale`` and ``rerank`` as the command line gave them."""
-    from pnvlad_service.localization.limits import Limits
-    from pnvlad_service.localization.localizer import Localizer
-    from pnvlad_service.localization.verify import VerifyConfig
+    from pnvlad_service.localization.query.limits import Limits
+    from pnvlad_service.localization.query.localizer import Localizer
+    from pnvlad_service.localization.verify.verify import VerifyConfig
 
     top_n = max(top_n, 1)
     # A local query is bounded by the bundle, not by the server's request limits.

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.prior import DEFAULT_RADIUS_M, Prior
+from pnvlad_service.localization.verify.prior import DEFAULT_RADIUS_M, Prior
 
 SEARCHING = "searching"
 TRACKING = "tracking"
@@ -429,7 +429,7 @@ def follow(scans: Any, ask: Ask, config: TrackerConfig | None = None, **kw: Any)
 def local_ask(localizer: Any, top_n: int = 5) -> Ask:
     """:data:`Ask` of a :class:`~.localizer.Localizer` in this process (a raw scan is bounded by
     the bundle, not by a server's request limits)."""
-    from pnvlad_service.localization.limits import Limits
+    from pnvlad_service.localization.query.limits import Limits
 
     def ask(points: np.ndarray, prior: Prior | None) -> dict[str, Any]:
         limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)))

@@ -6,9 +6,9 @@ Routes (one router per resource, :mod:`pnvlad_service.server.routes`): ``POST /l
 ``/docs`` and ``/redoc`` (served from installed assets, :mod:`pnvlad_service.server.docs`).
 Errors are ``application/problem+json``. Bodies are bounded while read
 (:class:`~pnvlad_service.server.middleware.BodyLimit`). The lifespan loads the
-:class:`~pnvlad_service.localization.localizer.Localizer` once, in the thread pool, and puts it
-in a :class:`~pnvlad_service.localization.serving.ServingMap`, which swaps it for a new bundle
-on ``POST /admin/reload`` or SIGHUP; the routes lease it, and get the settings and the metrics,
+:class:`~pnvlad_service.localization.query.localizer.Localizer` once, in the thread pool, and
+puts it in a :class:`~pnvlad_service.localization.query.serving.ServingMap`, which swaps it for a
+new bundle on ``POST /admin/reload`` or SIGHUP; the routes lease it, and get the settings and the metrics,
 through :mod:`pnvlad_service.server.deps`.
 """
 
@@ -29,8 +29,8 @@ from fastapi.concurrency import run_in_threadpool
 
 from pnvlad_service import __version__
 from pnvlad_service.errors import InputError, PnvladError
-from pnvlad_service.localization.localizer import Localizer, set_threads
-from pnvlad_service.localization.serving import ReloadInProgress, ServingMap
+from pnvlad_service.localization.query.localizer import Localizer, set_threads
+from pnvlad_service.localization.query.serving import ReloadInProgress, ServingMap
 from pnvlad_service.server import docs, problems
 from pnvlad_service.server.contract import Contract
 from pnvlad_service.server.deps import require_key

@@ -14,7 +14,7 @@ import io
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.limits import query_kind
+from pnvlad_service.localization.query.limits import query_kind
 from pnvlad_service.server.contract import PRIOR_RAW, SCALE_RAW, BatchQueries, Contract, Query
 
 JSON = "application/json"

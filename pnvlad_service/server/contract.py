@@ -1,6 +1,6 @@
 """The JSON request contract of ``POST /localize`` and ``POST /localize/batch``.
 
-:func:`request_models` builds, from one :class:`~pnvlad_service.localization.limits.Limits`,
+:func:`request_models` builds, from one :class:`~pnvlad_service.localization.query.limits.Limits`,
 the pydantic models that validate JSON bodies (:meth:`Contract.parse_query`,
 :meth:`Contract.parse_batch`: ``model_validate_json``, then ``Limits.check_points`` on each
 cloud) and whose ``model_json_schema()`` is the OpenAPI request schema. The schema of a cloud
@@ -33,8 +33,8 @@ from pydantic import (
 )
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.limits import MAX_RUN_CHARS, Limits, query_kind, show_value
-from pnvlad_service.localization.prior import Prior
+from pnvlad_service.localization.query.limits import MAX_RUN_CHARS, Limits, query_kind, show_value
+from pnvlad_service.localization.verify.prior import Prior
 
 
 class MalformedJSON(InputError):

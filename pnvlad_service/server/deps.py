@@ -11,8 +11,8 @@ from collections.abc import AsyncIterator
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from pnvlad_service.localization.localizer import Localizer
-from pnvlad_service.localization.serving import ServingMap
+from pnvlad_service.localization.query.localizer import Localizer
+from pnvlad_service.localization.query.serving import ServingMap
 from pnvlad_service.server.metrics import Metrics
 from pnvlad_service.server.problems import Problem
 from pnvlad_service.server.settings import ServerSettings

@@ -13,10 +13,10 @@ from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from pnvlad_service.io.submap import SUBMAP_POINTS
-from pnvlad_service.localization.batching import Batching
-from pnvlad_service.localization.limits import Limits
-from pnvlad_service.localization.prior import PriorConfig
-from pnvlad_service.localization.verify import DEFAULT_CANDIDATES, VerifyConfig
+from pnvlad_service.localization.query.batching import Batching
+from pnvlad_service.localization.query.limits import Limits
+from pnvlad_service.localization.verify.prior import PriorConfig
+from pnvlad_service.localization.verify.verify import DEFAULT_CANDIDATES, VerifyConfig
 
 
 class ServerSettings(BaseSettings):

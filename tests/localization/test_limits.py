@@ -9,7 +9,7 @@ import pytest
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_POINTS
-from pnvlad_service.localization.limits import Limits
+from pnvlad_service.localization.query.limits import Limits
 
 LIM = Limits(max_raw_points=5000, max_top_n=7, max_batch_queries=3)
 

@@ -17,8 +17,8 @@ import pytest
 from pnvlad_service.errors import InputError, NotReadyError
 from pnvlad_service.index import build as ix
 from pnvlad_service.index.bundle import IndexBundle
-from pnvlad_service.localization.answers import Answer
-from pnvlad_service.localization.localizer import Batching, Localizer, Match
+from pnvlad_service.localization.query.answers import Answer
+from pnvlad_service.localization.query.localizer import Batching, Localizer, Match
 from tests.index.helpers import PER_RUN, read_cloud
 
 
@@ -182,8 +182,9 @@ def test_many_threads_share_batches_and_get_their_own_answers(world, loc) -> Non
 def test_the_library_imports_no_web_framework() -> None:
     code = (
         "import sys\n"
-        "import pnvlad_service.localization.localizer, pnvlad_service.localization.client\n"
-        "import pnvlad_service.localization.limits, pnvlad_service.localization.batching\n"
+        "import pnvlad_service.localization.query.localizer, pnvlad_service.localization.client\n"
+        "import pnvlad_service.localization.query.limits\n"
+        "import pnvlad_service.localization.query.batching\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('fastapi', 'starlette'))\n"
         "assert not bad, bad\n"
     )

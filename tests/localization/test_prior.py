@@ -1,4 +1,4 @@
-"""Registration near a prior pose (localization/prior.py, Localizer.localize(prior=...)): the
+"""Registration near a prior pose (localization/verify/prior.py, Localizer.localize(prior=...)): the
 range search against brute force, the covariance of a street of two walls, the tiny city's
 held-out scans registered near their true poses (checked against the map's own truth), a prior
 off the map or at another place, the refusals, and the verification process giving the same."""
@@ -13,9 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization import registration as reg
-from pnvlad_service.localization.localizer import Localizer
-from pnvlad_service.localization.prior import (
+from pnvlad_service.localization.query.localizer import Localizer
+from pnvlad_service.localization.verify import registration as reg
+from pnvlad_service.localization.verify.prior import (
     MapPositions,
     Prior,
     horizontal_sigma,

@@ -17,9 +17,9 @@ import pytest
 from pnvlad_service.errors import InputError
 from pnvlad_service.index.build import add_to_bundle, build_bundle
 from pnvlad_service.index.geometry import POINTS_FILE, ROW_BYTES
-from pnvlad_service.localization.batching import Batching
-from pnvlad_service.localization.localizer import Localizer
-from pnvlad_service.localization.serving import ReloadInProgress, ServingMap
+from pnvlad_service.localization.query.batching import Batching
+from pnvlad_service.localization.query.localizer import Localizer
+from pnvlad_service.localization.query.serving import ReloadInProgress, ServingMap
 from tests.index.helpers import PER_RUN, RUNS, make_checkpoint, make_tree, read_cloud
 
 

@@ -621,7 +621,7 @@ def test_settings_come_from_the_environment(monkeypatch, world) -> None:
 def test_the_verification_settings_reach_the_cascade(monkeypatch) -> None:
     """PNVLAD_VERIFY_* become the VerifyConfig the localizer registers with; an alone score of
     1 means the cascade always registers a second candidate."""
-    from pnvlad_service.localization.verify import VerifyConfig
+    from pnvlad_service.localization.verify.verify import VerifyConfig
     from pnvlad_service.server.settings import ServerSettings
 
     assert ServerSettings().verify_config().alone_score == VerifyConfig().alone_score

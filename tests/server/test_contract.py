@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.limits import Limits
+from pnvlad_service.localization.query.limits import Limits
 from pnvlad_service.server.contract import Contract
 from tests.index.helpers import make_world
 

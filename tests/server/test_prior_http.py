@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 from pnvlad_service.localization.client import LocalizeClient, ServerRefused
-from pnvlad_service.localization.prior import Prior
 from pnvlad_service.localization.tracking import (
     SEARCHING,
     DriveLocalizer,
     DriveScan,
     http_ask,
 )
+from pnvlad_service.localization.verify.prior import Prior
 from tests.index.helpers import free_port
 from tests.server.test_app import start_server, stop_server
 

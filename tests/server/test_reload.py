@@ -130,7 +130,7 @@ def test_index_add_then_sighup(maps, server) -> None:
 def test_the_admin_route_is_off_without_a_key(maps) -> None:
     from fastapi.testclient import TestClient
 
-    from pnvlad_service.localization.localizer import Localizer
+    from pnvlad_service.localization.query.localizer import Localizer
     from pnvlad_service.server.app import create_app
     from pnvlad_service.server.settings import ServerSettings
 

@@ -3,7 +3,7 @@
 The bundle named (default: the serving one's path, read again: ``pnvlad index add`` rewrites a
 bundle in place) is loaded and checked beside the one in service, then swapped in; queries in
 flight finish on the old one, which is then closed
-(:class:`~pnvlad_service.localization.serving.ServingMap`). A bundle that fails its checks
+(:class:`~pnvlad_service.localization.query.serving.ServingMap`). A bundle that fails its checks
 (missing or corrupt files, a truncated geometry, other weights than the model) is refused with
 a 422 naming the file, and the old one keeps serving; a reload while another runs is a 409.
 """
@@ -17,7 +17,7 @@ from fastapi import APIRouter, Depends
 from fastapi.concurrency import run_in_threadpool
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.serving import ReloadInProgress, ServingMap
+from pnvlad_service.localization.query.serving import ReloadInProgress, ServingMap
 from pnvlad_service.server import problems, schemas
 from pnvlad_service.server.deps import get_metrics, get_serving, require_admin
 from pnvlad_service.server.metrics import Metrics

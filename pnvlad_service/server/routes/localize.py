@@ -18,9 +18,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, Response
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.answers import milliseconds
-from pnvlad_service.localization.limits import MAX_RUN_CHARS
-from pnvlad_service.localization.localizer import Localizer, PreparedCloud
+from pnvlad_service.localization.query.answers import milliseconds
+from pnvlad_service.localization.query.limits import MAX_RUN_CHARS
+from pnvlad_service.localization.query.localizer import Localizer, PreparedCloud
 from pnvlad_service.server import problems, schemas
 from pnvlad_service.server.bodies import JSON, NPY, OCTET, read_batch, read_query
 from pnvlad_service.server.contract import Contract

@@ -4,13 +4,13 @@ are two callers of the same path.
 
 One query goes through five steps, whoever drives them:
 
-1. ``Limits.check_points`` (:mod:`pnvlad_service.localization.limits`) validates the array;
+1. ``Limits.check_points`` (:mod:`pnvlad_service.localization.query.limits`) validates the array;
 2. :meth:`Localizer.prepare` runs the filter G on a raw scan, with the bundle's G config,
    and keeps what G did (centre, scale) for the pose;
 3. :meth:`Localizer.submit` embeds and searches (queued to the micro-batcher when the
    localizer was loaded with :class:`Batching`, else at once in the caller's thread);
 4. :meth:`Localizer.verify` registers the query to the top candidates and re-ranks them
-   (:mod:`pnvlad_service.localization.verify`), when the bundle carries geometry and the
+   (:mod:`pnvlad_service.localization.verify.verify`), when the bundle carries geometry and the
    query asks for it (the default then);
 5. :meth:`Localizer.answer` turns the batch result into an :class:`Answer`.
 
@@ -39,12 +39,19 @@ from pnvlad_service.errors import InputError, NotReadyError
 from pnvlad_service.index.build import load_encoder
 from pnvlad_service.index.bundle import IndexBundle, Match
 from pnvlad_service.io.submap import SUBMAP_POINTS
-from pnvlad_service.localization.answers import Answer, IndexInfo, LocalizerInfo, ModelInfo, Timings
-from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
-from pnvlad_service.localization.calibration import CALIBRATION_FILE, read_calibration
-from pnvlad_service.localization.compatibility import checked_model
-from pnvlad_service.localization.limits import Limits, query_kind
-from pnvlad_service.localization.prior import (
+from pnvlad_service.localization.query.answers import (
+    Answer,
+    IndexInfo,
+    LocalizerInfo,
+    ModelInfo,
+    Timings,
+)
+from pnvlad_service.localization.query.batching import Batching, BatchResult, MicroBatcher
+from pnvlad_service.localization.query.calibration import CALIBRATION_FILE, read_calibration
+from pnvlad_service.localization.query.compatibility import checked_model
+from pnvlad_service.localization.query.limits import Limits, query_kind
+from pnvlad_service.localization.query.threads import faiss_threads_here, set_threads
+from pnvlad_service.localization.verify.prior import (
     NEAR_CACHE_ENTRIES,
     MapPositions,
     PositionsOnce,
@@ -54,8 +61,7 @@ from pnvlad_service.localization.prior import (
     no_map_near,
     register_near,
 )
-from pnvlad_service.localization.threads import faiss_threads_here, set_threads
-from pnvlad_service.localization.verify import (
+from pnvlad_service.localization.verify.verify import (
     PreparedCache,
     PreparedCloud,
     Verification,
@@ -63,7 +69,7 @@ from pnvlad_service.localization.verify import (
     bundle_candidates,
     verify,
 )
-from pnvlad_service.localization.verify_process import VerifyProcess
+from pnvlad_service.localization.verify.verify_process import VerifyProcess
 from pnvlad_service.models.runtimes import describe as describe_runtime
 from pnvlad_service.models.store import ModelIdentity
 

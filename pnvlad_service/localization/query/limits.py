@@ -20,7 +20,7 @@ from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_POINTS
 
 if TYPE_CHECKING:
-    from pnvlad_service.localization.prior import Prior
+    from pnvlad_service.localization.verify.prior import Prior
 
 #: Longest ``run`` (dataset/run of the map) a prior may name.
 MAX_RUN_CHARS = 256
@@ -105,7 +105,7 @@ class Limits:
         string (a run the map does not hold is not an error: the nearest entries are taken);
         :class:`InputError` naming ``field.<name>`` else (a missing one is named too; ``sep``
         joins the two: ``_`` for the query parameters of a binary body)."""
-        from pnvlad_service.localization.prior import Prior
+        from pnvlad_service.localization.verify.prior import Prior
 
         bounds = {
             "northing": self.max_prior_coord,

@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from pnvlad_service.localization import registration as reg
-from pnvlad_service.localization.verify import Candidate, Check, Pose, QueryCloud
+from pnvlad_service.localization.verify import registration as reg
+from pnvlad_service.localization.verify.verify import Candidate, Check, Pose, QueryCloud
 
 #: Prepared targets near priors a localiser keeps (apart from verification's cache of single
 #: candidates): a tracked robot's target changes every few metres and is not asked for again
