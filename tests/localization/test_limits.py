@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pnvlad_service.data.preprocess import GConfig
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_POINTS
 from pnvlad_service.localization.query.limits import Limits
@@ -26,7 +27,7 @@ def test_the_limits_are_the_formats_and_the_servers_defaults() -> None:
     d, s = Limits(), ServerSettings()
     assert d.points_per_cloud == SUBMAP_POINTS == 4096
     assert d.bound == SUBMAP_BOUND + 1e-4 and d.max_raw_coord == 100_000.0
-    assert d.min_raw_points == 1
+    assert d.min_raw_points == GConfig().min_points == 16  # the filter G's fewest
     assert s.limits() == d  # the settings' defaults are the library's
     assert (s.max_raw_points, s.max_top_n, s.max_batch_queries) == (500_000, 100, 64)
 
