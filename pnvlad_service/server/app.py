@@ -215,7 +215,7 @@ def create_app(
     protected = [Depends(require_key)] if settings.api_key is not None else []
     app.include_router(localize.router(Contract(settings.limits())), dependencies=protected)
     app.include_router(ops.router(protected))
-    app.include_router(admin.router())
+    app.include_router(admin.router(keyed=(settings.admin_key or settings.api_key) is not None))
 
     def count(route: str, method: str, status: int) -> None:
         metrics.requests.labels(route, method, str(status)).inc()

@@ -264,7 +264,8 @@ def cloud_variants(schema: dict[str, Any], limits: Limits) -> None:
     """Turn a cloud model's object schema, in place, into ``oneOf`` its two forms with the
     counts and bounds that ``Limits.check_points`` enforces: exactly ``points_per_cloud``
     points within ``bound`` (``preprocess`` false or absent), or ``min_raw_points`` to
-    ``max_raw_points`` points within ``max_raw_coord`` (``preprocess: true``, required)."""
+    ``max_raw_points`` points within ``max_raw_coord`` (``preprocess: true``, required), each
+    with the kinds it can be (``submap``; ``scan`` or ``window``)."""
     head = {k: schema.pop(k) for k in ("title", "description") if k in schema}
     pre, raw = copy.deepcopy(schema), copy.deepcopy(schema)
     for form, lo, hi, bound, flag in (
@@ -276,6 +277,8 @@ def cloud_variants(schema: dict[str, Any], limits: Limits) -> None:
         points["items"] = copy.deepcopy(points["items"])
         points["items"]["items"].update(minimum=-bound, maximum=bound)
         form["properties"]["preprocess"]["enum"] = [flag]
+        kinds = ["scan", "window"] if flag else ["submap"]  # what each form can be
+        form["properties"]["kind"]["anyOf"][0]["enum"] = kinds
     del raw["properties"]["preprocess"]["default"]
     del raw["properties"]["scale"]  # a raw scan is in metres
     if "prior" in pre["properties"]:  # a prior is a sensor's pose: raw scans only

@@ -101,7 +101,9 @@ def test_a_submap_map_takes_a_window(tiny_maps: dict, tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("name", "cloud", "field", "message"),
     [
-        ("too few points", np.random.default_rng(0).normal(0, 5, (12, 3)), "points", ""),
+        # Fewer than G's 16 points: refused before G, as the document's minimum says.
+        ("too few points", np.random.default_rng(0).normal(0, 5, (12, 3)), "body",
+         "between 16 and"),
         ("a plane and nothing else",
          np.c_[np.random.default_rng(1).uniform(-30, 30, (6000, 2)), np.zeros(6000)],
          "points", "ground removal"),
