@@ -85,6 +85,9 @@ def test_the_document_holds_against_a_fuzzer(server: str) -> None:
 def test_the_bearer_scheme_holds_against_a_fuzzer(server: str) -> None:
     """With a key the document declares the bearer scheme on every route but the probes:
     without the header, or with a wrong token, a client gets the 401 the document says."""
-    out, _ = fuzz(server, 4, "--header", f"Authorization: Bearer {KEY}")
+    # One route of each guard (the probes open, /info and /localize the API key's, the admin
+    # route the admin key's or the API key's) is enough: the guards are the routers'.
+    only = ["--include-path-regex", "^/(healthz|info|localize|admin/reload)$"]
+    out, _ = fuzz(server, 3, "--header", f"Authorization: Bearer {KEY}", *only)
     assert out.returncode == 0, out.stdout[-6000:] + out.stderr[-2000:]
     assert cases(out.stdout) >= 30
