@@ -311,7 +311,7 @@ class Localizer:
         without geometry; whether it runs verification (a query without a prior)."""
         self.check_kind(query.kind, field)
         if query.prior is not None:
-            self.check_prior(query.kind, query.verify)
+            self.check_prior()
             return False
         return self.wants_verify(query.verify)
 
@@ -374,10 +374,10 @@ class Localizer:
             return self.verifier.verify(query, ids, config)
 
     # a query with a prior pose ---------------------------------------------------------
-    def check_prior(self, kind: str, verify: bool | None, field: str = "prior") -> None:
-        """:class:`InputError` naming ``field`` when a query of ``kind`` cannot be registered
-        near a prior here: the bundle has no geometry (the rest of a prior's rules are the
-        query's own: :meth:`Query.make`)."""
+    def check_prior(self, field: str = "prior") -> None:
+        """:class:`InputError` naming ``field`` when a scan cannot be registered near a prior
+        here: the bundle has no geometry (the rest of a prior's rules are the query's own:
+        :meth:`Query.make`)."""
         if not self.can_verify:
             raise InputError(
                 f"the index {self.bundle.path} carries no geometry to register a scan near its "
