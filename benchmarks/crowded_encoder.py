@@ -33,7 +33,7 @@ def verify_forever(index: str) -> None:
     os.environ.pop("GOMP_SPINCOUNT", None)  # the server's child sleeps at barriers
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
     from pnvlad_service.index.bundle import IndexBundle
-    from pnvlad_service.localization import verify as V
+    from pnvlad_service.localization.verify import verify as V
 
     bundle = IndexBundle.load(index)
     geo = bundle.geometry
@@ -71,7 +71,7 @@ def main() -> None:
         verify_forever(args.index)
         return
     from pnvlad_service.index.bundle import IndexBundle
-    from pnvlad_service.localization.localizer import checked_model
+    from pnvlad_service.localization.query.localizer import checked_model
     from pnvlad_service.models.runtimes import load_encoder
 
     model = args.model or checked_model(args.index).checkpoint

@@ -398,7 +398,7 @@ def main() -> int | None:
         clouds = perturbed(clouds)
     checkpoint = args.checkpoint
     if checkpoint is None and args.index is not None:
-        from pnvlad_service.localization.localizer import checked_model
+        from pnvlad_service.localization.query.localizer import checked_model
 
         checkpoint = Path(checked_model(args.index).checkpoint)  # the bundle's model
     result: dict = {}
@@ -619,7 +619,7 @@ def swap_test(args: argparse.Namespace) -> int:
     import tempfile
 
     from pnvlad_service.index.bundle import Metadata
-    from pnvlad_service.localization.localizer import checked_model
+    from pnvlad_service.localization.query.localizer import checked_model
 
     bundles = {"a": args.index.resolve(), "b": args.swap.resolve()}
     ids: dict[str, str] = {}

@@ -1,5 +1,5 @@
 """Registration back-ends compared on pairs with a known transform (issue #10): our
-pnvlad_service.localization.registration with small_gicp GICP and VGICP, kiss-icp's
+pnvlad_service.localization.verify.registration with small_gicp GICP and VGICP, kiss-icp's
 point-to-point ICP and open3d's point-to-plane ICP and GICP, all started from the same yaw
 search so that only the local registration differs; plus false pairs for the score.
 
@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from entry import run
 
-from pnvlad_service.localization import registration as reg
+from pnvlad_service.localization.verify import registration as reg
 from tests.localization import submap_pairs as sp
 
 CACHE = Path("/tmp/pnvlad_registration_pairs.npz")

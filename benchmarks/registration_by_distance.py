@@ -36,7 +36,7 @@ from pnvlad_service.data.dataset import load_eval_runs
 from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.evaluation.rerank import _Store
 from pnvlad_service.evaluation.rerank_figures import pose_error
-from pnvlad_service.localization import registration as reg
+from pnvlad_service.localization.verify import registration as reg
 
 VARIANTS = {
     "default": {},

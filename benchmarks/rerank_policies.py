@@ -33,7 +33,7 @@ from pnvlad_service.data.dataset import load_eval_runs
 from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.evaluation.evaluate import embed_runs, model_encoder
 from pnvlad_service.evaluation.rerank import _reversed_runs, rerank_report
-from pnvlad_service.localization.verify import VerifyConfig
+from pnvlad_service.localization.verify.verify import VerifyConfig
 
 
 def policy(name: str, threshold: float) -> VerifyConfig:

@@ -362,7 +362,7 @@ def _query_runs(
 
 def _save_threshold(rep: dict[str, Any], info: dict[str, Any], rerank: int) -> None:
     """``--save-threshold``: the threshold chosen here written beside the model's weights."""
-    from pnvlad_service.localization import calibration as cal
+    from pnvlad_service.localization.query import calibration as cal
 
     # The directory and weights the encoder evaluated (not hashed again here).
     record = cal.Calibration.from_report(

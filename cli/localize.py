@@ -88,15 +88,17 @@ def _localize_here(
 ) -> dict[str, Any]:
     """Search the bundle in this process: the same answer as the server's. ``check``:
     ``verify``, ``scale`` and ``rerank`` as the command line gave them."""
-    from pnvlad_service.localization.limits import Limits
-    from pnvlad_service.localization.localizer import Localizer
-    from pnvlad_service.localization.verify import VerifyConfig
+    from pnvlad_service.localization.query.config import LocalizerConfig, VerifySection
+    from pnvlad_service.localization.query.limits import Limits
+    from pnvlad_service.localization.query.localizer import Localizer
 
     top_n = max(top_n, 1)
     # A local query is bounded by the bundle, not by the server's request limits.
     limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)), max_top_n=top_n)
-    config = VerifyConfig() if check["rerank"] is None else VerifyConfig(candidates=check["rerank"])
-    with Localizer.load(index, model, verify_config=config) as loc:
+    verify = (
+        VerifySection() if check["rerank"] is None else VerifySection(candidates=check["rerank"])
+    )
+    with Localizer.load(index, model, LocalizerConfig(verify=verify)) as loc:
         answer = loc.localize(
             points,
             preprocess=preprocess,

@@ -233,7 +233,7 @@ def open_service(config: ServiceConfig) -> Iterator[Any]:
         with LocalizeClient(config.url, api_key=config.api_key) as client:
             yield service.http_service(client, config.top_n)
         return
-    from pnvlad_service.localization.localizer import Localizer
+    from pnvlad_service.localization.query.localizer import Localizer
 
     assert config.index is not None
     with Localizer.load(config.index, config.model) as loc:

@@ -93,7 +93,7 @@ def serve(
     # spinning threads give the cores back to the cloud workers and the registration sooner
     # (docs/SERVICE.md, "How a request runs"). A value the user set is kept. The verification
     # child drops the one set here (the marker says so) and lets its threads sleep instead.
-    from pnvlad_service.localization.verify_process import SPINCOUNT_MARK  # no torch
+    from pnvlad_service.localization.verify.verify_process import SPINCOUNT_MARK  # no torch
 
     if "GOMP_SPINCOUNT" not in os.environ:
         os.environ["GOMP_SPINCOUNT"] = "20000"
@@ -123,7 +123,7 @@ def serve(
 
     from pnvlad_service.errors import InputError
     from pnvlad_service.index.geometry import check_geometry
-    from pnvlad_service.localization.localizer import checked_model
+    from pnvlad_service.localization.query.localizer import checked_model
     from pnvlad_service.models.onnx_encoder import check_onnx_file
     from pnvlad_service.models.runtimes import choose_runtime
     from pnvlad_service.server.settings import ServerSettings

@@ -87,10 +87,11 @@ class LocalizeClient:
         ask for (true) or skip (false) the verification (default: the server's); ``scale``:
         metres per unit of a preprocessed cloud; ``kind``: ``submap``, ``scan`` or ``window`` (a
         scan or window is raw: ``preprocess`` need not be said). ``prior``: where the raw
-        scan's sensor is thought to be (a ``Prior`` of :mod:`pnvlad_service.localization.prior`,
-        or a mapping with its ``northing``, ``easting``, ``yaw_deg`` and optional ``height``,
-        ``radius_m`` and ``run``): the server registers the scan to its map near there instead
-        of searching (``mode`` ``prior``); the scan is then sent raw."""
+        scan's sensor is thought to be (a ``Prior`` of
+        :mod:`pnvlad_service.localization.verify.prior`, or a mapping with its ``northing``,
+        ``easting``, ``yaw_deg`` and optional ``height``, ``radius_m`` and ``run``): the server
+        registers the scan to its map near there instead of searching (``mode`` ``prior``); the
+        scan is then sent raw."""
         arr = np.asarray(points)
         dtype = "float64" if arr.dtype == np.float64 else "float32"
         body = np.ascontiguousarray(arr, dtype="<f8" if dtype == "float64" else "<f4")

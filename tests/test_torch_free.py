@@ -41,7 +41,7 @@ def test_the_server_and_the_cli_import_without_torch() -> None:
     r = run_without_torch(
         """
         import pnvlad_service.server.app, pnvlad_service.models.onnx_encoder
-        import pnvlad_service.models.runtimes, pnvlad_service.localization.localizer
+        import pnvlad_service.models.runtimes, pnvlad_service.localization.query.localizer
         import pnvlad_cli.main
         print("ok")
         """

@@ -2,8 +2,8 @@
 
 For every ordered pair of runs of an area (database i, queries j), each query's K nearest
 database submaps by descriptor are registered to it
-(:func:`~pnvlad_service.localization.verify.verify`, the server's own cascade) and re-ranked by
-score. The report holds, averaged over pairs as the benchmark averages recall:
+(:func:`~pnvlad_service.localization.verify.verify.verify`, the server's own cascade) and
+re-ranked by score. The report holds, averaged over pairs as the benchmark averages recall:
 
 - recall@1 and recall@1% before and after re-ranking, and recall@K before (the ceiling);
 
@@ -61,7 +61,7 @@ from pnvlad_service.evaluation.rerank_figures import (
     threshold_on_curve,
     verified_figures,
 )
-from pnvlad_service.localization.verify import Candidate, QueryCloud, VerifyConfig, verify
+from pnvlad_service.localization.verify.verify import Candidate, QueryCloud, VerifyConfig, verify
 
 log = logging.getLogger(__name__)
 

@@ -6,10 +6,10 @@ Routes (one router per resource, :mod:`pnvlad_service.server.routes`): ``POST /l
 ``/docs`` and ``/redoc`` (served from installed assets, :mod:`pnvlad_service.server.docs`).
 Errors are ``application/problem+json``. Bodies are bounded while read
 (:class:`~pnvlad_service.server.middleware.BodyLimit`). The lifespan loads the
-:class:`~pnvlad_service.localization.localizer.Localizer` once, in the thread pool, and puts it
-in a :class:`~pnvlad_service.localization.serving.ServingMap`, which swaps it for a new bundle
-on ``POST /admin/reload`` or SIGHUP; the routes lease it, and get the settings and the metrics,
-through :mod:`pnvlad_service.server.deps`.
+:class:`~pnvlad_service.localization.query.localizer.Localizer` once, in the thread pool, and
+puts it in a :class:`~pnvlad_service.localization.query.serving.ServingMap`, which swaps it for a
+new bundle on ``POST /admin/reload`` or SIGHUP; the routes lease it, and get the settings and the
+metrics, through :mod:`pnvlad_service.server.deps`.
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ from fastapi.concurrency import run_in_threadpool
 
 from pnvlad_service import __version__
 from pnvlad_service.errors import InputError, PnvladError
-from pnvlad_service.localization.localizer import Localizer, set_threads
-from pnvlad_service.localization.serving import ReloadInProgress, ServingMap
+from pnvlad_service.localization.query.localizer import Localizer, QueryEncoder, set_threads
+from pnvlad_service.localization.query.serving import ReloadInProgress, ServingMap
 from pnvlad_service.server import docs, problems
 from pnvlad_service.server.contract import Contract
 from pnvlad_service.server.deps import require_key
@@ -52,11 +52,11 @@ def load_localizer(
     on_batch: Callable[[int], None] | None = None,
     index: Path | None = None,
     model: Path | None = None,
-    encoder: Any = None,
+    encoder: QueryEncoder | None = None,
 ) -> Localizer:
-    """The localiser that ``settings`` name (bundle, model, runtime, device, threads,
-    batching); ``index`` and ``model`` replace the settings' (a reload), ``encoder`` is reused
-    when it holds the model's weights."""
+    """The localiser that ``settings`` name (bundle, model, and the sections of its config:
+    :meth:`ServerSettings.localizer_config`); ``index`` and ``model`` replace the settings'
+    (a reload), ``encoder`` is reused when it holds the model's weights."""
     set_threads(settings.torch_threads or settings.threads, settings.faiss_threads)
     index = index or settings.index
     if index is None:
@@ -64,17 +64,9 @@ def load_localizer(
     return Localizer.load(
         index,
         model or settings.checkpoint,
-        device=settings.device,
-        verify=settings.verify_bundle,
-        batching=settings.batching(),
-        on_batch=on_batch,
-        verify_config=settings.verify_config(),
-        verify_process=settings.verify_process,
-        threshold=settings.verify_threshold,
-        runtime=settings.runtime,
-        threads=settings.threads or settings.torch_threads,
+        settings.localizer_config(),
         encoder=encoder,
-        prior_config=settings.prior_config(),
+        on_batch=on_batch,
     )
 
 
@@ -223,7 +215,7 @@ def create_app(
     protected = [Depends(require_key)] if settings.api_key is not None else []
     app.include_router(localize.router(Contract(settings.limits())), dependencies=protected)
     app.include_router(ops.router(protected))
-    app.include_router(admin.router())
+    app.include_router(admin.router(keyed=(settings.admin_key or settings.api_key) is not None))
 
     def count(route: str, method: str, status: int) -> None:
         metrics.requests.labels(route, method, str(status)).inc()

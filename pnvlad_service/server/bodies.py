@@ -1,27 +1,46 @@
-"""Request bodies of the localisation routes, by content type, to validated clouds.
+"""Request bodies of the localisation routes, by content type, to the one query type.
 
 JSON goes through the request models (:mod:`pnvlad_service.server.contract`); the binary
 bodies (``application/octet-stream``: little-endian xyz of float32 or float64, and
-``application/x-npy``) are read as arrays without a copy and checked by the same
-``Limits.check_points``; with them ``top_n`` and ``preprocess`` are query parameters.
-Every function raises :class:`~pnvlad_service.errors.InputError` naming the field.
+``application/x-npy``) are read as arrays without a copy and made a
+:class:`~pnvlad_service.localization.query.query.Query` with the query parameters
+(:class:`BinaryParams`), which checks the same rules. Every function raises
+:class:`~pnvlad_service.errors.InputError` naming the field.
 """
 
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from starlette.requests import Request
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.limits import query_kind
-from pnvlad_service.server.contract import PRIOR_RAW, SCALE_RAW, BatchQueries, Contract, Query
+from pnvlad_service.localization.query.query import Query, Where
+from pnvlad_service.server.contract import Contract
+from pnvlad_service.server.problems import Problem
 
 JSON = "application/json"
 OCTET = "application/octet-stream"
 NPY = "application/x-npy"
 
 _DTYPES = {"float32": "<f4", "float64": "<f8", "f4": "<f4", "f8": "<f8"}
+
+
+def content_type(request: Request, allowed: tuple[str, ...]) -> str:
+    """The request's media type, one of ``allowed``; 415 else."""
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype not in allowed:
+        *first, last = allowed
+        send = f"{', '.join(first)} or {last}" if first else last
+        raise Problem(
+            "unsupported-media-type",
+            f"content type {ctype or '(none)'!r} is not supported; send {send}",
+            field="Content-Type",
+        )
+    return ctype
 
 
 def parse_binary_points(body: bytes, dtype: str) -> np.ndarray:
@@ -55,67 +74,60 @@ def parse_npy(body: bytes, ndim: int) -> np.ndarray:
     return arr
 
 
-def read_query(
-    contract: Contract,
-    ctype: str,
-    body: bytes,
-    top_n: int | None,
-    preprocess: bool | None,
-    dtype: str,
-    verify: bool | None = None,
-    scale: float | None = None,
-    kind: str | None = None,
-    prior: dict[str, float | None] | None = None,
-) -> Query:
-    """The cloud of a ``/localize`` body of content type ``ctype`` (JSON, raw xyz or .npy);
-    ``top_n``, ``preprocess``, ``dtype``, ``verify``, ``scale``, ``kind`` and the ``prior``'s
-    values (``northing``, ``easting``, ``yaw_deg``, ``height``, ``radius_m``: the query
-    parameters ``prior_<name>``) are the query's, for binary bodies (a ``scan`` or ``window``
-    is raw without saying ``preprocess``)."""
+@dataclass(frozen=True)
+class BinaryParams:
+    """The query parameters of a binary body (a JSON body says these in itself): the query's
+    ``top_n``, ``preprocess``, ``verify``, ``scale`` and ``kind``, the ``dtype`` of raw xyz,
+    and the prior's values by name (the query parameters ``prior_<name>``)."""
+
+    top_n: int | None = None
+    preprocess: bool | None = None
+    verify: bool | None = None
+    scale: float | None = None
+    kind: str | None = None
+    dtype: str | None = None
+    prior: dict[str, Any] = field(default_factory=dict)
+
+
+def read_query(contract: Contract, ctype: str, body: bytes, params: BinaryParams) -> Query:
+    """The query of a ``/localize`` body of content type ``ctype`` (JSON, raw xyz or .npy);
+    ``params`` are a binary body's (a ``scan`` or ``window`` is raw without saying
+    ``preprocess``; a prior needs a raw scan)."""
+    prior = {k: v for k, v in params.prior.items() if v is not None}
     if ctype == JSON:
-        if prior and any(v is not None for v in prior.values()):
+        if prior:
             raise InputError("with a JSON body the prior is its 'prior' object", "prior_northing")
         return contract.parse_query(body)
-    limits = contract.limits
-    kind, pre = query_kind(kind, preprocess)
-    given = {k: v for k, v in (prior or {}).items() if v is not None}
-    pose = None
-    if given:
-        if not pre:
-            raise InputError(PRIOR_RAW, "prior_northing")
-        if verify is False:
-            raise InputError("a query with a prior is registered to the map: no verify=false",
-                             "verify")  # fmt: skip
-        pose = limits.check_prior(**given, field="prior", sep="_")
+    dtype = params.dtype or "float32"
     raw = parse_npy(body, 2) if ctype == NPY else parse_binary_points(body, dtype)
-    points = limits.check_points(raw, pre, "body")
-    scale = limits.check_scale(scale)
-    if pre and scale is not None:
-        raise InputError(SCALE_RAW, "scale")
-    n = top_n if top_n is not None else limits.default_top_n
-    return Query(points, pre, n, verify, scale, kind, pose)
+    return Query.make(
+        raw,
+        limits=contract.limits,
+        preprocess=params.preprocess,
+        kind=params.kind,
+        top_n=params.top_n,
+        verify=params.verify,
+        scale=params.scale,
+        prior=prior,
+        where=Where(points="body", sep="_"),
+    )
 
 
-def read_batch(
-    contract: Contract,
-    ctype: str,
-    body: bytes,
-    top_n: int | None,
-    preprocess: bool | None,
-    verify: bool | None = None,
-) -> BatchQueries:
-    """The clouds of a ``/localize/batch`` body: JSON, or .npy [B, N, 3] with the query's
+def read_batch(contract: Contract, ctype: str, body: bytes, params: BinaryParams) -> list[Query]:
+    """The queries of a ``/localize/batch`` body: JSON, or .npy [B, N, 3] with ``params``'
     ``top_n``, ``preprocess`` and ``verify``."""
     if ctype == JSON:
-        return contract.parse_batch(body)
-    limits = contract.limits
-    pre = bool(preprocess)
-    n = top_n if top_n is not None else limits.default_top_n
+        return list(contract.parse_batch(body))
     arr = parse_npy(body, 3)
-    limits.check_count(len(arr), "body")
-    kind = "scan" if pre else "submap"
-    queries = tuple(
-        Query(limits.check_points(a, pre, f"body[{i}]"), pre, n, verify, None, kind)
+    contract.limits.check_count(len(arr), "body")
+    return [
+        Query.make(
+            a,
+            limits=contract.limits,
+            preprocess=bool(params.preprocess),
+            top_n=params.top_n,
+            verify=params.verify,
+            where=Where(points=f"body[{i}]"),
+        )
         for i, a in enumerate(arr)
-    )
-    return BatchQueries(queries, n, verify)
+    ]

@@ -1,9 +1,10 @@
 """The JSON request contract of ``POST /localize`` and ``POST /localize/batch``.
 
-:func:`request_models` builds, from one :class:`~pnvlad_service.localization.limits.Limits`,
+:func:`request_models` builds, from one :class:`~pnvlad_service.localization.query.limits.Limits`,
 the pydantic models that validate JSON bodies (:meth:`Contract.parse_query`,
-:meth:`Contract.parse_batch`: ``model_validate_json``, then ``Limits.check_points`` on each
-cloud) and whose ``model_json_schema()`` is the OpenAPI request schema. The schema of a cloud
+:meth:`Contract.parse_batch`: ``model_validate_json``, then each cloud made a
+:class:`~pnvlad_service.localization.query.query.Query`, whose ``make`` checks a query's rules)
+and whose ``model_json_schema()`` is the OpenAPI request schema. The schema of a cloud
 is split into its two forms (4096 preprocessed points, or a raw scan with ``preprocess: true``)
 with the counts and bounds of the same ``Limits``; tests/server/test_contract.py checks that a
 body is schema-valid exactly when it is accepted.
@@ -18,7 +19,7 @@ from __future__ import annotations
 import copy
 import functools
 import json
-from dataclasses import dataclass
+from dataclasses import replace
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -33,8 +34,8 @@ from pydantic import (
 )
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.limits import MAX_RUN_CHARS, Limits, query_kind, show_value
-from pnvlad_service.localization.prior import Prior
+from pnvlad_service.localization.query.limits import MAX_RUN_CHARS, Limits, show_value
+from pnvlad_service.localization.query.query import Query
 
 
 class MalformedJSON(InputError):
@@ -49,45 +50,16 @@ Point = Annotated[
     WithJsonSchema({"type": "array", "minItems": 3, "maxItems": 3, "items": {"type": "number"}}),
 ]
 
-SCALE_RAW = "scale is for preprocessed clouds; a raw scan (preprocess=true) is in metres already"
-
-PRIOR_RAW = (
-    "a prior pose is the sensor's: send the raw scan (preprocess true, kind scan or window), not "
-    "a preprocessed submap"
-)
-
 PRIOR_DOC = (
     "Where the sensor is thought to be (the last fix moved on by odometry): the scan is then "
     "registered to the map entries within radius_m of it, with no retrieval, and the answer is "
-    "its pose (mode 'prior'). Raw scans only."
+    "its pose (mode 'prior'). Raw scans only; refused with verify=false."
 )
 
 POINTS_DOC = (
     "Exactly 4096 preprocessed points in the benchmark's normalised frame ([-1, 1]), or with "
     "preprocess=true a raw scan (sensor frame, metres) of any size up to the server's limit."
 )
-
-
-@dataclass(frozen=True)
-class Query:
-    """A validated cloud: float32 [4096, 3], or float64 [N, 3] when ``preprocess``;
-    ``verify``: ``None`` (when the bundle can), true or false; ``scale``: metres per unit of a
-    preprocessed cloud, when the caller knows it."""
-
-    points: np.ndarray
-    preprocess: bool
-    top_n: int
-    verify: bool | None = None
-    scale: float | None = None
-    kind: str = "submap"
-    prior: Prior | None = None
-
-
-@dataclass(frozen=True)
-class BatchQueries:
-    queries: tuple[Query, ...]
-    top_n: int
-    verify: bool | None = None
 
 
 class Contract:
@@ -103,21 +75,15 @@ class Contract:
             req = self.query_model.model_validate_json(_utf8(body))
         except ValidationError as exc:
             raise _query_error(exc.errors(), self.limits) from None
-        return Query(
-            req._array, req.preprocess, req.top_n, req.verify, req.scale, req._kind, req._prior
-        )
+        return req._query
 
-    def parse_batch(self, body: bytes) -> BatchQueries:
+    def parse_batch(self, body: bytes) -> tuple[Query, ...]:
         """``{"queries": [{"points": ..., "preprocess": false}, ...], "top_n": 5}``."""
         try:
             req = self.batch_model.model_validate_json(_utf8(body))
         except ValidationError as exc:
             raise _batch_error(exc.errors(), self.limits) from None
-        queries = tuple(
-            Query(q._array, q.preprocess, req.top_n, req.verify, q.scale, q._kind)
-            for q in req.queries
-        )
-        return BatchQueries(queries, req.top_n, req.verify)
+        return tuple(replace(q._query, top_n=req.top_n, verify=req.verify) for q in req.queries)
 
     def query_schema(self) -> dict[str, Any]:
         """JSON Schema of the ``/localize`` JSON body (no ``$ref``: it sits in the OpenAPI)."""
@@ -158,24 +124,35 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
         top_n: int = _top_n_field(limits)
         verify: bool | None = _verify_field()
         prior: PriorIn | None = Field(None, description=PRIOR_DOC)
-        _prior: Prior | None = PrivateAttr(None)
+        _query: Query = PrivateAttr()
 
         @model_validator(mode="after")
-        def _check_prior(self) -> LocalizeRequest:
-            p = self.prior
-            if p is None:
-                return self
-            if not self.preprocess:
-                raise InputError(PRIOR_RAW, "prior")
-            if self.verify is False:
-                raise InputError("a query with a prior is registered to the map: no verify=false",
-                                 "verify")  # fmt: skip
-            self._prior = limits.check_prior(p.northing, p.easting, p.yaw_deg, p.height,
-                                              p.radius_m, p.run)  # fmt: skip
+        def _make(self) -> LocalizeRequest:
+            prior = None if self.prior is None else self.prior.model_dump()
+            self._query = Query.make(
+                np.asarray(self.points, dtype=np.float64),
+                limits=limits,
+                preprocess=self.preprocess,
+                kind=self.kind,
+                top_n=self.top_n if "top_n" in self.model_fields_set else None,
+                verify=self.verify,
+                scale=self.scale,
+                prior=prior,
+            )
             return self
 
     class BatchQuery(Cloud):
         """One cloud of a batch."""
+
+        _query: Query = PrivateAttr()
+
+        @model_validator(mode="after")
+        def _make(self) -> BatchQuery:
+            points = np.asarray(self.points, dtype=np.float64)
+            self._query = Query.make(
+                points, limits=limits, preprocess=self.preprocess, kind=self.kind, scale=self.scale
+            )
+            return self
 
     class BatchRequest(BaseModel):
         """Several clouds, embedded as one batch."""
@@ -190,9 +167,9 @@ def request_models(limits: Limits) -> tuple[type[BaseModel], type[BaseModel]]:
 
 
 def _cloud_model(limits: Limits) -> type[BaseModel]:
-    """The fields of one cloud and their checks (``Limits.check_points``), which a
-    ``/localize`` body and each query of a batch share; its schema is split into the cloud's
-    two forms (:func:`cloud_variants`)."""
+    """The fields of one cloud, which a ``/localize`` body and each query of a batch share
+    (the models built on it check them by making the :class:`Query`); its schema is split into
+    the cloud's two forms (:func:`cloud_variants`)."""
 
     def split(schema: dict[str, Any]) -> None:
         cloud_variants(schema, limits)
@@ -217,17 +194,6 @@ def _cloud_model(limits: Limits) -> type[BaseModel]:
             "preprocess true. Default: 'scan' with preprocess, else 'submap'. A map of "
             "keyframes (single scans) refuses windows.",
         )
-        _array: np.ndarray = PrivateAttr()
-        _kind: str = PrivateAttr()
-
-        @model_validator(mode="after")
-        def _check_points(self) -> Cloud:
-            self._kind, _ = query_kind(self.kind, self.preprocess)
-            pts = np.asarray(self.points, dtype=np.float64)
-            self._array = limits.check_points(pts, self.preprocess, "points")
-            if self.preprocess and self.scale is not None:
-                raise InputError(SCALE_RAW, "scale")
-            return self
 
     return Cloud
 
@@ -298,7 +264,8 @@ def cloud_variants(schema: dict[str, Any], limits: Limits) -> None:
     """Turn a cloud model's object schema, in place, into ``oneOf`` its two forms with the
     counts and bounds that ``Limits.check_points`` enforces: exactly ``points_per_cloud``
     points within ``bound`` (``preprocess`` false or absent), or ``min_raw_points`` to
-    ``max_raw_points`` points within ``max_raw_coord`` (``preprocess: true``, required)."""
+    ``max_raw_points`` points within ``max_raw_coord`` (``preprocess: true``, required), each
+    with the kinds it can be (``submap``; ``scan`` or ``window``)."""
     head = {k: schema.pop(k) for k in ("title", "description") if k in schema}
     pre, raw = copy.deepcopy(schema), copy.deepcopy(schema)
     for form, lo, hi, bound, flag in (
@@ -310,6 +277,8 @@ def cloud_variants(schema: dict[str, Any], limits: Limits) -> None:
         points["items"] = copy.deepcopy(points["items"])
         points["items"]["items"].update(minimum=-bound, maximum=bound)
         form["properties"]["preprocess"]["enum"] = [flag]
+        kinds = ["scan", "window"] if flag else ["submap"]  # what each form can be
+        form["properties"]["kind"]["anyOf"][0]["enum"] = kinds
     del raw["properties"]["preprocess"]["default"]
     del raw["properties"]["scale"]  # a raw scan is in metres
     if "prior" in pre["properties"]:  # a prior is a sensor's pose: raw scans only

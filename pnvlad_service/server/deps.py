@@ -11,8 +11,8 @@ from collections.abc import AsyncIterator
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from pnvlad_service.localization.localizer import Localizer
-from pnvlad_service.localization.serving import ServingMap
+from pnvlad_service.localization.query.localizer import Localizer
+from pnvlad_service.localization.query.serving import ServingMap
 from pnvlad_service.server.metrics import Metrics
 from pnvlad_service.server.problems import Problem
 from pnvlad_service.server.settings import ServerSettings
@@ -57,18 +57,24 @@ async def require_key(
 async def require_admin(
     request: Request, creds: HTTPAuthorizationCredentials | None = Depends(bearer)
 ) -> None:
-    """The admin routes' check: ``Authorization: Bearer <PNVLAD_ADMIN_KEY>`` (or the API key
-    when no admin key is set), else 401; 403 when neither key is configured (an open admin
-    route would let anyone point the server at other files)."""
+    """The admin routes' check where a key is configured: ``Authorization: Bearer
+    <PNVLAD_ADMIN_KEY>`` (or the API key when no admin key is set), else 401 with
+    ``WWW-Authenticate: Bearer``."""
     settings = request.app.state.settings
     key = settings.admin_key or settings.api_key
-    if key is None:
-        raise Problem(
-            "forbidden",
-            "the admin routes are off: set PNVLAD_ADMIN_KEY (or PNVLAD_API_KEY); SIGHUP reloads "
-            "the serving bundle without one",
-        )
+    assert key is not None
     _check_bearer(creds, key.get_secret_value(), "the server's admin key")
+
+
+async def admin_off() -> None:
+    """The admin routes' answer where neither key is configured: 403 whatever the request
+    carries (an open admin route would let anyone point the server at other files). No
+    bearer scheme is declared then: no token opens them."""
+    raise Problem(
+        "forbidden",
+        "the admin routes are off: set PNVLAD_ADMIN_KEY (or PNVLAD_API_KEY); SIGHUP reloads "
+        "the serving bundle without one",
+    )
 
 
 def _check_bearer(creds: HTTPAuthorizationCredentials | None, key: str, what: str) -> None:

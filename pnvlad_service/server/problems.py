@@ -94,11 +94,23 @@ PROBLEM_SCHEMA: dict[str, Any] = {
 }
 
 
-def openapi_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    """``responses=`` entries documenting problem+json bodies for ``statuses``."""
+QUERY_REFUSED = (
+    "Invalid input: a body or parameter out of its bounds, a combination the fields' "
+    "descriptions refuse, a kind of query the map does not hold, verification or a prior asked "
+    "of a map without geometry, or a raw scan the filter G cannot use (fewer than 16 points "
+    "left after cropping and ground removal)"
+)
+
+
+def openapi_responses(
+    *statuses: int, described: dict[int, str] | None = None
+) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` entries documenting problem+json bodies for ``statuses``; ``described``:
+    a route's own description of some of them (else the problem kind's title)."""
+    own = described or {}
     return {
         s: {
-            "description": next(t for st, t in KINDS.values() if st == s),
+            "description": own.get(s) or next(t for st, t in KINDS.values() if st == s),
             "content": {PROBLEM_TYPE: {"schema": PROBLEM_SCHEMA}},
         }
         for s in statuses

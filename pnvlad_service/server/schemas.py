@@ -2,7 +2,7 @@
 
 The routes write the answers themselves (``Answer.to_json``); these models document them.
 ``Timings``, ``ModelOut`` and ``IndexOut`` are made from the localiser's dataclasses
-(:mod:`pnvlad_service.localization.answers`), so the answer and its schema have one list of
+(:mod:`pnvlad_service.localization.query.answers`), so the answer and its schema have one list of
 fields. The request models live in :mod:`pnvlad_service.server.contract`, where they validate.
 """
 
@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from pnvlad_service.localization import answers
+from pnvlad_service.localization.query import answers
 
 
 def _json_model(dc: type, name: str, doc: str | None = None, **defaults: Any) -> type[BaseModel]:

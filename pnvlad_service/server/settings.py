@@ -1,22 +1,40 @@
 """Server settings: environment variables with the prefix ``PNVLAD_`` (e.g. ``PNVLAD_INDEX``).
 
 ``pnvlad serve`` turns its options into these variables, so a container or a process manager
-configures the service the same way.
+configures the service the same way. The settings of the localiser are the fields of its
+config's sections (:mod:`pnvlad_service.localization.query.config`), each under the name the
+server reads (``PNVLAD_VERIFY_THRESHOLD`` is ``VerifySection.threshold``);
+:meth:`ServerSettings.localizer_config` puts them back together.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
-from pydantic import Field, SecretStr
+from pydantic import BaseModel, Field, SecretStr
+from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from pnvlad_service.io.submap import SUBMAP_POINTS
-from pnvlad_service.localization.batching import Batching
-from pnvlad_service.localization.limits import Limits
-from pnvlad_service.localization.prior import PriorConfig
-from pnvlad_service.localization.verify import DEFAULT_CANDIDATES, VerifyConfig
+from pnvlad_service.localization.query.batching import Batching
+from pnvlad_service.localization.query.config import (
+    BatchSection,
+    EncoderSection,
+    LocalizerConfig,
+    PriorSection,
+    VerifySection,
+)
+from pnvlad_service.localization.query.limits import Limits
+from pnvlad_service.localization.verify.prior import PriorConfig
+from pnvlad_service.localization.verify.verify import VerifyConfig
+
+
+def section_field(section: type[BaseModel], name: str, **overrides: Any) -> Any:
+    """The field ``name`` of a localiser config's ``section`` (its type's bounds, default and
+    description), as a setting of its own (``overrides``: e.g. another default)."""
+    field = section.model_fields[name]
+    return FieldInfo.merge_field_infos(field, **overrides) if overrides else field
 
 
 class ServerSettings(BaseSettings):
@@ -61,22 +79,9 @@ class ServerSettings(BaseSettings):
     max_batch_queries: int = Field(
         Limits.max_batch_queries, ge=1, description="Most queries in /localize/batch."
     )
-    batch_max_size: int = Field(
-        Batching.max_size, ge=1, description="Most clouds embedded in one batch."
-    )
-    batch_wait_ms: float = Field(
-        Batching.wait_ms,
-        ge=0.0,
-        le=100.0,
-        description="How long the batcher waits for requests already being parsed (ms).",
-    )
-    batch_lanes: int = Field(
-        Batching.lanes,
-        ge=1,
-        le=16,
-        description="Batches in flight at once: with 2 the next batch is embedded while the "
-        "previous one finishes its head, search and answers.",
-    )
+    batch_max_size: int = section_field(BatchSection, "max_size")
+    batch_wait_ms: float = section_field(BatchSection, "wait_ms")
+    batch_lanes: int = section_field(BatchSection, "lanes")
     warm_up: int = Field(
         8,
         ge=0,
@@ -84,17 +89,8 @@ class ServerSettings(BaseSettings):
         description="Batch sizes 1..this embedded once at start-up, so that no request pays "
         "for the first forward pass of its batch size (0: none).",
     )
-    runtime: Literal["auto", "torch", "onnx"] = Field(
-        "auto",
-        description="What embeds: torch, or ONNX Runtime on the model directory's model.onnx "
-        "(pnvlad model export); auto: torch when it is installed, else ONNX Runtime.",
-    )
-    threads: int | None = Field(
-        None,
-        ge=1,
-        description="Encoder threads: ONNX Runtime's, or torch's intra-op threads (default: "
-        "the CPUs of the process for ONNX Runtime, torch's own default).",
-    )
+    runtime: Literal["auto", "torch", "onnx"] = section_field(EncoderSection, "runtime")
+    threads: int | None = section_field(EncoderSection, "threads")
     torch_threads: int | None = Field(
         None, ge=1, description="torch intra-op threads (PNVLAD_THREADS sets both runtimes')."
     )
@@ -104,58 +100,15 @@ class ServerSettings(BaseSettings):
         description="FAISS OpenMP threads. 1 by default: searches are small batches, which gain "
         "nothing from threads and stall when the cores are busy (docs/SERVICE.md).",
     )
-    device: str | None = Field(None, description="torch device for the encoder (default cpu).")
-    verify_bundle: bool = Field(True, description="Check the bundle's sha256s at start-up.")
-    rerank: int = Field(
-        DEFAULT_CANDIDATES,
-        ge=1,
-        le=100,
-        description="Candidates registered to each query and re-ranked (bundles with geometry).",
-    )
-    verify_threshold: float | None = Field(
-        None,
-        ge=0.0,
-        le=1.0,
-        description="Confidence a best match needs to count as verified. Default: the one "
-        "chosen for the model's weights on training-layout submaps (MODEL/verification.json, "
-        "written by pnvlad eval --rerank K --save-threshold), else "
-        f"{VerifyConfig.threshold} (docs/VERIFY.md).",
-    )
-
-    verify_stop_score: float | None = Field(
-        VerifyConfig.stop_score,
-        ge=0.0,
-        le=1.0,
-        description="Candidates are registered in retrieval order, one at a time; the rest are "
-        "skipped once one scores this within the place radius (1: register all).",
-    )
-    verify_alone_score: float = Field(
-        VerifyConfig.alone_score if VerifyConfig.alone_score is not None else 1.0,
-        ge=0.0,
-        le=1.0,
-        description="The cascade always registers a second candidate (the rival the "
-        "confidence weighs), unless the first scores this within the place radius and pins "
-        "the translation (1: always a second).",
-    )
-    verify_cache: int = Field(
-        VerifyConfig.cache_entries,
-        ge=0,
-        description="Prepared candidate clouds kept in memory (about 1 MB each; 0: none).",
-    )
-
-    verify_crowded_threads: int = Field(
-        VerifyConfig.crowded_threads or 0,
-        ge=0,
-        le=64,
-        description="small_gicp threads a registration gets while other queries are being "
-        "embedded or verified (the cores are taken; 2 otherwise). 0: always 2.",
-    )
-
-    verify_process: bool = Field(
-        True,
-        description="Register in a child process: small_gicp holds the GIL, so in the "
-        "server's process a registration stops the threads that embed and answer.",
-    )
+    device: str | None = section_field(EncoderSection, "device")
+    verify_bundle: bool = section_field(LocalizerConfig, "check_bundle")
+    rerank: int = section_field(VerifySection, "candidates")
+    verify_threshold: float | None = section_field(VerifySection, "threshold")
+    verify_stop_score: float | None = section_field(VerifySection, "stop_score")
+    verify_alone_score: float = section_field(VerifySection, "alone_score")
+    verify_cache: int = section_field(VerifySection, "cache")
+    verify_crowded_threads: int = section_field(VerifySection, "crowded_threads")
+    verify_process: bool = section_field(VerifySection, "process", default=True)
 
     max_prior_radius: float = Field(
         Limits.max_prior_radius_m,
@@ -170,44 +123,47 @@ class ServerSettings(BaseSettings):
         le=1000.0,
         description="Radius (metres) of a prior pose that gives none (docs/TRACKING.md).",
     )
-    prior_min_fitness: float = Field(
-        PriorConfig.min_fitness,
-        ge=0.0,
-        le=1.0,
-        description="Share of a scan's points on the map after registration near a prior at "
-        "or above which its pose is verified (docs/TRACKING.md).",
-    )
-    prior_max_sigma: float = Field(
-        PriorConfig.max_sigma_m or 0.0,
-        ge=0.0,
-        description="Largest horizontal standard deviation (metres) of a pose registered near "
-        "a prior that is still verified (0: not checked).",
-    )
-    prior_max_submaps: int = Field(
-        PriorConfig.max_submaps,
-        ge=1,
-        le=64,
-        description="Map entries near a prior (of one drive) laid together and registered to.",
-    )
+    prior_min_fitness: float = section_field(PriorSection, "min_fitness")
+    prior_max_sigma: float = section_field(PriorSection, "max_sigma")
+    prior_max_submaps: int = section_field(PriorSection, "max_submaps")
+
+    def localizer_config(self) -> LocalizerConfig:
+        """How the localiser is loaded: these settings' sections (``index`` and the model
+        aside)."""
+        return LocalizerConfig(
+            encoder=EncoderSection(
+                runtime=self.runtime,
+                threads=self.threads or self.torch_threads,
+                device=self.device,
+            ),
+            verify=VerifySection(
+                candidates=self.rerank,
+                threshold=self.verify_threshold,
+                stop_score=self.verify_stop_score,
+                alone_score=self.verify_alone_score,
+                cache=self.verify_cache,
+                crowded_threads=self.verify_crowded_threads,
+                process=self.verify_process,
+            ),
+            prior=PriorSection(
+                min_fitness=self.prior_min_fitness,
+                max_sigma=self.prior_max_sigma,
+                max_submaps=self.prior_max_submaps,
+            ),
+            batching=BatchSection(
+                max_size=self.batch_max_size, wait_ms=self.batch_wait_ms, lanes=self.batch_lanes
+            ),
+            check_bundle=self.verify_bundle,
+        )
 
     def prior_config(self) -> PriorConfig:
         """How a scan is registered near a prior pose."""
-        return PriorConfig(
-            max_submaps=self.prior_max_submaps,
-            min_fitness=self.prior_min_fitness,
-            max_sigma_m=self.prior_max_sigma or None,
-        )
+        return self.localizer_config().prior.config()
 
     def verify_config(self) -> VerifyConfig:
         """How candidates are verified, but for the threshold: ``Localizer.load`` takes
         ``verify_threshold``, else the model's calibration (see :func:`..app.load_localizer`)."""
-        return VerifyConfig(
-            candidates=self.rerank,
-            stop_score=self.verify_stop_score,
-            alone_score=self.verify_alone_score if self.verify_alone_score < 1.0 else None,
-            cache_entries=self.verify_cache,
-            crowded_threads=self.verify_crowded_threads or None,
-        )
+        return self.localizer_config().verify.config()
 
     def limits(self) -> Limits:
         """The request limits these settings configure (the rest are the format's)."""
@@ -221,6 +177,4 @@ class ServerSettings(BaseSettings):
 
     def batching(self) -> Batching:
         """The micro-batcher's configuration."""
-        return Batching(
-            max_size=self.batch_max_size, wait_ms=self.batch_wait_ms, lanes=self.batch_lanes
-        )
+        return self.localizer_config().batching.config()  # type: ignore[union-attr]

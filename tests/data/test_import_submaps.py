@@ -66,7 +66,7 @@ def test_import_writes_a_run_whose_sidecar_gives_the_metres_back(elsewhere: dict
 def test_a_bundle_of_imported_submaps_verifies(elsewhere: dict, tmp_path: Path) -> None:
     from pnvlad_service.data.import_submaps import import_submaps
     from pnvlad_service.index.build import build_bundle
-    from pnvlad_service.localization.localizer import Localizer
+    from pnvlad_service.localization.query.localizer import Localizer
     from tests.index.helpers import make_checkpoint
 
     base = elsewhere["base"]

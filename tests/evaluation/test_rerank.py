@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pnvlad_service.evaluation.rerank import _outcome
-from pnvlad_service.localization.verify import Check, Verification, rerank
+from pnvlad_service.localization.verify.verify import Check, Verification, rerank
 
 
 def test_rerank_orders_by_score_then_retrieval_rank() -> None:
@@ -33,7 +33,7 @@ def test_off_map_verification_offers_only_far_candidates(tiny, tmp_path) -> None
     from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.evaluation.evaluate import embed_runs
     from pnvlad_service.evaluation.rerank import rerank_pairs
-    from pnvlad_service.localization.verify import VerifyConfig
+    from pnvlad_service.localization.verify.verify import VerifyConfig
     from pnvlad_service.models.inference import Encoder
     from tests.index.helpers import make_checkpoint
 
@@ -96,7 +96,7 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
     assert res.exit_code == 0, res.output
     rep = json.loads(out.read_text())["rerank"]
     # --save-threshold: the chosen threshold beside the weights, for these weights.
-    from pnvlad_service.localization.calibration import read_calibration
+    from pnvlad_service.localization.query.calibration import read_calibration
     from pnvlad_service.models.store import weights_sha256
 
     saved = read_calibration(ckpt, weights_sha256(ckpt))
@@ -138,7 +138,7 @@ def test_eval_rerank_on_the_tiny_city(tiny, tmp_path, monkeypatch) -> None:
     assert res.exit_code == 0, res.output
     assert "off_map" not in json.loads(out.read_text())["rerank"]["calibration"]
     # ... and serve's help the library's fallback threshold.
-    from pnvlad_service.localization.verify import VerifyConfig
+    from pnvlad_service.localization.verify.verify import VerifyConfig
 
     served = CliRunner().invoke(app, ["serve", "--help"], env={"COLUMNS": "200"})
     assert f"else {VerifyConfig.threshold}," in " ".join(served.output.split())

@@ -14,7 +14,7 @@ from pnvlad_service.errors import InputError
 from pnvlad_service.localization.drive.runner import run_drive
 from pnvlad_service.localization.drive.service import Place, Reply
 from pnvlad_service.localization.drive.tracking import DriveScan
-from pnvlad_service.localization.prior import MapPositions, Prior
+from pnvlad_service.localization.verify.prior import MapPositions, Prior
 
 ORIGIN = np.array([620000.0, 5735000.0, 40.0])
 STEP_M = 2.5  # metres between scans

@@ -10,7 +10,7 @@ from contextlib import closing
 import numpy as np
 import pytest
 
-from pnvlad_service.localization.batching import MicroBatcher
+from pnvlad_service.localization.query.batching import MicroBatcher
 
 
 def echo(sizes: list[int], delay: float = 0.0):

@@ -15,7 +15,7 @@ from pnvlad_service.client import LocalizeClient, ServerError, ServerRefused
 from pnvlad_service.errors import InputError, PnvladError
 from pnvlad_service.index import build as ix
 from pnvlad_service.index.manifest import Manifest
-from pnvlad_service.localization.localizer import Localizer
+from pnvlad_service.localization.query.localizer import Localizer
 from tests.index.helpers import PER_RUN, free_port, read_cloud
 from tests.server.test_app import start_server, stop_server
 

@@ -1,4 +1,4 @@
-"""The compatibility check (localization/compatibility.py): the model a bundle is loaded with
+"""The compatibility check (localization/query/compatibility.py): the model a bundle is loaded with
 is the one whose weights built it."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import shutil
 import pytest
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.compatibility import checked_model
-from pnvlad_service.localization.localizer import Localizer
+from pnvlad_service.localization.query.compatibility import checked_model
+from pnvlad_service.localization.query.localizer import Localizer
 from tests.index.helpers import make_checkpoint
 
 
@@ -30,6 +30,6 @@ def test_checked_model_takes_a_run_directory_and_refuses_other_weights(world, tm
 
 
 def test_the_localizer_module_still_names_it() -> None:
-    from pnvlad_service.localization import localizer
+    from pnvlad_service.localization.query import localizer
 
     assert localizer.checked_model is checked_model

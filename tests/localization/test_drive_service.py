@@ -15,9 +15,9 @@ import pytest
 
 from pnvlad_service.client import LocalizeClient
 from pnvlad_service.localization.drive.service import Reply, http_ask, local_ask
-from pnvlad_service.localization.limits import Limits
-from pnvlad_service.localization.localizer import Localizer
-from pnvlad_service.localization.prior import Prior
+from pnvlad_service.localization.query.limits import Limits
+from pnvlad_service.localization.query.localizer import Localizer
+from pnvlad_service.localization.verify.prior import Prior
 from tests.index.helpers import free_port
 from tests.server.test_app import start_server, stop_server
 

@@ -7,9 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pnvlad_service.data.preprocess import GConfig
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_POINTS
-from pnvlad_service.localization.limits import Limits
+from pnvlad_service.localization.query.limits import Limits
 
 LIM = Limits(max_raw_points=5000, max_top_n=7, max_batch_queries=3)
 
@@ -26,7 +27,7 @@ def test_the_limits_are_the_formats_and_the_servers_defaults() -> None:
     d, s = Limits(), ServerSettings()
     assert d.points_per_cloud == SUBMAP_POINTS == 4096
     assert d.bound == SUBMAP_BOUND + 1e-4 and d.max_raw_coord == 100_000.0
-    assert d.min_raw_points == 1
+    assert d.min_raw_points == GConfig().min_points == 16  # the filter G's fewest
     assert s.limits() == d  # the settings' defaults are the library's
     assert (s.max_raw_points, s.max_top_n, s.max_batch_queries) == (500_000, 100, 64)
 
@@ -50,14 +51,17 @@ def test_a_preprocessed_cloud_is_exactly_4096_points_within_the_bound(dtype) -> 
     assert e.source == "points[3]" and "outside [-1, 1]" in e.detail
 
 
-def test_a_raw_scan_is_1_to_max_raw_points_within_100_km() -> None:
-    one = np.array([[1.0, 2.0, 3.0]], np.float32)
-    out = LIM.check_points(one, True, "points")
-    assert out.dtype == np.float64 and out.tolist() == [[1.0, 2.0, 3.0]]
+def test_a_raw_scan_is_16_to_max_raw_points_within_100_km() -> None:
+    """16, the filter G's fewest, to ``max_raw_points``: accepted exactly at both ends."""
+    fewest = np.arange(48, dtype=np.float32).reshape(16, 3)
+    out = LIM.check_points(fewest, True, "points")
+    assert out.dtype == np.float64 and out.tolist() == fewest.astype(np.float64).tolist()
+    e = refused(fewest[:15], True)
+    assert e.source == "points" and "between 16 and 5000 points, got 15" in e.detail
     far = np.full((LIM.max_raw_points, 3), 100_000.0)
     assert np.shares_memory(LIM.check_points(far, True, "points"), far)  # float64: no copy
     e = refused(np.zeros((LIM.max_raw_points + 1, 3)), True)
-    assert e.source == "points" and "between 1 and 5000 points, got 5001" in e.detail
+    assert e.source == "points" and "between 16 and 5000 points, got 5001" in e.detail
     assert "got 0" in refused(np.zeros((0, 3)), True).detail
     too_far = np.zeros((30, 3))
     too_far[21, 1] = -100_000.5

@@ -17,8 +17,9 @@ import pytest
 from pnvlad_service.errors import InputError, NotReadyError
 from pnvlad_service.index import build as ix
 from pnvlad_service.index.bundle import IndexBundle
-from pnvlad_service.localization.answers import Answer
-from pnvlad_service.localization.localizer import Batching, Localizer, Match
+from pnvlad_service.localization.query.answers import Answer
+from pnvlad_service.localization.query.config import BatchSection, LocalizerConfig
+from pnvlad_service.localization.query.localizer import Localizer, Match
 from pnvlad_service.models.runtimes import load_encoder
 from tests.index.helpers import PER_RUN, read_cloud
 
@@ -147,7 +148,7 @@ def test_bad_clouds_raise_the_librarys_errors_naming_the_field(loc) -> None:
 
 
 def test_a_closed_localizer_is_not_ready(world) -> None:
-    loc = Localizer.load(world["bundle"], batching=Batching())
+    loc = Localizer.load(world["bundle"], config=LocalizerConfig(batching=BatchSection()))
     pts = cloud(world, 1)
     assert loc.localize(pts).matches[0].rank == 1
     loc.close()
@@ -161,7 +162,9 @@ def test_many_threads_share_batches_and_get_their_own_answers(world, loc) -> Non
     clouds = {i: cloud(world, i) for i in idx}
     expected = {i: loc.localize(c, top_n=3).matches for i, c in clouds.items()}
     got: dict[tuple[int, int], Answer] = {}
-    with Localizer.load(world["bundle"], batching=Batching(max_size=8, wait_ms=5.0)) as shared:
+    with Localizer.load(
+        world["bundle"], config=LocalizerConfig(batching=BatchSection(max_size=8, wait_ms=5.0))
+    ) as shared:
         start = threading.Barrier(len(idx))
 
         def ask(i: int) -> None:
@@ -183,8 +186,9 @@ def test_many_threads_share_batches_and_get_their_own_answers(world, loc) -> Non
 def test_the_library_imports_no_web_framework() -> None:
     code = (
         "import sys\n"
-        "import pnvlad_service.localization.localizer, pnvlad_service.client\n"
-        "import pnvlad_service.localization.limits, pnvlad_service.localization.batching\n"
+        "import pnvlad_service.localization.query.localizer, pnvlad_service.client\n"
+        "import pnvlad_service.localization.query.limits\n"
+        "import pnvlad_service.localization.query.batching\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('fastapi', 'starlette'))\n"
         "assert not bad, bad\n"
     )

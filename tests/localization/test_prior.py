@@ -1,4 +1,4 @@
-"""Registration near a prior pose (localization/prior.py, Localizer.localize(prior=...)): the
+"""Registration near a prior pose (localization/verify/prior.py, Localizer.localize(prior=...)): the
 range search against brute force, the covariance of a street of two walls, the tiny city's
 held-out scans registered near their true poses (checked against the map's own truth), a prior
 off the map or at another place, the refusals, and the verification process giving the same."""
@@ -13,9 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization import registration as reg
-from pnvlad_service.localization.localizer import Localizer
-from pnvlad_service.localization.prior import (
+from pnvlad_service.localization.query.config import LocalizerConfig
+from pnvlad_service.localization.query.localizer import Localizer
+from pnvlad_service.localization.verify import registration as reg
+from pnvlad_service.localization.verify.prior import (
     MapPositions,
     Prior,
     horizontal_sigma,
@@ -193,7 +194,9 @@ def test_the_verification_process_registers_the_same(city, tiny_maps: dict) -> N
     drive = city["drive"]
     prior = near_truth(drive.true_poses[12], north=0.5)
     here = city["loc"].localize(drive.scan(12), kind="scan", prior=prior).to_json()
-    with Localizer.load(tiny_maps["keys"], verify_process=True) as child:
+    with Localizer.load(
+        tiny_maps["keys"], config=LocalizerConfig(verify={"process": True})
+    ) as child:
         there = child.localize(drive.scan(12), kind="scan", prior=prior).to_json()
     assert there["verified"] == here["verified"]
     assert there["matches"] == here["matches"]

@@ -1,5 +1,5 @@
-"""Tests of pnvlad_service.localization.registration: each truth is known independently of the
-code under test (a transform we applied, the simulator's true poses, a plain nearest-neighbour
+"""Tests of pnvlad_service.localization.verify.registration: each truth is known independently of
+the code under test (a transform we applied, the simulator's true poses, a plain nearest-neighbour
 loop, KITTI's recorded poses, an independent point-to-plane ICP written here in numpy)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from pnvlad_service.errors import MissingDependencyError
-from pnvlad_service.localization import registration as reg
+from pnvlad_service.localization.verify import registration as reg
 from tests.kitti00 import relative_pose
 from tests.localization import submap_pairs as sp
 

@@ -17,9 +17,9 @@ import pytest
 from pnvlad_service.errors import InputError
 from pnvlad_service.index.build import add_to_bundle, build_bundle
 from pnvlad_service.index.geometry import POINTS_FILE, ROW_BYTES
-from pnvlad_service.localization.batching import Batching
-from pnvlad_service.localization.localizer import Localizer
-from pnvlad_service.localization.serving import ReloadInProgress, ServingMap
+from pnvlad_service.localization.query.config import BatchSection, LocalizerConfig
+from pnvlad_service.localization.query.localizer import Localizer
+from pnvlad_service.localization.query.serving import ReloadInProgress, ServingMap
 from tests.index.helpers import PER_RUN, RUNS, make_checkpoint, make_tree, read_cloud
 
 
@@ -40,7 +40,9 @@ def maps(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def loader(index: Path, model: Path, encoder) -> Localizer:
-    return Localizer.load(index, model, batching=Batching(max_size=8), encoder=encoder)
+    return Localizer.load(
+        index, model, LocalizerConfig(batching=BatchSection(max_size=8)), encoder=encoder
+    )
 
 
 def query(maps: dict[str, Path], i: int) -> np.ndarray:

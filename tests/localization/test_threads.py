@@ -1,4 +1,4 @@
-"""The process's thread counts (localization/threads.py)."""
+"""The process's thread counts (localization/query/threads.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from pnvlad_service.localization import threads
+from pnvlad_service.localization.query import threads
 
 
 def test_the_faiss_thread_count_reaches_the_threads_that_search() -> None:
@@ -36,6 +36,6 @@ def test_the_faiss_thread_count_reaches_the_threads_that_search() -> None:
 
 
 def test_the_localizer_module_still_names_set_threads() -> None:
-    from pnvlad_service.localization import localizer
+    from pnvlad_service.localization.query import localizer
 
     assert localizer.set_threads is threads.set_threads

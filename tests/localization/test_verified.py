@@ -15,8 +15,10 @@ import pytest
 from pnvlad_service.errors import InputError
 from pnvlad_service.evaluation.rerank_figures import pose_error
 from pnvlad_service.io.submap import read_submap
-from pnvlad_service.localization.localizer import Localizer
-from pnvlad_service.localization.verify import VerifyConfig, bundle_candidates
+from pnvlad_service.localization.query.config import LocalizerConfig, VerifySection
+from pnvlad_service.localization.query.localizer import Localizer
+from pnvlad_service.localization.verify.verifier import InChild
+from pnvlad_service.localization.verify.verify import VerifyConfig, bundle_candidates
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +108,7 @@ def test_candidates_are_read_only_when_registered_and_not_cached(city: dict) -> 
     """``bundle_candidates`` reads a submap's points when the cascade registers it and its
     prepared cloud is not cached: once per registered candidate on a cold cache, never on a
     warm one; and the answers are those of candidates read up front."""
-    from pnvlad_service.localization.verify import Candidate, PreparedCache, verify
+    from pnvlad_service.localization.verify.verify import Candidate, PreparedCache, verify
 
     cloud, _, qf = _queries(city)[0]
     with Localizer.load(city["bundle"]) as loc:
@@ -174,16 +176,16 @@ def test_the_child_process_verifies_as_the_server_process_does(
 
     config = VerifyConfig(candidates=6, threshold=0.1, stop_score=None)
     queries = _queries(city)[:4]
-    with Localizer.load(city["bundle"], verify_config=config) as here:
+    with Localizer.load(city["bundle"], config=_config(config)) as here:
         expected = [here.localize(c, top_n=3, scale=qf.scale) for c, _, qf in queries]
-    from pnvlad_service.localization.verify_process import SPINCOUNT_MARK
+    from pnvlad_service.localization.verify.verify_process import SPINCOUNT_MARK
 
     # As `pnvlad serve` leaves the environment: its spin count, which the child drops.
     monkeypatch.setenv("GOMP_SPINCOUNT", "20000")
     monkeypatch.setenv(SPINCOUNT_MARK, "1")
-    with Localizer.load(city["bundle"], verify_config=config, verify_process=True) as loc:
-        child = loc._verify_process
-        assert child is not None
+    with Localizer.load(city["bundle"], config=_config(config, process=True)) as loc:
+        assert isinstance(loc.verifier, InChild)
+        child = loc.verifier.process
         for (cloud, _, qf), want in zip(queries, expected, strict=True):
             got = loc.localize(cloud, top_n=3, scale=qf.scale)
             assert got.verification.order == want.verification.order
@@ -196,7 +198,7 @@ def test_the_child_process_verifies_as_the_server_process_does(
                     got.verification.pose.transform, want.verification.pose.transform
                 )
         # The child's OpenMP threads sleep at barriers, set before libgomp loaded there.
-        from pnvlad_service.localization.verify_process import _runtime
+        from pnvlad_service.localization.verify.verify_process import _runtime
 
         runtime = child._started().submit(_runtime).result()
         policy = os.environ.get("OMP_WAIT_POLICY", "PASSIVE")  # a value set outside is kept
@@ -223,8 +225,10 @@ def test_a_script_without_a_main_guard_gets_an_error_that_says_so(
     "__main__":`` the child would start another child; the parent's error says what to do."""
     script = tmp_path / "unguarded.py"
     script.write_text(
-        "from pnvlad_service.localization.localizer import Localizer\n"
-        f"Localizer.load({str(city['bundle'])!r}, verify_process=True).close()\n"
+        "from pnvlad_service.localization.query.localizer import Localizer\n"
+        "from pnvlad_service.localization.query.config import LocalizerConfig\n"
+        f"Localizer.load({str(city['bundle'])!r},\n"
+        "    config=LocalizerConfig(verify={'process': True})).close()\n"
     )
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
     assert out.returncode != 0
@@ -238,7 +242,7 @@ def test_the_models_calibrated_threshold_is_taken_unless_one_is_given(city, tmp_
     import json
     import shutil
 
-    from pnvlad_service.localization.calibration import (
+    from pnvlad_service.localization.query.calibration import (
         Calibration,
         read_calibration,
         write_calibration,
@@ -254,7 +258,8 @@ def test_the_models_calibrated_threshold_is_taken_unless_one_is_given(city, tmp_
     with Localizer.load(city["bundle"], model) as loc:
         assert loc.verify_config.threshold == 0.37
         assert loc.localize(_queries(city)[0][0], top_n=1).verification.threshold == 0.37
-    with Localizer.load(city["bundle"], model, threshold=0.2) as loc:
+    given = LocalizerConfig(verify=VerifySection(threshold=0.2))
+    with Localizer.load(city["bundle"], model, given) as loc:
         assert loc.verify_config.threshold == 0.2
     # Chosen for other weights: not used.
     doc = json.loads(path.read_text())
@@ -272,3 +277,8 @@ def test_the_models_calibrated_threshold_is_taken_unless_one_is_given(city, tmp_
     path.write_text("{not json")
     with pytest.raises(InputError, match="unreadable"):
         read_calibration(model, sha)
+
+
+def _config(verify: VerifyConfig, **rest: object) -> LocalizerConfig:
+    """A localiser's config that verifies as ``verify`` says."""
+    return LocalizerConfig(verify=VerifySection.of(verify, **rest))

@@ -9,8 +9,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pnvlad_service.localization import registration as reg
-from pnvlad_service.localization.verify import (
+from pnvlad_service.localization.verify import registration as reg
+from pnvlad_service.localization.verify.verify import (
     Candidate,
     Check,
     PreparedCache,

@@ -291,7 +291,7 @@ def test_the_models_verification_threshold_goes_with_it(
 ) -> None:
     import shutil
 
-    from pnvlad_service.localization.calibration import (
+    from pnvlad_service.localization.query.calibration import (
         Calibration,
         read_calibration,
         write_calibration,

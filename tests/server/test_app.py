@@ -622,7 +622,7 @@ def test_settings_come_from_the_environment(monkeypatch, world) -> None:
 def test_the_verification_settings_reach_the_cascade(monkeypatch) -> None:
     """PNVLAD_VERIFY_* become the VerifyConfig the localizer registers with; an alone score of
     1 means the cascade always registers a second candidate."""
-    from pnvlad_service.localization.verify import VerifyConfig
+    from pnvlad_service.localization.verify.verify import VerifyConfig
     from pnvlad_service.server.settings import ServerSettings
 
     assert ServerSettings().verify_config().alone_score == VerifyConfig().alone_score
@@ -632,3 +632,50 @@ def test_the_verification_settings_reach_the_cascade(monkeypatch) -> None:
     assert (cfg.stop_score, cfg.alone_score) == (0.4, 0.5)
     monkeypatch.setenv("PNVLAD_VERIFY_ALONE_SCORE", "1")
     assert ServerSettings().verify_config().alone_score is None
+
+
+def test_the_settings_are_the_localizer_configs_sections(monkeypatch) -> None:
+    """Each localiser setting is its section's field (same default, bounds, description)
+    under the name the server reads, and the environment reaches the config it loads with."""
+    import pydantic
+
+    from pnvlad_service.localization.query.config import (
+        BatchSection,
+        EncoderSection,
+        LocalizerConfig,
+        PriorSection,
+        VerifySection,
+    )
+    from pnvlad_service.server.settings import ServerSettings
+
+    names = {
+        "rerank": (VerifySection, "candidates"),
+        "verify_threshold": (VerifySection, "threshold"),
+        "verify_cache": (VerifySection, "cache"),
+        "verify_crowded_threads": (VerifySection, "crowded_threads"),
+        "prior_min_fitness": (PriorSection, "min_fitness"),
+        "prior_max_sigma": (PriorSection, "max_sigma"),
+        "batch_wait_ms": (BatchSection, "wait_ms"),
+        "runtime": (EncoderSection, "runtime"),
+        "verify_bundle": (LocalizerConfig, "check_bundle"),
+    }
+    for setting, (section, field) in names.items():
+        mine, theirs = ServerSettings.model_fields[setting], section.model_fields[field]
+        assert (mine.default, mine.metadata, mine.description) == (
+            theirs.default,
+            theirs.metadata,
+            theirs.description,
+        ), setting
+    # The server verifies in a child by default; the library does not.
+    assert ServerSettings().localizer_config().verify.process is True
+    assert LocalizerConfig().verify.process is False
+    monkeypatch.setenv("PNVLAD_RERANK", "7")
+    monkeypatch.setenv("PNVLAD_VERIFY_THRESHOLD", "0.3")
+    monkeypatch.setenv("PNVLAD_PRIOR_MAX_SUBMAPS", "2")
+    monkeypatch.setenv("PNVLAD_BATCH_LANES", "3")
+    cfg = ServerSettings().localizer_config()
+    assert (cfg.verify.candidates, cfg.verify.threshold) == (7, 0.3)
+    assert cfg.prior.config().max_submaps == 2 and cfg.batching.config().lanes == 3
+    monkeypatch.setenv("PNVLAD_RERANK", "101")  # the section's bound, read from the environment
+    with pytest.raises(pydantic.ValidationError):
+        ServerSettings()

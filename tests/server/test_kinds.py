@@ -84,7 +84,7 @@ def test_kinds_the_map_cannot_take_are_refused(
 def test_a_submap_map_takes_a_window(tiny_maps: dict, tmp_path: Path) -> None:
     """An accumulated window (raw metres) goes to a map of 20 m submaps, and the answer says
     what met."""
-    from pnvlad_service.localization.localizer import Localizer
+    from pnvlad_service.localization.query.localizer import Localizer
 
     with Localizer.load(tiny_maps["map"], tiny_maps["ckpt"]) as loc:
         answer = loc.localize(_scan(tiny_maps), kind="window", top_n=3).to_json()
@@ -101,7 +101,9 @@ def test_a_submap_map_takes_a_window(tiny_maps: dict, tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("name", "cloud", "field", "message"),
     [
-        ("too few points", np.random.default_rng(0).normal(0, 5, (12, 3)), "points", ""),
+        # Fewer than G's 16 points: refused before G, as the document's minimum says.
+        ("too few points", np.random.default_rng(0).normal(0, 5, (12, 3)), "body",
+         "between 16 and"),
         ("a plane and nothing else",
          np.c_[np.random.default_rng(1).uniform(-30, 30, (6000, 2)), np.zeros(6000)],
          "points", "ground removal"),

@@ -17,7 +17,7 @@ import pytest
 from pnvlad_service.client import LocalizeClient, ServerRefused
 from pnvlad_service.localization.drive.service import http_ask
 from pnvlad_service.localization.drive.tracking import SEARCHING, DriveLocalizer, DriveScan
-from pnvlad_service.localization.prior import Prior
+from pnvlad_service.localization.verify.prior import Prior
 from tests.index.helpers import free_port
 from tests.server.test_app import start_server, stop_server
 

@@ -130,7 +130,7 @@ def test_index_add_then_sighup(maps, server) -> None:
 def test_the_admin_route_is_off_without_a_key(maps) -> None:
     from fastapi.testclient import TestClient
 
-    from pnvlad_service.localization.localizer import Localizer
+    from pnvlad_service.localization.query.localizer import Localizer
     from pnvlad_service.server.app import create_app
     from pnvlad_service.server.settings import ServerSettings
 
@@ -145,6 +145,44 @@ def test_the_admin_route_is_off_without_a_key(maps) -> None:
             r = c.post("/admin/reload", headers={"Authorization": f"Bearer {KEY}"})
             assert r.status_code == 200  # no body: the serving path read again
             assert c.post("/localize", json={"points": cloud(maps, 0, 1)}).status_code == 200
+    finally:
+        loc.close()
+
+
+def test_the_document_says_what_the_admin_route_answers(maps) -> None:
+    """Off (no key): 403 whatever the request carries, and the document declares no bearer
+    scheme there and lists 403, not 401. With a key: the bearer scheme declared, a missing
+    header a 401 with ``WWW-Authenticate``, a wrong one too. Both: a body that is not text is
+    the 400 the document lists."""
+    from fastapi.testclient import TestClient
+
+    from pnvlad_service.localization.query.localizer import Localizer
+    from pnvlad_service.server.app import create_app
+    from pnvlad_service.server.settings import ServerSettings
+
+    loc = Localizer.load(maps["a"], maps["ckpt"])
+    try:
+        for key in (None, KEY):
+            app = create_app(ServerSettings(index=maps["a"], admin_key=key), localizer=loc)
+            with TestClient(app) as c:
+                op = c.get("/openapi.json").json()["paths"]["/admin/reload"]["post"]
+                documented = {int(s) for s in op["responses"]}
+                bare = c.post("/admin/reload", json={})
+                wrong = c.post("/admin/reload", json={}, headers={"Authorization": "Bearer no"})
+                garbled = c.post(
+                    "/admin/reload",
+                    content=b"\x11\xff\xfe{",
+                    headers={"content-type": "application/json", "Authorization": f"Bearer {key}"},
+                )
+            assert {bare.status_code, wrong.status_code, garbled.status_code} <= documented
+            assert garbled.status_code == 400
+            if key is None:
+                assert "security" not in op and 401 not in documented
+                assert bare.status_code == wrong.status_code == 403
+            else:
+                assert op["security"] == [{"HTTPBearer": []}] and 401 in documented
+                assert bare.status_code == wrong.status_code == 401
+                assert bare.headers["www-authenticate"] == "Bearer"
     finally:
         loc.close()
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 from pnvlad_service.index.bundle import Match
-from pnvlad_service.localization.answers import (
+from pnvlad_service.localization.query.answers import (
     Answer,
     IndexInfo,
     LocalizerInfo,

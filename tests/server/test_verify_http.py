@@ -187,7 +187,7 @@ def test_the_server_takes_the_models_calibrated_threshold(bundles: dict, tmp_pat
     (no PNVLAD_VERIFY_THRESHOLD); a malformed record stops the start, naming the file."""
     import shutil
 
-    from pnvlad_service.localization.calibration import Calibration, write_calibration
+    from pnvlad_service.localization.query.calibration import Calibration, write_calibration
     from pnvlad_service.models.store import weights_sha256
 
     model = tmp_path / "model"

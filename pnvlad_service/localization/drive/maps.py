@@ -28,7 +28,7 @@ class DriveMap:
     def load(cls, bundle: str | Path, with_truth: bool = False) -> DriveMap:
         """The map of the bundle at ``bundle``; its own truth only ``with_truth``."""
         from pnvlad_service.index.bundle import METADATA_FILE, Metadata
-        from pnvlad_service.localization.prior import MapPositions
+        from pnvlad_service.localization.verify.prior import MapPositions
 
         bundle = Path(bundle)
         meta = Metadata.load(bundle / METADATA_FILE)

@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 if TYPE_CHECKING:
-    from pnvlad_service.localization.answers import Answer
-    from pnvlad_service.localization.prior import Prior
+    from pnvlad_service.localization.query.answers import Answer
+    from pnvlad_service.localization.verify.prior import Prior
 
 
 @dataclass(frozen=True)
@@ -150,7 +150,7 @@ class Ask(Protocol):
 def local_ask(localizer: Any, top_n: int = 5) -> Ask:
     """:data:`Ask` of a :class:`~..localizer.Localizer` in this process (a raw scan is bounded
     by the bundle, not by a server's request limits)."""
-    from pnvlad_service.localization.limits import Limits
+    from pnvlad_service.localization.query.limits import Limits
 
     def ask(points: np.ndarray, prior: Prior | None = None, kind: str = "scan") -> Reply:
         limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)))

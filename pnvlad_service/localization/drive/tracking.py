@@ -46,7 +46,7 @@ from pydantic import BaseModel, ConfigDict, field_validator
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.drive.service import Ask, Reply
-from pnvlad_service.localization.prior import DEFAULT_RADIUS_M, Prior
+from pnvlad_service.localization.verify.prior import DEFAULT_RADIUS_M, Prior
 
 SEARCHING = "searching"
 TRACKING = "tracking"

@@ -3,7 +3,7 @@
 The bundle named (default: the serving one's path, read again: ``pnvlad index add`` rewrites a
 bundle in place) is loaded and checked beside the one in service, then swapped in; queries in
 flight finish on the old one, which is then closed
-(:class:`~pnvlad_service.localization.serving.ServingMap`). A bundle that fails its checks
+(:class:`~pnvlad_service.localization.query.serving.ServingMap`). A bundle that fails its checks
 (missing or corrupt files, a truncated geometry, other weights than the model) is refused with
 a 422 naming the file, and the old one keeps serving; a reload while another runs is a 409.
 """
@@ -17,9 +17,9 @@ from fastapi import APIRouter, Depends
 from fastapi.concurrency import run_in_threadpool
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.serving import ReloadInProgress, ServingMap
+from pnvlad_service.localization.query.serving import ReloadInProgress, ServingMap
 from pnvlad_service.server import problems, schemas
-from pnvlad_service.server.deps import get_metrics, get_serving, require_admin
+from pnvlad_service.server.deps import admin_off, get_metrics, get_serving, require_admin
 from pnvlad_service.server.metrics import Metrics
 from pnvlad_service.server.problems import Problem
 
@@ -51,15 +51,27 @@ async def reload(
     return {**done.to_json(), "runtime": serving.current.runtime}
 
 
-def router() -> APIRouter:
-    """The admin routes, each behind :func:`~pnvlad_service.server.deps.require_admin`."""
-    r = APIRouter(tags=["admin"], dependencies=[Depends(require_admin)])
+def router(keyed: bool) -> APIRouter:
+    """The admin routes: behind :func:`~pnvlad_service.server.deps.require_admin` (a bearer
+    token: 401 without it) when ``keyed`` (an admin or API key is configured), else off
+    (:func:`~pnvlad_service.server.deps.admin_off`: 403, no security scheme declared). Both
+    answer 400 to a body that is not text and 422 to one that is not a reload request."""
+    guard = require_admin if keyed else admin_off
+    r = APIRouter(tags=["admin"], dependencies=[Depends(guard)])
+    statuses = (400, 401, 403, 409, 422, 503) if keyed else (400, 403, 422)
     r.add_api_route(
         "/admin/reload",
         reload,
         methods=["POST"],
         response_model=schemas.ReloadResponse,
-        responses=problems.openapi_responses(401, 403, 409, 422, 503),
+        responses=problems.openapi_responses(*statuses, described=_DESCRIBED),
         summary="Serve another index bundle (or the same path read again) without downtime",
     )
     return r
+
+
+_DESCRIBED = {
+    400: "Bad request: a body that cannot be read as JSON text (not UTF-8)",
+    401: "Missing or wrong bearer token (the admin key, else the API key)",
+    403: "Forbidden: the admin routes are off (neither PNVLAD_ADMIN_KEY nor PNVLAD_API_KEY set)",
+}

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends
 from fastapi.params import Depends as DependsParam
 from fastapi.responses import Response
 
-from pnvlad_service.localization.localizer import Localizer
+from pnvlad_service.localization.query.localizer import Localizer
 from pnvlad_service.server import problems, schemas
 from pnvlad_service.server.deps import get_localizer, get_metrics, get_settings
 from pnvlad_service.server.metrics import Metrics

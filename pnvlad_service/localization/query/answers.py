@@ -11,8 +11,8 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from pnvlad_service.index.bundle import Match
-from pnvlad_service.localization.prior import PriorFit
-from pnvlad_service.localization.verify import Verification
+from pnvlad_service.localization.verify.prior import PriorFit
+from pnvlad_service.localization.verify.verify import Verification
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from pnvlad_service.errors import InputError, NotReadyError, PnvladError
-from pnvlad_service.localization.localizer import Localizer
+from pnvlad_service.localization.query.localizer import Localizer
 
 log = logging.getLogger(__name__)
 

@@ -1,8 +1,8 @@
 """Registration near a prior pose: where the caller says it is, checked against the map there.
 
 A robot that already knows roughly where it is (the pose of its last verified fix moved on by
-its odometry: :mod:`pnvlad_service.localization.tracking`) need not ask the encoder at all. The
-map's entries within a radius of the prior are found by a range search over the bundle's
+its odometry: :mod:`~pnvlad_service.localization.drive.tracking`) need not ask the encoder at
+all. The map's entries within a radius of the prior are found by a range search over the bundle's
 positions (:class:`MapPositions`, no embedding); their points, from the bundle's geometry, are
 laid together in the frame of the nearest (the *anchor*); the scan is registered to them from
 the prior (:func:`~.registration.register` with ``init``: no yaw search) and the result is the
@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from pnvlad_service.localization import registration as reg
-from pnvlad_service.localization.verify import Candidate, Check, Pose, QueryCloud
+from pnvlad_service.localization.verify import registration as reg
+from pnvlad_service.localization.verify.verify import Candidate, Check, Pose, QueryCloud
 
 #: Prepared targets near priors a localiser keeps (apart from verification's cache of single
 #: candidates): a tracked robot's target changes every few metres and is not asked for again

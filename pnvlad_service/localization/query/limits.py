@@ -20,10 +20,14 @@ from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_POINTS
 
 if TYPE_CHECKING:
-    from pnvlad_service.localization.prior import Prior
+    from pnvlad_service.localization.verify.prior import Prior
 
 #: Longest ``run`` (dataset/run of the map) a prior may name.
 MAX_RUN_CHARS = 256
+
+#: Fewest points of a raw scan: the filter G's own fewest (``GConfig.min_points``' default),
+#: below which it refuses any scan, so that the HTTP contract can say so.
+MIN_RAW_POINTS = 16
 
 #: Slack on the submap bound: normalised clouds written by other tools round a little past it.
 BOUND_SLACK = 1e-4
@@ -34,8 +38,8 @@ class Limits:
     """What a query may hold. Points per cloud and the coordinate bounds are the format's;
     the counts are configurable (``ServerSettings`` takes its defaults from here)."""
 
-    #: Most points of a raw scan (``preprocess``); the fewest is 1 (the filter G may still
-    #: refuse a scan that ground removal leaves too small).
+    #: Most points of a raw scan (``preprocess``); the fewest is :data:`MIN_RAW_POINTS` (the
+    #: filter G may still refuse a scan that cropping or ground removal leaves too small).
     max_raw_points: int = 500_000
     #: Largest ``top_n`` a query may ask for.
     max_top_n: int = 100
@@ -51,7 +55,7 @@ class Limits:
     #: range, and it keeps overflowing values (1e308) away from the filter G's plane fits.
     max_raw_coord: float = 100_000.0
     #: Fewest points of a raw scan.
-    min_raw_points: int = 1
+    min_raw_points: int = MIN_RAW_POINTS
     #: Largest ``scale`` (metres per normalised unit) a preprocessed query may give.
     max_scale: float = 1000.0
     #: Largest radius a prior pose may ask the map to be searched within, metres
@@ -105,7 +109,7 @@ class Limits:
         string (a run the map does not hold is not an error: the nearest entries are taken);
         :class:`InputError` naming ``field.<name>`` else (a missing one is named too; ``sep``
         joins the two: ``_`` for the query parameters of a binary body)."""
-        from pnvlad_service.localization.prior import Prior
+        from pnvlad_service.localization.verify.prior import Prior
 
         bounds = {
             "northing": self.max_prior_coord,

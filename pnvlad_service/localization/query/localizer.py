@@ -2,22 +2,17 @@
 matches out. No HTTP here; the server (``pnvlad_service.server``) and ``pnvlad localize``
 are two callers of the same path.
 
-One query goes through five steps, whoever drives them:
-
-1. ``Limits.check_points`` (:mod:`pnvlad_service.localization.limits`) validates the array;
-2. :meth:`Localizer.prepare` runs the filter G on a raw scan, with the bundle's G config,
-   and keeps what G did (centre, scale) for the pose;
-3. :meth:`Localizer.submit` embeds and searches (queued to the micro-batcher when the
-   localizer was loaded with :class:`Batching`, else at once in the caller's thread);
-4. :meth:`Localizer.verify` registers the query to the top candidates and re-ranks them
-   (:mod:`pnvlad_service.localization.verify`), when the bundle carries geometry and the
-   query asks for it (the default then);
-5. :meth:`Localizer.answer` turns the batch result into an :class:`Answer`.
-
-:meth:`Localizer.localize` runs them in a row (the CLI, scripts); the server runs them
-from its event loop, awaiting step 3 and running step 4 in its thread pool. Errors are the
-library's own: ``InputError`` (bad cloud, a bundle built with other weights, verification
-asked of a bundle without geometry), ``NotReadyError`` (used after :meth:`Localizer.close`).
+A :class:`Localizer` holds the steps of a query, one method each: :meth:`Localizer.check`
+(what this map can answer), :meth:`Localizer.prepare` (the filter G on a raw scan, with the
+bundle's G config, keeping its centre and scale for the pose), :meth:`Localizer.submit` (embed
+and search, queued to the micro-batcher when loaded with one), :meth:`Localizer.verify` (the
+candidates registered and re-ranked by the verifier chosen at load,
+:mod:`pnvlad_service.localization.verify.verifier`) or :meth:`Localizer.register_near` (a
+scan with a prior), and the :class:`Answer`. :func:`~.run.run` takes a
+:class:`~.query.Query` through them, whoever drives it; :meth:`Localizer.localize` is that
+path run inline (the CLI, scripts). Errors are the library's own: ``InputError`` (bad cloud,
+a bundle built with other weights, verification asked of a bundle without geometry),
+``NotReadyError`` (used after :meth:`Localizer.close`).
 """
 
 from __future__ import annotations
@@ -28,41 +23,41 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from pnvlad_service.errors import InputError, NotReadyError
 from pnvlad_service.index.bundle import IndexBundle, Match
 from pnvlad_service.io.submap import SUBMAP_POINTS
-from pnvlad_service.localization.answers import Answer, IndexInfo, LocalizerInfo, ModelInfo, Timings
-from pnvlad_service.localization.batching import Batching, BatchResult, MicroBatcher
-from pnvlad_service.localization.calibration import CALIBRATION_FILE, read_calibration
-from pnvlad_service.localization.compatibility import checked_model
-from pnvlad_service.localization.limits import Limits, query_kind
-from pnvlad_service.localization.prior import (
-    NEAR_CACHE_ENTRIES,
+from pnvlad_service.localization.query.answers import (
+    Answer,
+    IndexInfo,
+    LocalizerInfo,
+    ModelInfo,
+    Timings,
+)
+from pnvlad_service.localization.query.batching import Batching, BatchResult, MicroBatcher
+from pnvlad_service.localization.query.calibration import CALIBRATION_FILE, read_calibration
+from pnvlad_service.localization.query.compatibility import checked_model
+from pnvlad_service.localization.query.config import LocalizerConfig
+from pnvlad_service.localization.query.limits import Limits
+from pnvlad_service.localization.query.query import Query
+from pnvlad_service.localization.query.run import INLINE, run, run_inline
+from pnvlad_service.localization.query.threads import faiss_threads_here, set_threads
+from pnvlad_service.localization.verify.prior import (
     MapPositions,
     PositionsOnce,
     Prior,
     PriorConfig,
     PriorFit,
     no_map_near,
-    register_near,
 )
-from pnvlad_service.localization.threads import faiss_threads_here, set_threads
-from pnvlad_service.localization.verify import (
-    PreparedCache,
-    PreparedCloud,
-    Verification,
-    VerifyConfig,
-    bundle_candidates,
-    verify,
-)
-from pnvlad_service.localization.verify_process import VerifyProcess
+from pnvlad_service.localization.verify.verifier import open_verifier
+from pnvlad_service.localization.verify.verify import PreparedCloud, Verification, VerifyConfig
+from pnvlad_service.models.embedding import Embedder
 from pnvlad_service.models.runtimes import describe as describe_runtime
 from pnvlad_service.models.runtimes import load_encoder
 from pnvlad_service.models.store import ModelIdentity
@@ -72,65 +67,73 @@ log = logging.getLogger(__name__)
 __all__ = [
     "Batching",
     "Localizer",
+    "LocalizerConfig",
     "Match",
-    "PreparedCloud",
     "Prior",
     "PriorConfig",
+    "Query",
     "VerifyConfig",
     "checked_model",
     "set_threads",
 ]
 
 
+class QueryEncoder(Embedder, Protocol):
+    """The encoder a localiser embeds with (``models.inference.Encoder`` and
+    ``models.onnx_encoder.OnnxEncoder`` are ones): an :class:`Embedder` that names its
+    weights, can be told when other work holds the cores, and closes its threads."""
+
+    crowded_by: Callable[[], bool] | None
+
+    @property
+    def weights_sha256(self) -> str: ...
+
+    def close(self) -> None: ...
+
+
 class Localizer:
     """A bundle and the encoder it was built with, loaded once; answers queries.
 
-    With ``batching``, concurrent callers (threads, or an event loop's requests) share forward
-    passes through a :class:`MicroBatcher`; without, each query runs in its caller's thread.
-    """
+    With ``config.batching``, concurrent callers (threads, or an event loop's requests) share
+    forward passes through a :class:`MicroBatcher`; without, each query runs in its caller's
+    thread. ``threshold``: the verification's (default: ``config.verify``'s)."""
 
     def __init__(
         self,
         bundle: IndexBundle,
-        encoder: Any,
+        encoder: QueryEncoder,
         identity: ModelIdentity,
-        batching: Batching | None = None,
+        config: LocalizerConfig | None = None,
+        *,
         on_batch: Callable[[int], None] | None = None,
-        verify_config: VerifyConfig | None = None,
-        verify_process: bool = False,
-        prior_config: PriorConfig | None = None,
+        threshold: float | None = None,
     ) -> None:
-        if getattr(encoder, "dim", bundle.dim) != bundle.dim:
+        if encoder.dim != bundle.dim:
             raise InputError(
                 f"encoder output dimension {encoder.dim} != index dimension {bundle.dim}",
                 bundle.path,
             )
         from pnvlad_service.preprocess.filter_g import GConfig
 
+        config = config or LocalizerConfig()
+        self.config = config
         self.bundle = bundle
         self.encoder = encoder
         self.identity = identity
-        self.verify_config = verify_config or VerifyConfig()
-        self.prior_config = prior_config or PriorConfig()
+        self.verify_config = config.verify.config(threshold)
+        self.prior_config = config.prior.config()
         # The map's positions for a prior's range search, made on the first prior.
         self._positions = PositionsOnce(lambda: MapPositions.of_metadata(bundle.metadata))
-        # Candidates' prepared clouds by bundle row (consecutive queries share candidates).
-        self._prepared = PreparedCache(self.verify_config.cache_entries)
-        # Targets near priors (entries laid together), by their rows: a few of the latest.
-        self._near = PreparedCache(NEAR_CACHE_ENTRIES if self.verify_config.cache_entries else 0)
         # Verifications in flight: with another one, or the encoder busy, small_gicp runs on
         # VerifyConfig.crowded_threads (the cores are taken).
         self._verifying = 0
         self._verifying_lock = threading.Lock()
-        self._crowded_config = self.verify_config.crowded()
-        # small_gicp holds the GIL: with verify_process, registrations run in a child process
-        # so that they do not stop the threads that embed and answer (verify_process.py).
-        self._verify_process = (
-            VerifyProcess(bundle.path, self.verify_config.cache_entries)
-            if verify_process and bundle.geometry is not None
-            else None
+        # Registration here, or in a child process (small_gicp holds the GIL: there it does
+        # not stop the threads that embed and answer; verify_process.py), chosen once.
+        self.verifier = open_verifier(
+            bundle.path, bundle.geometry, config.verify.cache, config.verify.process
         )
-        if bundle.geometry is not None and hasattr(encoder, "crowded_by"):
+        if bundle.geometry is not None:
             # A verification in flight holds a core (the child's, or this process's): a batch
             # then runs on the single-threaded cloud workers, not on both cores' team.
             encoder.crowded_by = self._verification_in_flight
@@ -149,6 +152,7 @@ class Localizer:
         #: Whether :meth:`close` closes the encoder too (a reload that hands the encoder on
         #: to the next localiser clears it: ``serving.py``).
         self.owns_encoder = True
+        batching = config.batching
         self._batcher = (
             None
             if batching is None
@@ -166,45 +170,37 @@ class Localizer:
         cls,
         index: str | Path,
         model: str | Path | None = None,
+        config: LocalizerConfig | None = None,
         *,
-        device: str | None = None,
-        verify: bool = True,
-        batching: Batching | None = None,
+        encoder: QueryEncoder | None = None,
         on_batch: Callable[[int], None] | None = None,
-        verify_config: VerifyConfig | None = None,
-        verify_process: bool = False,
-        threshold: float | None = None,
-        runtime: str = "auto",
-        threads: int | None = None,
-        encoder: Any = None,
-        prior_config: PriorConfig | None = None,
     ) -> Localizer:
         """Load the bundle at ``index`` and ``model`` (default: the one the bundle records),
-        after checking that the bundle was built with these weights (:func:`checked_model`);
-        ``verify``: check the bundle's files against their sha256; ``verify_config``: how
-        candidates are verified (:class:`VerifyConfig`); ``verify_process``: verify in a child
-        process (:class:`VerifyProcess`: for a server whose threads embed while others
-        verify); ``threshold``: the verification threshold, replacing ``verify_config``'s;
-        None takes the one chosen for these weights when the model directory records it
-        (:mod:`.calibration`), else ``verify_config``'s. ``runtime``: ``auto``, ``torch`` or
-        ``onnx`` (:mod:`pnvlad_service.models.runtimes`), ``threads`` ONNX Runtime's;
-        ``encoder``: one already loaded to reuse when it holds these weights (a reload of the
-        bundle with the same model: ``serving.py``); ``prior_config``: how a scan is registered
-        near a prior pose (:class:`~.prior.PriorConfig`)."""
+        after checking that the bundle was built with these weights (:func:`checked_model`),
+        as ``config`` says (:class:`LocalizerConfig`: the encoder, the verification and where
+        it runs, the prior, the batcher, the bundle's checks). The verification threshold is
+        the config's, else the one chosen for these weights when the model directory records
+        it (:mod:`.calibration`), else :class:`VerifyConfig`'s. ``encoder``: one already
+        loaded, reused when it holds these weights (a reload of the bundle with the same
+        model: ``serving.py``); ``on_batch``: told the size of each batch embedded."""
+        config = config or LocalizerConfig()
         ident = checked_model(index, model)
-        verify_config = verify_config or VerifyConfig()
-        source = "given"
+        threshold, source = config.verify.threshold, "given"
         if threshold is None:
             cal = read_calibration(ident.checkpoint, ident.weights_sha256)
-            threshold = verify_config.threshold if cal is None else cal.threshold
+            threshold = VerifyConfig.threshold if cal is None else cal.threshold
             source = "the verify config" if cal is None else CALIBRATION_FILE
-        verify_config = replace(verify_config, threshold=threshold)
         log.info("verification threshold %.2f (%s)", threshold, source)
         t0 = time.perf_counter()
-        bundle = IndexBundle.load(index, verify=verify)
-        if encoder is None or getattr(encoder, "weights_sha256", None) != ident.weights_sha256:
+        bundle = IndexBundle.load(index, verify=config.check_bundle)
+        if encoder is None or encoder.weights_sha256 != ident.weights_sha256:
+            e = config.encoder
             encoder = load_encoder(
-                ident.checkpoint, device=device, identity=ident, runtime=runtime, threads=threads
+                ident.checkpoint,
+                device=e.device,
+                identity=ident,
+                runtime=e.runtime,
+                threads=e.threads,
             )
         log.info(
             "loaded %s (%s, %d vectors) and model %s in %.2f s; embedding with %s",
@@ -215,31 +211,21 @@ class Localizer:
             time.perf_counter() - t0,
             describe_runtime(encoder),
         )
-        return cls(
-            bundle,
-            encoder,
-            ident,
-            batching=batching,
-            on_batch=on_batch,
-            verify_config=verify_config,
-            verify_process=verify_process,
-            prior_config=prior_config,
-        )
+        return cls(bundle, encoder, ident, config, on_batch=on_batch, threshold=threshold)
 
     def close(self) -> None:
-        """Finish queued batches, then stop the encoder's cloud worker threads."""
+        """Finish queued batches, then stop the verifier and the encoder's threads."""
         if self._closed:
             return
         self._closed = True
         if self._batcher is not None:
             self._batcher.close()
-        if self._verify_process is not None:
-            self._verify_process.close()
-        if getattr(self.encoder, "crowded_by", None) == self._verification_in_flight:
+        if self.verifier is not None:
+            self.verifier.close()
+        if self.encoder.crowded_by == self._verification_in_flight:
             self.encoder.crowded_by = None  # a caller's encoder outlives this localizer
-        close = getattr(self.encoder, "close", None)
-        if close is not None and self.owns_encoder:
-            close()
+        if self.owns_encoder:
+            self.encoder.close()
 
     def __enter__(self) -> Localizer:
         return self
@@ -319,6 +305,16 @@ class Localizer:
                 field,
             )
 
+    def check(self, query: Query, field: str = "kind") -> bool:
+        """What this map makes of ``query``: :class:`InputError` when its kind does not meet
+        the map's (naming ``field``), or it asks for verification or a prior of a bundle
+        without geometry; whether it runs verification (a query without a prior)."""
+        self.check_kind(query.kind, field)
+        if query.prior is not None:
+            self.check_prior()
+            return False
+        return self.wants_verify(query.verify)
+
     def search_k(self, top_n: int, verify: bool) -> int:
         """How many neighbours to search for: ``top_n``, or the candidates to verify."""
         return max(top_n, self.verify_config.candidates) if verify else top_n
@@ -352,53 +348,42 @@ class Localizer:
         fut.set_result(BatchResult(distances[0], ids[0], 0.0, embed_s, search_s, 1))
         return fut
 
-    def verify(self, prepared: PreparedCloud, result: BatchResult) -> Verification:
-        """Register the query to its nearest ``verify_config.candidates`` and re-rank them."""
-        geometry = self.bundle.geometry
-        if geometry is None:
-            raise InputError("the bundle carries no geometry", "verify")
-        k = self.verify_config.candidates
-        ids = [int(i) for i in result.ids[:k] if i >= 0]
-        query = prepared.query([geometry.scale(i) for i in ids])
+    @contextlib.contextmanager
+    def _registering(self) -> Iterator[bool]:
+        """Count a registration in flight while the block runs; whether the cores are taken
+        (another registration, or the encoder busy): small_gicp gets fewer threads then."""
         with self._verifying_lock:
             crowded = self._verifying > 0 or (self._batcher is not None and self._batcher.busy)
             self._verifying += 1
         try:
-            config = self._crowded_config if crowded else self.verify_config
-            if self._verify_process is not None:
-                try:
-                    return self._verify_process.verify(query, ids, config)
-                except BrokenProcessPool:
-                    log.error(
-                        "the verification process died; this query is verified in the "
-                        "server's process, the next one starts a new child"
-                    )
-            return verify(query, bundle_candidates(geometry, ids), config, cache=self._prepared)
+            yield crowded
         finally:
             with self._verifying_lock:
                 self._verifying -= 1
 
+    def verify(self, prepared: PreparedCloud, result: BatchResult) -> Verification:
+        """Register the query to its nearest ``verify_config.candidates`` and re-rank them."""
+        geometry = self.bundle.geometry
+        if geometry is None or self.verifier is None:
+            raise InputError("the bundle carries no geometry", "verify")
+        k = self.verify_config.candidates
+        ids = [int(i) for i in result.ids[:k] if i >= 0]
+        query = prepared.query([geometry.scale(i) for i in ids])
+        with self._registering() as crowded:
+            config = self.verify_config.crowded() if crowded else self.verify_config
+            return self.verifier.verify(query, ids, config)
+
     # a query with a prior pose ---------------------------------------------------------
-    def check_prior(self, kind: str, verify: bool | None, field: str = "prior") -> None:
-        """:class:`InputError` naming ``field`` (or ``verify``) when a query of ``kind`` cannot
-        be registered near a prior here: the bundle has no geometry, the query is not raw
-        metres in its sensor's frame (a ``scan`` or ``window``), or it said ``verify: false``
-        (a prior query is nothing but a registration)."""
+    def check_prior(self, field: str = "prior") -> None:
+        """:class:`InputError` naming ``field`` when a scan cannot be registered near a prior
+        here: the bundle has no geometry (the rest of a prior's rules are the query's own:
+        :meth:`Query.make`)."""
         if not self.can_verify:
             raise InputError(
                 f"the index {self.bundle.path} carries no geometry to register a scan near its "
                 "prior against: build it from a tree with frame sidecars",
                 field,
             )
-        if kind == "submap":
-            raise InputError(
-                "a prior pose is the sensor's: send the raw scan (kind scan or window, "
-                "preprocess true), not a preprocessed submap",
-                field,
-            )
-        if verify is False:
-            raise InputError("a query with a prior is registered to the map: no verify=false",
-                             "verify")  # fmt: skip
 
     def positions(self) -> MapPositions:
         """The range search over the map's positions (built on first use)."""
@@ -406,10 +391,9 @@ class Localizer:
 
     def register_near(self, prepared: PreparedCloud, prior: Prior) -> PriorFit:
         """Register a prepared raw scan to the map entries within ``prior.radius_m`` of the
-        prior (:func:`~.prior.register_near`; in the verification process when there is one):
-        its :class:`~.prior.PriorFit`; a prior with no entry near says so (not verified)."""
-        geometry = self.bundle.geometry
-        if geometry is None:
+        prior (:func:`~..verify.prior.register_near`, by the verifier): its
+        :class:`~..verify.prior.PriorFit`; a prior with no entry near says so (not verified)."""
+        if self.verifier is None:
             raise InputError("the bundle carries no geometry", "prior")
         config = self.prior_config
         positions = self.positions()
@@ -418,27 +402,13 @@ class Localizer:
             nearest = positions.nearest_m(prior.northing, prior.easting)
             return no_map_near(prior, nearest, config.min_fitness)
         query = prepared.query([])
-        with self._verifying_lock:
-            crowded = self._verifying > 0 or (self._batcher is not None and self._batcher.busy)
-            self._verifying += 1
-        try:
+        with self._registering() as crowded:
             if crowded and self.verify_config.crowded_threads is not None:
                 reg_config = replace(
                     config.registration, threads=self.verify_config.crowded_threads
                 )
                 config = replace(config, registration=reg_config)
-            if self._verify_process is not None:
-                try:
-                    return self._verify_process.register_near(query, nearby, prior, config)
-                except BrokenProcessPool:
-                    log.error(
-                        "the verification process died; this query is registered in the "
-                        "server's process, the next one starts a new child"
-                    )
-            return register_near(query, geometry, nearby, prior, config, cache=self._near)
-        finally:
-            with self._verifying_lock:
-                self._verifying -= 1
+            return self.verifier.register_near(query, nearby, prior, config)
 
     def answer_near(
         self,
@@ -519,59 +489,28 @@ class Localizer:
         prior: Prior | None = None,
     ) -> Answer:
         """The ``top_n`` map places nearest to one cloud: exactly 4096 points in [-1, 1]
-        float [4096, 3], or with ``preprocess`` a raw scan float [N, 3] in metres (checked
-        against ``limits``, default :class:`Limits`). ``kind``: ``submap``, ``scan`` or
-        ``window`` (:func:`~.limits.query_kind`; told by ``preprocess`` when absent).
-        ``verify``: register the top candidates and re-rank them (default: when the bundle
-        carries geometry); ``scale``: metres per unit of a preprocessed cloud, for a metric
-        pose (estimated when not given). ``prior``: where the raw scan's sensor is thought to
-        be (:class:`~.prior.Prior`, checked against ``limits``): the scan is registered to the
-        map entries near it instead of searched for (:meth:`register_near`)."""
+        float [4096, 3], or with ``preprocess`` a raw scan float [N, 3] in metres, as a
+        :class:`Query` checked against ``limits`` (default :class:`Limits`) and run inline
+        (:func:`~.run.run`). ``kind``: ``submap``, ``scan`` or ``window`` (told by
+        ``preprocess`` when absent). ``verify``: register the top candidates and re-rank them
+        (default: when the bundle carries geometry); ``scale``: metres per unit of a
+        preprocessed cloud, for a metric pose (estimated when not given). ``prior``: where
+        the raw scan's sensor is thought to be (:class:`~..verify.prior.Prior`): the scan is
+        registered to the map entries near it instead of searched for (:meth:`register_near`)."""
         t0 = time.perf_counter()
-        limits = limits or Limits()
         if prior is not None and kind is None and preprocess is None:
             preprocess = True  # a prior is a sensor's pose: the cloud is its raw scan
-        kind, preprocess = query_kind(kind, preprocess)
-        self.check_kind(kind)
-        if prior is not None:
-            self.check_prior(kind, verify)
-            prior = limits.check_prior(
-                prior.northing, prior.easting, prior.yaw_deg, prior.height, prior.radius_m,
-                prior.run,
-            )  # fmt: skip
-        pts = limits.check_points(np.asarray(points), preprocess, "points")
-        top_n = limits.check_top_n(top_n)
-        scale = limits.check_scale(scale)
-        if preprocess and scale is not None:
-            raise InputError("a raw scan (preprocess) is in metres already: no scale", "scale")
-        if prior is not None:
-            t1 = time.perf_counter()
-            prepared = self.prepare(pts, True)
-            t2 = time.perf_counter()
-            fit = self.register_near(prepared, prior)
-            return self.answer_near(
-                fit,
-                parse_s=t1 - t0,
-                preprocess_s=t2 - t1,
-                total_s=time.perf_counter() - t0,
-                top_n=top_n,
-                query_kind=kind,
-            )
-        verify = self.wants_verify(verify)
-        t1 = time.perf_counter()
-        prepared = self.prepare(pts, preprocess, scale)
-        t2 = time.perf_counter()
-        result = self.submit(prepared, self.search_k(top_n, verify)).result()
-        verification = self.verify(prepared, result) if verify else None
-        return self.answer(
-            result,
-            parse_s=t1 - t0,
-            preprocess_s=t2 - t1,
-            total_s=time.perf_counter() - t0,
+        query = Query.make(
+            points,
+            limits=limits,
+            preprocess=preprocess,
+            kind=kind,
             top_n=top_n,
-            verification=verification,
-            query_kind=kind,
+            verify=verify,
+            scale=scale,
+            prior=prior,
         )
+        return run_inline(run(self, query, INLINE, t0=t0))
 
     def _embed_and_search(
         self, clouds: np.ndarray, k: int

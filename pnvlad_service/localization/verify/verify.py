@@ -3,7 +3,7 @@ say whether the best one is sure, and give the query's pose on the map.
 
 Retrieval (descriptor distances) is the first of two steps; this is the second. Each of the
 top ``candidates`` database submaps is registered to the query
-(:mod:`pnvlad_service.localization.registration`); its *score* is the registration's fitness,
+(:mod:`pnvlad_service.localization.verify.registration`); its *score* is the registration's fitness,
 the share of the query's points that land within the inlier distance of the candidate's
 points. Candidates are re-ranked by score (retrieval order breaks ties); the answer is
 ``verified`` when the best score reaches ``threshold``, a figure chosen on training-layout
@@ -35,7 +35,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from pnvlad_service.localization import registration as reg
+from pnvlad_service.localization.verify import registration as reg
 
 DEFAULT_CANDIDATES = 10
 

@@ -31,7 +31,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
-from pnvlad_service.localization.prior import (
+from pnvlad_service.localization.verify.prior import (
     NEAR_CACHE_ENTRIES,
     Nearby,
     Prior,
@@ -39,7 +39,7 @@ from pnvlad_service.localization.prior import (
     PriorFit,
     register_near,
 )
-from pnvlad_service.localization.verify import (
+from pnvlad_service.localization.verify.verify import (
     PreparedCache,
     QueryCloud,
     Verification,
