@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pnvlad_service.data.preprocess import GConfig
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import SUBMAP_BOUND, SUBMAP_POINTS
 from pnvlad_service.localization.query.limits import Limits
+from pnvlad_service.preprocess.filter_g import GConfig
 
 LIM = Limits(max_raw_points=5000, max_top_n=7, max_batch_queries=3)
 
