@@ -16,7 +16,7 @@ def synth(
         "--preset",
         help="tiny (tests, seconds), demo (README, ~600 submaps, under 2 min), benchmark "
         "(3 districts x 5 runs recorded with four real sensors' layouts, quality figures, under "
-        "30 min), benchmark_v1 (the benchmark before #37: one perfect sensor, no street "
+        "30 min), benchmark_v1 (the first benchmark: one perfect sensor, no street "
         "detail), or pushbroom_tiny / pushbroom_demo (the paper's Oxford sensor: a SICK "
         "LMS-151 push-broom mounted as the RobotCar's lms_front, Oxford-style submaps).",
     ),

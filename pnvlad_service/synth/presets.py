@@ -161,7 +161,7 @@ PRESETS: dict[str, SynthPreset] = {
         region_half_size=120.0,
     ),
     # Our quality figures: three districts, five runs each, each run recorded with one of four
-    # real sensors, streets with hedges, furniture and cars of several shapes (issue #37).
+    # real sensors, streets with hedges, furniture and cars of several shapes.
     "benchmark": SynthPreset(
         name="benchmark",
         areas=_areas(3000.0, (1000.0, 800.0), ("business", "residential", "campus")),
@@ -174,7 +174,7 @@ PRESETS: dict[str, SynthPreset] = {
         test_share=0.45,
         region_half_size=150.0,
     ),
-    # The benchmark before #37 (one perfect 64-beam sensor, boxes for cars, no street detail):
+    # The first benchmark (one perfect 64-beam sensor, boxes for cars, no street detail):
     # what the figures of docs/results before 2026-12-05 (session c) were measured on.
     "benchmark_v1": SynthPreset(
         name="benchmark_v1",

@@ -1,4 +1,4 @@
-"""Training-time augmentation of normalised submaps (issue #13, the recipe search).
+"""Training-time augmentation of normalised submaps.
 
 The published PointNetVLAD code trains on the submaps as stored. MinkLoc3D (Komorowski,
 WACV 2021) showed that perturbing them during training lifts recall on unseen areas: its
