@@ -58,6 +58,61 @@ def test_every_stage_is_listed() -> None:
     assert stages == set(ALLOWED)
 
 
+#: Inside a stage split by job: the packages of the stage each package may import. In
+#: localization/ verification knows nothing of queries or drives (the query path hands it
+#: clouds and ids), the query path nothing of drives, and a drive asks queries and reads
+#: priors; the package's own ``__init__`` only names them.
+INSIDE: dict[str, dict[str, set[str]]] = {
+    "localization": {"verify": set(), "query": {"verify"}, "drive": {"query", "verify"}},
+}
+
+
+def test_packages_inside_a_stage_import_one_way() -> None:
+    wrong = []
+    for stage, packages in INSIDE.items():
+        for package, allowed in packages.items():
+            for path in (SRC / stage / package).rglob("*.py"):
+                for name in _imports(path):
+                    parts = name.split(".")
+                    if parts[:2] == ["pnvlad_service", stage] and len(parts) > 2:
+                        if parts[2] not in (package, *allowed):
+                            wrong.append(f"{path.relative_to(SRC)} imports {name}")
+    assert wrong == []
+
+
+def test_every_package_inside_a_split_stage_is_listed() -> None:
+    for stage, packages in INSIDE.items():
+        found = {p.name for p in (SRC / stage).iterdir() if (p / "__init__.py").is_file()}
+        modules = {p.name for p in (SRC / stage).glob("*.py")}
+        assert (found, modules) == (set(packages), {"__init__.py"})
+
+
+def test_the_shared_modules_and_the_client_stand_apart() -> None:
+    """The shared modules import none of the stages; the HTTP client is for users, the CLI,
+    the demo and the benchmarks: the library never imports it (a drive is handed an ``Ask``),
+    and it imports only ``data`` (the window a caller accumulates), never the server's side
+    (no torch, FAISS or FastAPI behind ``from pnvlad_service.client import ...``); nothing in
+    the library imports the CLI."""
+    wrong = []
+    for name in SHARED - {"configs"}:
+        path = SRC / f"{name}.py"
+        for imported in _imports(path):
+            parts = imported.split(".")
+            if parts[0] == "pnvlad_service" and len(parts) > 1 and parts[1] not in SHARED:
+                wrong.append(f"{name}.py imports {imported}")
+    for imported in _imports(SRC / "client.py"):
+        parts = imported.split(".")
+        if parts[0] == "pnvlad_service" and parts[1] not in (*SHARED, "data"):
+            wrong.append(f"client.py imports {imported}")
+        elif parts[0] in (*WEB, "torch", "faiss"):
+            wrong.append(f"client.py imports {imported}")
+    for path in SRC.rglob("*.py"):
+        for imported in _imports(path):
+            if imported.startswith(("pnvlad_service.client", "pnvlad_cli")):
+                wrong.append(f"{path.relative_to(SRC)} imports {imported}")
+    assert wrong == []
+
+
 def _module_name(path: Path, root: Path) -> str:
     parts = path.relative_to(root.parent).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
