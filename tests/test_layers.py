@@ -4,9 +4,11 @@ others, inside a stage or across: a new import against the flow fails here."""
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "pnvlad_service"
+ARCHITECTURE = SRC.parent / "docs" / "ARCHITECTURE.md"
 
 #: The stages each stage may import (besides SHARED and the package's __version__).
 ALLOWED: dict[str, set[str]] = {
@@ -196,3 +198,23 @@ def test_the_cycle_check_sees_deferred_relative_and_type_checking_imports(tmp_pa
     graph = import_graph(pkg)
     assert graph["pkg.e"] == {"pkg.stage.a", "pkg"}
     assert import_cycles(graph) == [["pkg.stage.a", "pkg.stage.b"], ["pkg.stage.c", "pkg.stage.d"]]
+
+
+def table_modules(text: str) -> list[str]:
+    """The modules a table's first column names (`` `path.py` `` cells), in order."""
+    cells = (line.split("|")[1] for line in text.splitlines() if line.startswith("| `"))
+    return [name for cell in cells for name in re.findall(r"`([^`]+)`", cell)]
+
+
+def test_the_architecture_lists_every_module_once() -> None:
+    """docs/ARCHITECTURE.md's module table names each module of the package (``__init__``
+    aside) once, by its path under ``pnvlad_service/``, and no module that is gone."""
+    listed = table_modules(ARCHITECTURE.read_text())
+    modules = {str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if p.name != "__init__.py"}
+    twice = sorted({m for m in listed if listed.count(m) > 1})
+    assert (sorted(modules - set(listed)), sorted(set(listed) - modules), twice) == ([], [], [])
+
+
+def test_the_table_check_reads_the_first_column_only() -> None:
+    text = "| module | job |\n|---|---|\n| `a.py`, `b/c.py` | reads `d.py` |\n| **b/** | x |\n"
+    assert table_modules(text) == ["a.py", "b/c.py"]
