@@ -72,7 +72,7 @@ def _post(
         return 0, "", f"cannot reach {url}: {exc}".encode()
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--url", required=True)
     ap.add_argument("--root", type=Path, required=True, help="benchmark tree root")
@@ -82,7 +82,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--radius", type=float, default=25.0)
     ap.add_argument("--raw", action="store_true", help="also send the query's raw scan")
     ap.add_argument("--reload", metavar="PATH", help="also reload the bundle at PATH")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
 
     ds = args.root / args.dataset
     regions = json.loads((ds / "test_regions.json").read_text())

@@ -4,9 +4,11 @@ others, inside a stage or across: a new import against the flow fails here."""
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "pnvlad_service"
+ARCHITECTURE = SRC.parent / "docs" / "ARCHITECTURE.md"
 
 #: The stages each stage may import (besides SHARED and the package's __version__).
 ALLOWED: dict[str, set[str]] = {
@@ -56,6 +58,60 @@ def test_stages_import_only_the_stages_before_them() -> None:
 def test_every_stage_is_listed() -> None:
     stages = {p.name for p in SRC.iterdir() if (p / "__init__.py").is_file()}
     assert stages == set(ALLOWED)
+
+
+#: Inside a stage split by job: the packages of the stage each package may import. In
+#: localization/ verification knows nothing of queries or drives (the query path hands it
+#: clouds and ids), the query path nothing of drives, and a drive asks queries and reads
+#: priors; the package's own ``__init__`` only names them.
+INSIDE: dict[str, dict[str, set[str]]] = {
+    "localization": {"verify": set(), "query": {"verify"}, "drive": {"query", "verify"}},
+}
+
+
+def test_packages_inside_a_stage_import_one_way() -> None:
+    wrong = []
+    for stage, packages in INSIDE.items():
+        for package, allowed in packages.items():
+            for path in (SRC / stage / package).rglob("*.py"):
+                for name in _imports(path):
+                    parts = name.split(".")
+                    inside = parts[:2] == ["pnvlad_service", stage] and len(parts) > 2
+                    if inside and parts[2] not in (package, *allowed):
+                        wrong.append(f"{path.relative_to(SRC)} imports {name}")
+    assert wrong == []
+
+
+def test_every_package_inside_a_split_stage_is_listed() -> None:
+    for stage, packages in INSIDE.items():
+        found = {p.name for p in (SRC / stage).iterdir() if (p / "__init__.py").is_file()}
+        modules = {p.name for p in (SRC / stage).glob("*.py")}
+        assert (found, modules) == (set(packages), {"__init__.py"})
+
+
+def test_the_shared_modules_and_the_client_stand_apart() -> None:
+    """The shared modules import none of the stages; the HTTP client is for users, the CLI,
+    the demo and the benchmarks: the library never imports it (a drive is handed an ``Ask``),
+    and it imports only ``data`` (the window a caller accumulates), never the server's side
+    (no torch, FAISS or FastAPI behind ``from pnvlad_service.client import ...``); nothing in
+    the library imports the CLI."""
+    wrong = []
+    for name in SHARED - {"configs"}:
+        path = SRC / f"{name}.py"
+        for imported in _imports(path):
+            parts = imported.split(".")
+            if parts[0] == "pnvlad_service" and len(parts) > 1 and parts[1] not in SHARED:
+                wrong.append(f"{name}.py imports {imported}")
+    for imported in _imports(SRC / "client.py"):
+        parts = imported.split(".")
+        stage = parts[1] if parts[0] == "pnvlad_service" else None
+        if stage not in (None, *SHARED, "data") or parts[0] in (*WEB, "torch", "faiss"):
+            wrong.append(f"client.py imports {imported}")
+    for path in SRC.rglob("*.py"):
+        for imported in _imports(path):
+            if imported.startswith(("pnvlad_service.client", "pnvlad_cli")):
+                wrong.append(f"{path.relative_to(SRC)} imports {imported}")
+    assert wrong == []
 
 
 def _module_name(path: Path, root: Path) -> str:
@@ -142,3 +198,23 @@ def test_the_cycle_check_sees_deferred_relative_and_type_checking_imports(tmp_pa
     graph = import_graph(pkg)
     assert graph["pkg.e"] == {"pkg.stage.a", "pkg"}
     assert import_cycles(graph) == [["pkg.stage.a", "pkg.stage.b"], ["pkg.stage.c", "pkg.stage.d"]]
+
+
+def table_modules(text: str) -> list[str]:
+    """The modules a table's first column names (`` `path.py` `` cells), in order."""
+    cells = (line.split("|")[1] for line in text.splitlines() if line.startswith("| `"))
+    return [name for cell in cells for name in re.findall(r"`([^`]+)`", cell)]
+
+
+def test_the_architecture_lists_every_module_once() -> None:
+    """docs/ARCHITECTURE.md's module table names each module of the package (``__init__``
+    aside) once, by its path under ``pnvlad_service/``, and no module that is gone."""
+    listed = table_modules(ARCHITECTURE.read_text())
+    modules = {str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if p.name != "__init__.py"}
+    twice = sorted({m for m in listed if listed.count(m) > 1})
+    assert (sorted(modules - set(listed)), sorted(set(listed) - modules), twice) == ([], [], [])
+
+
+def test_the_table_check_reads_the_first_column_only() -> None:
+    text = "| module | job |\n|---|---|\n| `a.py`, `b/c.py` | reads `d.py` |\n| **b/** | x |\n"
+    assert table_modules(text) == ["a.py", "b/c.py"]

@@ -117,25 +117,22 @@ async def run(
         prepared = await _prepare(loc, query, runner, field)
         preprocess_s = time.perf_counter() - t0 - parse_s
         fit = await runner.blocking(loc.register_near, prepared, query.prior)
-        return loc.answer_near(
-            fit,
-            parse_s=parse_s,
-            preprocess_s=preprocess_s,
-            total_s=time.perf_counter() - t0,
-            top_n=query.top_n,
-            query_kind=query.kind,
-        )
+        return loc.answer_near(fit, **_told(query, t0, parse_s, preprocess_s))
     result = await runner.wait(future)
     verification = await runner.blocking(loc.verify, prepared, result) if verify else None
-    return loc.answer(
-        result,
-        parse_s=parse_s,
-        preprocess_s=preprocess_s,
-        total_s=time.perf_counter() - t0,
-        top_n=query.top_n,
-        verification=verification,
-        query_kind=query.kind,
-    )
+    return loc.answer(result, verification=verification, **_told(query, t0, parse_s, preprocess_s))
+
+
+def _told(query: Query, t0: float, parse_s: float, preprocess_s: float) -> dict[str, Any]:
+    """What an answer tells of its query besides the search: its ``top_n`` and kind, and the
+    stages' times (``total_s``: from ``t0`` until now)."""
+    return {
+        "parse_s": parse_s,
+        "preprocess_s": preprocess_s,
+        "total_s": time.perf_counter() - t0,
+        "top_n": query.top_n,
+        "query_kind": query.kind,
+    }
 
 
 async def run_many(

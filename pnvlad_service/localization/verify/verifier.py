@@ -4,7 +4,8 @@ A :class:`Verifier` registers a query's metres to bundle rows: to its retrieved 
 (:meth:`Verifier.verify`, the cascade of :func:`~.verify.verify`) or to the map entries near
 a prior pose (:meth:`Verifier.register_near`, :func:`~.prior.register_near`). Two kinds:
 
-- :class:`InProcess` registers in the caller's thread, with its own caches of prepared clouds;
+- :class:`~.in_process.InProcess` registers in the caller's thread, with its own caches of
+  prepared clouds;
 - :class:`InChild` sends the work to a :class:`~.verify_process.VerifyProcess` (small_gicp
   holds the GIL: a server's threads that embed and answer keep running meanwhile); a child
   that died has its query registered in this process, and the next one starts a new child.
@@ -19,22 +20,9 @@ from collections.abc import Sequence
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol
 
-from pnvlad_service.localization.verify.prior import (
-    NEAR_CACHE_ENTRIES,
-    Nearby,
-    Prior,
-    PriorConfig,
-    PriorFit,
-    register_near,
-)
-from pnvlad_service.localization.verify.verify import (
-    PreparedCache,
-    QueryCloud,
-    Verification,
-    VerifyConfig,
-    bundle_candidates,
-    verify,
-)
+from pnvlad_service.localization.verify.in_process import InProcess
+from pnvlad_service.localization.verify.prior import Nearby, Prior, PriorConfig, PriorFit
+from pnvlad_service.localization.verify.verify import QueryCloud, Verification, VerifyConfig
 from pnvlad_service.localization.verify.verify_process import VerifyProcess
 
 log = logging.getLogger(__name__)
@@ -56,29 +44,6 @@ class Verifier(Protocol):
     def close(self) -> None:
         """Release what it holds (a child process)."""
         ...
-
-
-class InProcess:
-    """Registration in the caller's thread against ``geometry`` (a bundle's
-    :class:`~pnvlad_service.index.geometry.BundleGeometry`), with a cache of ``cache_entries``
-    prepared candidates (consecutive queries share candidates) and a few targets near priors."""
-
-    def __init__(self, geometry: Any, cache_entries: int) -> None:
-        self.geometry = geometry
-        self._prepared = PreparedCache(cache_entries)
-        self._near = PreparedCache(NEAR_CACHE_ENTRIES if cache_entries else 0)
-
-    def verify(self, query: QueryCloud, ids: Sequence[int], config: VerifyConfig) -> Verification:
-        candidates = bundle_candidates(self.geometry, [int(i) for i in ids])
-        return verify(query, candidates, config, cache=self._prepared)
-
-    def register_near(
-        self, query: QueryCloud, nearby: Nearby, prior: Prior, config: PriorConfig
-    ) -> PriorFit:
-        return register_near(query, self.geometry, nearby, prior, config, cache=self._near)
-
-    def close(self) -> None:
-        pass
 
 
 class InChild:

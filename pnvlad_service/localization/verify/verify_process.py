@@ -9,10 +9,11 @@ than work. A child process has a GIL of its own: it registers while the parent e
 answers (docs/VERIFY.md, "In the server").
 
 :class:`VerifyProcess` starts one child (``spawn``: nothing of the parent's torch or OpenMP
-state is inherited) that maps the bundle's geometry itself, read-only, and keeps its own
-:class:`~.verify.PreparedCache`. A query crosses as its metres (about 100 KB) and the
-candidates' bundle rows; the :class:`~.verify.Verification` comes back. Verifications queue
-for the one child, as they queued for the GIL before.
+state is inherited) that maps the bundle's geometry itself, read-only, and registers there as
+this process would (an :class:`~.in_process.InProcess` verifier with caches of its own). A
+query crosses as its metres (about 100 KB) and the candidates' bundle rows; the
+:class:`~.verify.Verification` comes back. Verifications queue for the one child, as they
+queued for the GIL before.
 
 The pipe carries pickles between this process and the child it started: both ends are this
 code, nothing else can write to it.
@@ -31,39 +32,24 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
-from pnvlad_service.localization.verify.prior import (
-    NEAR_CACHE_ENTRIES,
-    Nearby,
-    Prior,
-    PriorConfig,
-    PriorFit,
-    register_near,
-)
-from pnvlad_service.localization.verify.verify import (
-    PreparedCache,
-    QueryCloud,
-    Verification,
-    VerifyConfig,
-    bundle_candidates,
-    verify,
-)
+from pnvlad_service.localization.verify.in_process import InProcess
+from pnvlad_service.localization.verify.prior import Nearby, Prior, PriorConfig, PriorFit
+from pnvlad_service.localization.verify.verify import QueryCloud, Verification, VerifyConfig
 
 log = logging.getLogger(__name__)
 
 #: Set by `pnvlad serve` beside the GOMP_SPINCOUNT it chose for the server's process.
 SPINCOUNT_MARK = "PNVLAD_SERVE_SET_GOMP_SPINCOUNT"
 
-# The child's state, set by _start (one bundle per child).
-_GEOMETRY: Any = None
-_CACHE: PreparedCache | None = None
-_NEAR: PreparedCache | None = None
+# The child's state, set by _start (one bundle per child): the geometry and its caches.
+_HERE: InProcess | None = None
 _GOMP_BEFORE: bool | None = None
 
 
 def _start(bundle_dir: str, cache_entries: int) -> None:
     """The child's initialiser: map the geometry of ``bundle_dir`` (the parent checked the
     bundle's files at its own start-up; the size check runs again)."""
-    global _GEOMETRY, _CACHE, _NEAR, _GOMP_BEFORE
+    global _HERE, _GOMP_BEFORE
     # small_gicp's OpenMP runtime (libgomp) lets a thread that reaches a barrier first spin
     # there. While the parent embeds on the other core, the thread it waits for has no core,
     # and each call stalls for scheduler slices: preparing a query on 2 threads took 40-61 ms
@@ -86,9 +72,8 @@ def _start(bundle_dir: str, cache_entries: int) -> None:
     manifest = Manifest.read(Path(bundle_dir))
     if manifest.geometry is None:
         raise RuntimeError(f"{bundle_dir} carries no geometry")
-    _GEOMETRY = BundleGeometry.open(bundle_dir, manifest.geometry, verify=False)
-    _CACHE = PreparedCache(cache_entries)
-    _NEAR = PreparedCache(NEAR_CACHE_ENTRIES if cache_entries else 0)
+    geometry = BundleGeometry.open(bundle_dir, manifest.geometry, verify=False)
+    _HERE = InProcess(geometry, cache_entries)
 
 
 def _gomp_loaded() -> bool:
@@ -114,17 +99,20 @@ def _runtime() -> dict[str, Any]:
 
 def _ready() -> int:
     """The rows the child mapped (its first call: the parent waits for it)."""
-    return int(_GEOMETRY.count)
+    assert _HERE is not None
+    return int(_HERE.geometry.count)
 
 
 def _verify(query: QueryCloud, ids: list[int], config: VerifyConfig) -> Verification:
-    return verify(query, bundle_candidates(_GEOMETRY, ids), config, cache=_CACHE)
+    assert _HERE is not None
+    return _HERE.verify(query, ids, config)
 
 
 def _register_near(
     query: QueryCloud, nearby: Nearby, prior: Prior, config: PriorConfig
 ) -> PriorFit:
-    return register_near(query, _GEOMETRY, nearby, prior, config, cache=_NEAR)
+    assert _HERE is not None
+    return _HERE.register_near(query, nearby, prior, config)
 
 
 class VerifyProcess:
