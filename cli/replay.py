@@ -243,25 +243,24 @@ def open_service(config: ServiceConfig) -> Iterator[Any]:
 def open_source(source: SourceConfig) -> tuple[Any, Path, Any]:
     """(the drive, the file or folder it came from, its true poses from ``--truth-topic`` or
     ``None``): the KITTI sequence, or the bag's clouds with the poses of ``--pose-topic`` /
-    ``--tf`` when given. The one place that knows the kinds of drive."""
+    ``--tf`` when given, each opened by the registry of drive sources
+    (:mod:`pnvlad_service.data.sources.registry`)."""
+    from pnvlad_service.data.sources.registry import DriveOptions, open_drive
     from pnvlad_service.errors import InputError
 
     if source.kitti is not None:
-        from pnvlad_service.data.sources.kitti import KittiSequence
-
         if source.truth_topic is not None:
             raise InputError("applies to --rosbag only (a KITTI sequence's poses are its truth)",
                              "--truth-topic")  # fmt: skip
-        drive = KittiSequence(source.kitti, origin_ne=source.origin_ne, yaw_deg=source.yaw_deg)
-        return drive, source.kitti, None
+        placed = DriveOptions(origin_ne=source.origin_ne, yaw_deg=source.yaw_deg)
+        return open_drive("kitti", source.kitti, placed), source.kitti, None
     assert source.rosbag is not None
     if source.pose_topic is None and source.tf_frame is None:
-        from pnvlad_service.data.sources.rosbag import RosbagClouds
-
         if source.cloud_topic is None:
             raise InputError("--rosbag needs --cloud-topic (see `pnvlad data prepare "
                              "--rosbag BAG --list`)", "--cloud-topic")  # fmt: skip
-        return RosbagClouds(source.rosbag, source.cloud_topic), source.rosbag, None
+        clouds = DriveOptions(cloud_topic=source.cloud_topic)
+        return open_drive("rosbag-clouds", source.rosbag, clouds), source.rosbag, None
     drive = _bag_drive(source, source.pose_topic, source.tf_frame)
     truth = None
     if source.truth_topic is not None:

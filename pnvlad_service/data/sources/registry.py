@@ -1,10 +1,11 @@
 """The drive sources by name: what each one is, which options it reads, how it opens a drive.
 
 Every kind of recording the library reads as a :class:`~pnvlad_service.data.drive.Drive` is one
-:class:`DriveSource` in :data:`SOURCES` (``kitti``, ``csv``, ``rosbag``), so a command picks a
-source from a table instead of testing its options one by one. The options of every source are
-one record, :class:`DriveOptions` (``None``, ``False`` or ``0`` when not given); a source reads
-the ones it names in ``reads`` and refuses the others with a one-line :class:`InputError` (an
+:class:`DriveSource` in :data:`SOURCES` (``kitti``, ``csv``, ``rosbag``; and ``rosbag-clouds``,
+a bag's clouds without poses, for a drive localised scan by scan), so a command picks a source
+from a table instead of testing its options one by one. The options of every source are one
+record, :class:`DriveOptions` (``None``, ``False`` or ``0`` when not given); a source reads the
+ones it names in ``reads`` and refuses the others with a one-line :class:`InputError` (an
 option only another source reads: "applies to --rosbag only", under the option's flag).
 
 Example (a KITTI sequence placed in UTM, then a bag posed by its odometry)::
@@ -106,7 +107,7 @@ class DriveSource:
             if other.name == self.name:
                 continue
             for name in other.own:
-                if options.given(name):
+                if options.given(name) and name not in self.reads:
                     raise InputError(f"applies to {other.flag} only", FLAGS[name])
         return self.opener(Path(path), options)
 
@@ -227,6 +228,16 @@ def _open_rosbag(path: Path, options: DriveOptions) -> Drive:
     )
 
 
+def _open_rosbag_clouds(path: Path, options: DriveOptions) -> Any:
+    from pnvlad_service.data.sources.rosbag import RosbagClouds
+
+    if options.cloud_topic is None:
+        raise InputError(
+            "--rosbag needs --cloud-topic (see the bag's topics with --list)", "--cloud-topic"
+        )
+    return RosbagClouds(path, options.cloud_topic)
+
+
 def rosbag_report(drive: Any) -> str:
     """One line on a bag's drive: clouds read, scans kept, what was dropped and where the poses
     came from."""
@@ -258,6 +269,14 @@ for _source in (
         ("origin_ne", "yaw_deg", "cloud_topic", "pose_topic", "tf_frame", "max_pose_gap"),
         _open_rosbag, own=("cloud_topic", "pose_topic", "tf_frame", "max_pose_gap"),
         report=rosbag_report,
+    ),
+    # A bag's clouds alone, in time order (``RosbagClouds``: timestamps and scans, no poses):
+    # what a drive localised scan by scan needs when the bag has no odometry; not a Drive that
+    # `data prepare` can lay into submaps.
+    DriveSource(
+        "rosbag-clouds", "--rosbag", "--rosbag BAG --cloud-topic TOPIC",
+        "a ROS 1 or ROS 2 bag's PointCloud2 topic without poses (localised scan by scan)",
+        ("cloud_topic",), _open_rosbag_clouds,
     ),
 ):  # fmt: skip
     register(_source)

@@ -47,9 +47,9 @@ def _csv(root: Path) -> tuple[Path, Path]:
     return root / "scans", root / "poses.csv"
 
 
-def test_the_three_sources_are_registered_in_the_order_offered() -> None:
-    assert list(SOURCES) == ["kitti", "csv", "rosbag"]
-    assert [s.flag for s in SOURCES.values()] == ["--kitti", "--scans", "--rosbag"]
+def test_the_sources_are_registered_in_the_order_offered() -> None:
+    assert list(SOURCES) == ["kitti", "csv", "rosbag", "rosbag-clouds"]
+    assert [s.flag for s in SOURCES.values()] == ["--kitti", "--scans", "--rosbag", "--rosbag"]
     for source in SOURCES.values():
         assert set(source.own) <= set(source.reads) <= set(FLAGS)
 
@@ -101,6 +101,18 @@ def test_a_bag_written_from_a_drive_opens_by_name_with_its_poses(tmp_path: Path)
             assert line.startswith("drive.bag: 6 of 6 clouds on /points used; poses from ")
         finally:
             close_drive(read)
+    # The same bag's clouds alone (no poses): the scans and their times, for a drive asked scan
+    # by scan; the cloud topic is the bag source's own option, read by this one too.
+    clouds = open_drive("rosbag-clouds", bag, DriveOptions(cloud_topic="/points"))
+    try:
+        assert not hasattr(clouds, "poses")
+        np.testing.assert_array_equal(clouds.timestamps, STAMPS)
+        np.testing.assert_allclose(clouds.scan(2), drive.scan(2), atol=1e-6)
+    finally:
+        close_drive(clouds)
+    with pytest.raises(InputError, match="needs --cloud-topic") as err:
+        open_drive("rosbag-clouds", bag, DriveOptions())
+    assert err.value.source == "--cloud-topic"
 
 
 @pytest.mark.parametrize(
