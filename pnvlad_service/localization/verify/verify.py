@@ -282,6 +282,7 @@ class Pose:
             "rmse_m": self.rmse_m,
             "frame": self.frame,
             "scale": self.scale,
+            "metres_per_unit": self.metres_per_unit,
             "constraint": self.constraint,
         }
 
