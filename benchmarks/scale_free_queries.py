@@ -14,6 +14,10 @@ registration, localization/verify/scale.py). ``--median`` adds a third pass, ``m
 scale given and the candidates' median scale taken as it is (the rigid registration only, as
 verification did before the scale was free).
 
+``--off-map`` verifies each query once more as if the map did not hold its place (its
+candidates the nearest by descriptor among those over 50 m away, as the threshold's
+calibration makes them): every one verified there is a wrong answer the service would give.
+
 Printed per mode: the share verified; the share of verified answers at the right place (the
 pose within 25 m of the query's true position); the median (p90) translation and yaw error of
 the verified answers' registration against the simulator's true relative pose; for ``free``,
@@ -44,6 +48,7 @@ from pnvlad_service.localization.query.localizer import Localizer
 from pnvlad_service.localization.verify.scale import ScaleConfig
 
 RIGHT_M = 25.0
+OFF_MAP_M = 50.0
 
 
 def _centroid_frame(frame) -> np.ndarray:
@@ -83,6 +88,25 @@ def localise_all(loc: Localizer, tree: BenchmarkTree, queries, known: bool) -> l
             rec.update(t_err=t_err, yaw_err=yaw_err, scale=v.pose.metres_per_unit)
         out.append(rec)
     return out
+
+
+def off_map(loc: Localizer, tree: BenchmarkTree, queries, known: bool) -> dict:
+    """Each query verified as if the map did not hold its place (as the threshold's
+    calibration does): its candidates the nearest by descriptor among the map's submaps over
+    ``OFF_MAP_M`` from it, every one a wrong place. The share verified (all wrong)."""
+    meta = loc.bundle.metadata
+    where = np.c_[meta.northing, meta.easting]
+    k = loc.verify_config.candidates
+    verified = 0
+    for sub, frame in queries:
+        cloud = read_submap(tree.root / sub.path)
+        prepared = loc.prepare(cloud, False, frame.scale if known else None)
+        ids = loc.submit(prepared, loc.bundle.count).result().ids
+        far = np.linalg.norm(where[ids] - [sub.northing, sub.easting], axis=1) > OFF_MAP_M
+        far_ids = [int(i) for i in ids[far][:k]]
+        query = prepared.query([loc.bundle.geometry.scale(i) for i in far_ids])
+        verified += loc.verifier.verify(query, far_ids, loc.verify_config).verified
+    return {"queries": len(queries), "verified": verified}
 
 
 def summary(records: list[dict]) -> dict:
@@ -142,6 +166,11 @@ def main() -> int:
     ap.add_argument("--count", type=int, help="at most this many queries (default: all)")
     ap.add_argument("--json", type=Path, help="write the figures and every record here")
     ap.add_argument(
+        "--off-map",
+        action="store_true",
+        help=f"also verify each query against only candidates over {OFF_MAP_M:g} m away",
+    )
+    ap.add_argument(
         "--median", action="store_true", help="also: the candidates' median scale, not refined"
     )
     args = ap.parse_args()
@@ -165,6 +194,10 @@ def main() -> int:
             figs = summary(records)
             print(_line(mode, figs))
             report[mode] = {"figures": figs, "records": records}
+            if args.off_map:
+                figs["off_map"] = off_map(loc, tree, queries, known)
+                o = figs["off_map"]
+                print(f"{'':6s} off the map: {o['verified']}/{o['queries']} verified (all wrong)")
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=1))
     return 0
