@@ -149,9 +149,7 @@ def _line(mode: str, f: dict) -> str:
             f"{f['yaw_err_median']:.2f} deg (p90 {f['yaw_err_p90']:.2f}), "
             f"scale off {100 * f['scale_err_median']:.1f} % (p90 {100 * f['scale_err_p90']:.1f})"
         )
-    return text + (
-        f", {f['seconds_median']:.2f} s a query, {f['registered_mean']:.1f} registered"
-    )
+    return text + (f", {f['seconds_median']:.2f} s a query, {f['registered_mean']:.1f} registered")
 
 
 def main() -> int:

@@ -94,6 +94,21 @@ def test_refine_scale_stays_within_its_bounds() -> None:
     assert k == pytest.approx(0.9)  # the truth (1 / 1.3) lies beyond: held at the bound
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"bounds": (1.1, 1.4)}, "bounds"),
+        ({"starts": (1.5,)}, "starts"),
+        ({"starts": ()}, "starts"),
+        ({"rounds": 0}, "rounds"),
+        ({"distances": (3.0, 0.0)}, "distances"),
+    ],
+)
+def test_a_bad_scale_config_names_its_field(kwargs: dict, field: str) -> None:
+    with pytest.raises(ValueError, match=field):
+        ScaleConfig(**kwargs)
+
+
 def test_verify_without_a_scale_poses_the_query_and_says_its_scale() -> None:
     cloud, mpu, truth = _normalised_query(7)
     # the candidates' scales say 10 % too much; the true candidate is ranked second

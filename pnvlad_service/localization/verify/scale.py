@@ -11,9 +11,9 @@ query as a similarity:
 
 1. the rigid registration (:func:`registration.register`: any heading, coarse, fine) of the
    query at the starting scale, the candidates' median;
-2. from there, :func:`refine_scale`: a few rounds of closest points within a shrinking
-   distance, each solved for scale, rotation and translation together (:func:`similarity`,
-   Umeyama's least squares), the scale kept within ``ScaleConfig.bounds`` of the start;
+2. from there, :func:`refine_scale`: rounds of closest points within a shrinking distance,
+   each solved for scale, rotation and translation together (:func:`similarity`, Umeyama's
+   least squares), the scale kept within ``ScaleConfig.bounds`` of the start;
 3. the query rescaled by that factor, registered again from the refined pose (coarse, then
    fine), and kept if it scores at least as well as step 1.
 
@@ -35,9 +35,13 @@ class ScaleConfig:
     """How a query's scale is found by registration.
 
     ``distances``: the closest-point distances (metres) of :func:`refine_scale`, widest
-    first; ``rounds``: the most rounds at each;
+    first; ``rounds``: the most rounds at each; ``starts``: the factors the rounds start
+    from, each in turn, the one whose result scores best kept (far from the truth the rounds
+    from 1 can stop short of it; more starts verified more on the demo city but made wrong
+    candidates fit better, docs/results/verify.md);
     ``bounds``: the factor's range, relative to the starting scale (the candidates' median:
-    on the demo city the true one was within 0.83-1.21 of it for 90 % of queries);
+    on the demo city the true one was within 0.83-1.14 of it for 90 % of queries; wider
+    bounds let wrong candidates fit better, docs/results/verify.md);
     ``min_pairs``: fewer closest-point pairs than this end the rounds (the factor stays);
     ``min_change``: a factor that moves less than this in a round ends that distance's
     rounds, and one closer to 1 keeps the first registration as it is.
@@ -45,6 +49,7 @@ class ScaleConfig:
 
     distances: tuple[float, ...] = (12.0, 8.0, 5.0, 3.0, 2.0, 1.0, 0.75)
     rounds: int = 8
+    starts: tuple[float, ...] = (1.0,)
     bounds: tuple[float, float] = (0.7, 1.4)
     min_pairs: int = 30
     min_change: float = 0.002
@@ -53,6 +58,8 @@ class ScaleConfig:
         lo, hi = self.bounds
         if not 0.0 < lo <= 1.0 <= hi:
             raise ValueError(f"bounds must satisfy 0 < low <= 1 <= high, got {self.bounds}")
+        if not self.starts or not all(lo <= f <= hi for f in self.starts):
+            raise ValueError(f"starts must lie within the bounds {self.bounds}, got {self.starts}")
         if self.rounds < 1:
             raise ValueError(f"rounds must be at least 1, got {self.rounds}")
         if not self.distances or min(self.distances) <= 0:
@@ -83,15 +90,16 @@ def refine_scale(
     transform: np.ndarray,
     config: ScaleConfig = DEFAULT_SCALE,
     threads: int = 1,
+    start: float = 1.0,
 ) -> tuple[float, np.ndarray]:
     """The factor ``k`` by which ``points`` [N, 3] (the query's, metres at the starting scale)
     are rescaled about their origin, and the rigid 4x4 that then lays ``k * points`` on
-    ``target``, starting from the rigid ``transform``: closest points within each of
-    ``config.distances`` in turn, solved by :func:`similarity` up to ``config.rounds`` times
+    ``target``, from the rigid ``transform`` and the factor ``start``: closest points within
+    each of ``config.distances`` in turn, solved by :func:`similarity` up to ``config.rounds`` times
     a distance (until the factor moves less than ``min_change``), ``k`` clipped to
     ``config.bounds``."""
     lo, hi = config.bounds
-    k, rot, t = 1.0, transform[:3, :3].copy(), transform[:3, 3].copy()
+    k, rot, t = start, transform[:3, :3].copy(), transform[:3, 3].copy()
     for dist in config.distances:
         for _ in range(config.rounds):
             moved = k * points @ rot.T + t
@@ -129,11 +137,18 @@ def register_scaled(
     first = reg.register(source, target, config)
     if first.reason is not None or first.fitness == 0.0:
         return first, 1.0
-    k, start = refine_scale(source.points, target, first.transform, scale, config.threads)
-    if abs(k - 1.0) < scale.min_change:
+    best_k, best_fit, start_t = 1.0, -1.0, first.transform
+    for factor in scale.starts:
+        k, moved = refine_scale(
+            source.points, target, first.transform, scale, config.threads, factor
+        )
+        fit, _ = reg.fitness(source.points * k, target, moved, config.inlier_m, config.threads)
+        if fit > best_fit:
+            best_k, best_fit, start_t = k, fit, moved
+    if abs(best_k - 1.0) < scale.min_change:
         return first, 1.0
-    rescaled = reg.prepare(query_m * k, config, "source")
-    second = reg.register(rescaled, target, config, init=start)
+    rescaled = reg.prepare(query_m * best_k, config, "source")
+    second = reg.register(rescaled, target, config, init=start_t)
     if second.reason is not None or second.fitness < first.fitness:
         return first, 1.0
-    return second, k
+    return second, best_k
