@@ -436,13 +436,7 @@ def verify(
         target = pending.result() if pending is not None else None
         if target is None:
             target = prepared(cand.metres, cand.key, "target")
-        if query.scale == "estimated" and query.frame == "centroid":
-            r, k = free_scale.register_scaled(
-                query.points_m, source, target, config.registration, config.scale
-            )
-        else:
-            r, k = reg.register(source, target, config.registration), 1.0
-        return Check(cand.rank, float(r.fitness), float(r.rmse_m), r.transform, r.constraint, k)
+        return register_check(cand.rank, query, source, target, config)
 
     checks: list[Check] = []
     ordered: tuple[Check, ...] = ()
@@ -466,6 +460,21 @@ def verify(
     return Verification(
         verified, ordered, pose, config.threshold, None, seconds, len(candidates), sure, len(checks)
     )
+
+
+def register_check(
+    rank: int, query: QueryCloud, source: Any, target: Any, config: VerifyConfig
+) -> Check:
+    """The :class:`Check` of one candidate (``source`` the query prepared, ``target`` the
+    candidate): the rigid registration, or with the scale free when the query's was estimated
+    (:func:`~.scale.register_scaled`)."""
+    if query.scale == "estimated" and query.frame == "centroid":
+        r, k = free_scale.register_scaled(
+            query.points_m, source, target, config.registration, config.scale
+        )
+    else:
+        r, k = reg.register(source, target, config.registration), 1.0
+    return Check(rank, float(r.fitness), float(r.rmse_m), r.transform, r.constraint, k)
 
 
 def confidence(
