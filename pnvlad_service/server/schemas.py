@@ -62,6 +62,11 @@ class PoseOut(BaseModel):
     rmse_m: float = Field(..., description="RMS distance of those points, metres.")
     frame: str = Field(..., description="sensor (a raw scan) or centroid (a preprocessed cloud).")
     scale: str = Field(..., description="measured, or estimated from the candidates.")
+    metres_per_unit: float | None = Field(
+        None,
+        description="The query's scale the pose was made with: the one given (or G's), or the "
+        "one its registration found when estimated.",
+    )
     constraint: float = Field(
         ...,
         description="How evenly the registration pins the translation: the smallest over the "

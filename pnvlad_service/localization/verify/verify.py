@@ -36,6 +36,7 @@ from typing import Any, Literal
 import numpy as np
 
 from pnvlad_service.localization.verify import registration as reg
+from pnvlad_service.localization.verify import scale as free_scale
 
 DEFAULT_CANDIDATES = 10
 
@@ -71,7 +72,9 @@ class VerifyConfig:
     reasoning, not a profile; measured in docs/VERIFY.md; ``None`` keeps
     ``registration.threads`` always);
     ``cache_entries``: prepared candidate clouds a :class:`~..localizer.Localizer` keeps
-    (:class:`PreparedCache`; 0 keeps none); ``registration``: the registration's settings.
+    (:class:`PreparedCache`; 0 keeps none); ``registration``: the registration's settings;
+    ``scale``: how a query without a scale registers with its scale free
+    (:mod:`~.scale`).
     """
 
     candidates: int = DEFAULT_CANDIDATES
@@ -86,6 +89,7 @@ class VerifyConfig:
     crowded_threads: int | None = 1
     cache_entries: int = 128
     registration: reg.RegistrationConfig = field(default_factory=reg.RegistrationConfig)
+    scale: free_scale.ScaleConfig = field(default_factory=free_scale.ScaleConfig)
 
     def __post_init__(self) -> None:
         if not 1 <= self.candidates <= 100:
@@ -118,12 +122,15 @@ class QueryCloud:
 
     ``frame``: ``sensor`` (a raw scan through G: the pose is the sensor's) or ``centroid`` (a
     preprocessed cloud, centred on its centroid). ``scale``: ``measured`` (from G, or given by
-    the caller) or ``estimated`` (from the candidates).
+    the caller) or ``estimated`` (from the candidates: :func:`verify` then registers each
+    candidate with the scale free, :mod:`~.scale`); ``metres_per_unit``: the scale
+    ``points_m`` were made with (the start, when estimated).
     """
 
     points_m: np.ndarray
     frame: Literal["sensor", "centroid"]
     scale: Literal["measured", "estimated"]
+    metres_per_unit: float = 1.0
 
     @classmethod
     def from_normalised(
@@ -136,15 +143,26 @@ class QueryCloud:
         sensor: bool = False,
     ) -> QueryCloud:
         """The metres of a normalised cloud: ``centre + scale * cloud``; without ``scale``,
-        the median of ``candidate_scales`` (``estimated``)."""
+        the median of ``candidate_scales`` in size, with their sign (G negates a map's clouds
+        when its config says so, and a query of that map was negated alike): ``estimated``."""
         how: Literal["measured", "estimated"] = "measured"
         if scale is None:
             how = "estimated"
-            scale = float(np.median(np.abs(candidate_scales))) if len(candidate_scales) else 1.0
+            scale = estimated_scale(candidate_scales)
         pts = np.asarray(cloud, dtype=np.float64) * scale
         if centre is not None:
             pts = pts + np.asarray(centre, dtype=np.float64)
-        return cls(pts, "sensor" if sensor else "centroid", how)
+        return cls(pts, "sensor" if sensor else "centroid", how, float(scale))
+
+
+def estimated_scale(candidate_scales: Sequence[float]) -> float:
+    """The starting scale of a query without one: the median of the candidates' scales in
+    size, negative when most of them are (1.0 without candidates)."""
+    scales = np.asarray(candidate_scales, dtype=np.float64)
+    if len(scales) == 0:
+        return 1.0
+    size = float(np.median(np.abs(scales)))
+    return -size if (scales < 0).sum() * 2 > len(scales) else size
 
 
 @dataclass(frozen=True)
@@ -204,13 +222,15 @@ def bundle_candidates(geometry: Any, ids: Sequence[int]) -> list[Candidate]:
 class Check:
     """The registration of the query to one candidate (``transform``: query -> candidate
     local frame, float64 [4, 4]; ``constraint``: the registration's, see
-    :attr:`registration.Registration.constraint`)."""
+    :attr:`registration.Registration.constraint`; ``scale``: the factor the query's metres
+    were multiplied by for it, 1.0 unless its scale was estimated)."""
 
     rank: int
     score: float
     rmse_m: float
     transform: np.ndarray
     constraint: float = 0.0
+    scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -218,8 +238,9 @@ class Pose:
     """The query frame's pose in UTM (metres; ``yaw_deg`` counter-clockwise from east) from
     the best verified match: ``transform`` float64 [4, 4] query frame -> UTM (easting,
     northing, height). ``fitness`` and ``rmse_m`` are that registration's; ``scale`` says
-    whether the query's scale was measured or estimated; ``constraint`` how evenly the
-    registration pins the translation (:attr:`registration.Registration.constraint`)."""
+    whether the query's scale was measured or estimated and ``metres_per_unit`` what it is
+    (the registration's, when estimated); ``constraint`` how evenly the registration pins the
+    translation (:attr:`registration.Registration.constraint`)."""
 
     easting: float
     northing: float
@@ -231,6 +252,7 @@ class Pose:
     frame: str
     scale: str
     constraint: float = 0.0
+    metres_per_unit: float = 1.0
 
     @classmethod
     def from_check(cls, check: Check, cand: Candidate, query: QueryCloud) -> Pose:
@@ -246,6 +268,7 @@ class Pose:
             frame=query.frame,
             scale=query.scale,
             constraint=check.constraint,
+            metres_per_unit=query.metres_per_unit * check.scale,
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -259,6 +282,7 @@ class Pose:
             "rmse_m": self.rmse_m,
             "frame": self.frame,
             "scale": self.scale,
+            "metres_per_unit": self.metres_per_unit,
             "constraint": self.constraint,
         }
 
@@ -412,8 +436,7 @@ def verify(
         target = pending.result() if pending is not None else None
         if target is None:
             target = prepared(cand.metres, cand.key, "target")
-        r = reg.register(source, target, config.registration)
-        return Check(cand.rank, float(r.fitness), float(r.rmse_m), r.transform, r.constraint)
+        return register_check(cand.rank, query, source, target, config)
 
     checks: list[Check] = []
     ordered: tuple[Check, ...] = ()
@@ -437,6 +460,21 @@ def verify(
     return Verification(
         verified, ordered, pose, config.threshold, None, seconds, len(candidates), sure, len(checks)
     )
+
+
+def register_check(
+    rank: int, query: QueryCloud, source: Any, target: Any, config: VerifyConfig
+) -> Check:
+    """The :class:`Check` of one candidate (``source`` the query prepared, ``target`` the
+    candidate): the rigid registration, or with the scale free when the query's was estimated
+    (:func:`~.scale.register_scaled`)."""
+    if query.scale == "estimated" and query.frame == "centroid":
+        r, k = free_scale.register_scaled(
+            query.points_m, source, target, config.registration, config.scale
+        )
+    else:
+        r, k = reg.register(source, target, config.registration), 1.0
+    return Check(rank, float(r.fitness), float(r.rmse_m), r.transform, r.constraint, k)
 
 
 def confidence(
