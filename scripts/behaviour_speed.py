@@ -29,8 +29,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from behaviour_fixture import child_env  # noqa: E402
-from behaviour_http import Server, npy_bytes, request  # noqa: E402
+from behaviour_fixture import child_env
+from behaviour_http import Server, npy_bytes, request
 
 NPY = {"content-type": "application/x-npy"}
 
