@@ -107,5 +107,11 @@ def describe(encoder: Any) -> str:
     if runtime == "torch":
         import torch
 
-        return f"torch {torch.__version__}, {torch.get_num_threads()} threads"
+        from pnvlad_service.models.inference import on_torch_thread
+
+        # Asked on the thread that embeds: OpenMP keeps a count per thread, and a thread that
+        # registered with small_gicp or ran a cloud worker may hold another than the encoder's.
+        on_cpu = getattr(getattr(encoder, "device", None), "type", "cpu") == "cpu"
+        threads = on_torch_thread(torch.get_num_threads) if on_cpu else torch.get_num_threads()
+        return f"torch {torch.__version__}, {threads} threads"
     return type(encoder).__name__

@@ -291,3 +291,28 @@ def test_all_thread_work_runs_on_the_one_torch_thread() -> None:
     assert seen["cloud"] and all(n.startswith("pnvlad-encoder") for n in seen["cloud"])
     np.testing.assert_allclose(both[:1], here, atol=1e-5)
     enc.close()
+
+
+def test_the_runtime_line_gives_the_embedding_threads_whatever_thread_asks() -> None:
+    """``describe`` names the thread count of the thread that embeds, not the caller's: a
+    server's /readyz and /info are answered from pool threads whose OpenMP count a registration
+    or a cloud worker may have changed (it said 1 while the encoder ran on 2)."""
+    import threading
+
+    from pnvlad_service.models.inference import on_torch_thread
+    from pnvlad_service.models.runtimes import describe
+
+    cfg, model, x, _ = _narrow_case(2, seed=5)
+    enc = Encoder(model, cfg)
+    enc.embed(x)
+    embedding = on_torch_thread(torch.get_num_threads)
+    seen: list[str] = []
+
+    def from_a_single_threaded_caller() -> None:
+        torch.set_num_threads(1)
+        seen.append(describe(enc))
+
+    caller = threading.Thread(target=from_a_single_threaded_caller)
+    caller.start()
+    caller.join()
+    assert seen == [f"torch {torch.__version__}, {embedding} threads"]
