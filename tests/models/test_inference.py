@@ -303,16 +303,20 @@ def test_the_runtime_line_gives_the_embedding_threads_whatever_thread_asks() -> 
     from pnvlad_service.models.runtimes import describe
 
     cfg, model, x, _ = _narrow_case(2, seed=5)
-    enc = Encoder(model, cfg)
+    enc = Encoder(model, cfg, cloud_workers=1)
     enc.embed(x)
     embedding = on_torch_thread(torch.get_num_threads)
+    before = torch.get_num_threads()
     seen: list[str] = []
 
-    def from_a_single_threaded_caller() -> None:
-        torch.set_num_threads(1)
-        seen.append(describe(enc))
+    def from_a_caller_with_its_own_count() -> None:
+        torch.set_num_threads(embedding + 1)  # another count than the embedding thread's
+        try:
+            seen.append(describe(enc))
+        finally:
+            torch.set_num_threads(before)  # threads started later take the last count set
 
-    caller = threading.Thread(target=from_a_single_threaded_caller)
+    caller = threading.Thread(target=from_a_caller_with_its_own_count)
     caller.start()
     caller.join()
     assert seen == [f"torch {torch.__version__}, {embedding} threads"]
