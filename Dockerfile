@@ -99,7 +99,7 @@ COPY --from=build /opt/pnvlad /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 # Bytecode for what the server imports (compiling the whole venv would add 30 MB), and the check
 # that the final image imports what the server imports, without torch.
-RUN python -c "import faiss, onnxruntime, scipy.ndimage, small_gicp, uvicorn.loops.uvloop, uvicorn.protocols.http.httptools_impl, uvicorn.lifespan.on, pnvlad_cli.main, pnvlad_cli.serve, pnvlad_service.server.app, pnvlad_service.localization.registration, pnvlad_service.localization.verify_process, pnvlad_service.preprocess.filter_g, pnvlad_service.models.onnx_encoder" \
+RUN python -c "import faiss, onnxruntime, scipy.ndimage, small_gicp, uvicorn.loops.uvloop, uvicorn.protocols.http.httptools_impl, uvicorn.lifespan.on, pnvlad_cli.main, pnvlad_cli.serve, pnvlad_service.server.app, pnvlad_service.localization.verify.registration, pnvlad_service.localization.verify.verify_process, pnvlad_service.localization.query.localizer, pnvlad_service.localization.verify.scale, pnvlad_service.preprocess.filter_g, pnvlad_service.models.onnx_encoder" \
     && pnvlad --version \
     && python -c "import importlib.util, sys; sys.exit('torch in the image' if importlib.util.find_spec('torch') else 0)"
 ENV PYTHONUNBUFFERED=1 \
