@@ -179,25 +179,16 @@ def _job_drive(job: dict[str, Any]) -> SimulatedDrive:
         else make_route(world, area.route_m, job["seed"])
     )
     lidar = job.get("lidar")
+    run = {"seed": job["run_seed"], "start_us": job["start_us"], "conditions": preset.conditions}
     if lidar and lidar.get("kind") == "pushbroom":
-        return PushbroomDrive(
-            world,
-            route,
-            job["run"],
-            seed=job["run_seed"],
-            start_us=job["start_us"],
-            conditions=preset.conditions,
-            lidar=checked_pushbroom(lidar),
-        )
+        return PushbroomDrive(world, route, job["run"], lidar=checked_pushbroom(lidar), **run)
     return SimulatedDrive(
         world,
         route,
         job["run"],
-        seed=job["run_seed"],
-        start_us=job["start_us"],
-        conditions=preset.conditions,
         lidar=LidarConfig.model_validate(lidar) if lidar else preset.lidar,
         scan_spacing=preset.scan_spacing,
+        **run,
     )
 
 

@@ -71,3 +71,15 @@ CONFIGS = {
         vlad_batch_norm=False, trunk_widths=(48,), feature_transform=True, input_transform=False
     ),
 }
+
+
+#: A small bev-netvlad (a 32 x 32 image, three convolutions), for the tests of export and packaging.
+BEV_SMALL = ModelConfig.bev(
+    num_points=SMALL,
+    bev_grid=32,
+    bev_widths=(8, 8, 16),
+    bev_strides=(2, 1, 2),
+    bev_feature_dim=16,
+    cluster_size=4,
+    output_dim=16,
+)

@@ -30,20 +30,11 @@ from pnvlad_service.models.onnx_encoder import (
 )
 from pnvlad_service.models.onnx_graph import HEADING_GRID, build_graph
 from pnvlad_service.models.store import save_model
-from tests.models.helpers import CONFIGS, clouds, trained_like
+from tests.models.helpers import BEV_SMALL, CONFIGS, clouds, trained_like
 
 #: The issue's bar: every descriptor within this cosine of torch's.
 MIN_COS = 0.9999
 
-BEV_SMALL = ModelConfig.bev(
-    num_points=256,
-    bev_grid=32,
-    bev_widths=(8, 8, 16),
-    bev_strides=(2, 1, 2),
-    bev_feature_dim=16,
-    cluster_size=4,
-    output_dim=16,
-)
 ALL = {**CONFIGS, "bev-small": BEV_SMALL}
 
 

@@ -18,22 +18,12 @@ from typer.testing import CliRunner
 from pnvlad_cli.main import app
 from pnvlad_service.errors import InputError
 from pnvlad_service.models import pretrained
-from pnvlad_service.models.config import ModelConfig
 from pnvlad_service.models.inference import Encoder
 from pnvlad_service.models.packaging import Card, package_model
 from pnvlad_service.models.pretrained import Catalogue
 from pnvlad_service.models.store import load_model, model_identity, resolve_model_dir, save_model
-from tests.models.helpers import trained_like
+from tests.models.helpers import BEV_SMALL, trained_like
 
-BEV = ModelConfig.bev(
-    num_points=256,
-    bev_grid=32,
-    bev_widths=(8, 8, 16),
-    bev_strides=(2, 1, 2),
-    bev_feature_dim=16,
-    cluster_size=4,
-    output_dim=16,
-)
 CARD = Card(
     kind="submap",
     trained_with="pnvlad train -c bev --root city -o run",
@@ -59,8 +49,8 @@ def catalogue(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small bev-netvlad with non-trivial weights and batch norms, saved as a run would."""
-    model = trained_like(BEV, seed=3)
-    return save_model(tmp_path_factory.mktemp("run") / "model", model, BEV)
+    model = trained_like(BEV_SMALL, seed=3)
+    return save_model(tmp_path_factory.mktemp("run") / "model", model, BEV_SMALL)
 
 
 @pytest.fixture()
