@@ -119,6 +119,9 @@ class Localizer:
         self.config = config
         self.bundle = bundle
         self.encoder = encoder
+        # Fixed once loaded; asked now so that /readyz and /info never wait on the thread that
+        # embeds (describe asks it for torch's thread count).
+        self._runtime = describe_runtime(encoder)
         self.identity = identity
         self.verify_config = config.verify.config(threshold)
         self.prior_config = config.prior.config()
@@ -202,6 +205,7 @@ class Localizer:
                 runtime=e.runtime,
                 threads=e.threads,
             )
+        loc = cls(bundle, encoder, ident, config, on_batch=on_batch, threshold=threshold)
         log.info(
             "loaded %s (%s, %d vectors) and model %s in %.2f s; embedding with %s",
             index,
@@ -209,9 +213,9 @@ class Localizer:
             bundle.count,
             ident.checkpoint,
             time.perf_counter() - t0,
-            describe_runtime(encoder),
+            loc.runtime,
         )
-        return cls(bundle, encoder, ident, config, on_batch=on_batch, threshold=threshold)
+        return loc
 
     def close(self) -> None:
         """Finish queued batches, then stop the verifier and the encoder's threads."""
@@ -236,7 +240,7 @@ class Localizer:
     @property
     def runtime(self) -> str:
         """What embeds, in one line: ``onnxruntime 1.22.0, 2 threads`` or ``torch 2.8.0, ...``."""
-        return describe_runtime(self.encoder)
+        return self._runtime
 
     def _verification_in_flight(self) -> bool:
         return self._verifying > 0
