@@ -172,6 +172,11 @@ def localize(
     out: Path = replay_options.OUT,
     map_bundle: Path = replay_options.MAP,
     plot: bool = replay_options.PLOT,
+    foxglove: str = replay_options.FOXGLOVE,
+    mcap: Path = replay_options.MCAP,
+    ros2_bag: Path = replay_options.ROS2_BAG,
+    trajectories: Path = replay_options.TRAJECTORIES,
+    utm_zone: str = replay_options.UTM_ZONE,
     progress: bool = progress_option(),
 ) -> None:
     """Where was this scan taken? Print the nearest map places (UTM metres) as a table.
@@ -190,6 +195,12 @@ def localize(
     truth, and a summary line the time to the first fix, the share verified, the errors and
     the speed. --per-scan asks with every Nth scan alone instead.
 
+    A drive can be watched and replayed where robotics engineers look: --foxglove streams it
+    live to the Foxglove app, --mcap writes the same to a file, --ros2-bag a ROS 2 bag for
+    ros2 bag play, --trajectories TUM and KITTI files for evo (docs/TRACKING.md). An output
+    that fails (a port in use, an unwritable file) is one error line; the drive and its CSV
+    go on, and the command exits 2.
+
     --mode says which of the three it is (scan, follow or per-scan); without it, the SCAN file,
     --rosbag / --kitti and --follow / --per-scan tell.
 
@@ -204,6 +215,9 @@ def localize(
       --map map.index --out follow/drive
 
       pnvlad localize --kitti sequences/00 --index map.index --out follow/kitti00
+
+      pnvlad localize --rosbag drive.bag --cloud-topic /points --pose-topic /odom
+      --index map.index --foxglove :8765 --mcap follow/drive.mcap --trajectories follow/drive
 
       pnvlad localize --mode per-scan --rosbag drive.bag --cloud-topic /points --every 5
       --index map.index
@@ -228,12 +242,19 @@ def localize(
                         "origin_ne": replay_options.parse_origin(origin), "yaw_deg": yaw},
                 service={"url": url, "index": index, "model": model, "api_key": api_key,
                          "top_n": top_n},
-                output={"out": out, "map_bundle": map_bundle, "plot": plot, "progress": progress},
+                output={"out": out, "map_bundle": map_bundle, "plot": plot, "progress": progress,
+                        **replay_options.view_outputs(foxglove, mcap, ros2_bag, trajectories,
+                                                      utm_zone)},
             )  # fmt: skip
             replay_options.run(config)
             return
         if window is not None:
             raise InputError("applies to --rosbag --per-scan only", "--window")
+        views = {"--foxglove": foxglove, "--mcap": mcap, "--ros2-bag": ros2_bag,
+                 "--trajectories": trajectories, "--utm-zone": utm_zone}  # fmt: skip
+        for flag, value in views.items():
+            if value is not None:
+                raise InputError("applies to a drive (--rosbag or --kitti)", flag)
         bag_options.check_unused(
             None, cloud_topic=cloud_topic, pose_topic=pose_topic, tf_frame=tf_frame,
             max_pose_gap=max_pose_gap, origin=origin, every=every, out=out, map=map_bundle,

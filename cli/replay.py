@@ -129,6 +129,43 @@ PLOT = typer.Option(
     rich_help_panel=PANEL,
 )
 
+VIEW_PANEL = "Live view and robotics outputs (with --rosbag or --kitti)"
+FOXGLOVE = typer.Option(
+    None,
+    "--foxglove",
+    help="Stream the drive live to Foxglove (the app connects to ws://HOST:PORT): the map, each "
+    "scan at its pose, the pose and its covariance, the truth, the paths, the state, /tf. "
+    "HOST:PORT, or :PORT on 127.0.0.1 (8765 by default); needs the 'view' extra.",
+    rich_help_panel=VIEW_PANEL,
+)
+MCAP = typer.Option(
+    None,
+    "--mcap",
+    help="Write what the live view streams to this MCAP file, for Foxglove to open later.",
+    rich_help_panel=VIEW_PANEL,
+)
+ROS2_BAG = typer.Option(
+    None,
+    "--ros2-bag",
+    help="Write a ROS 2 bag folder (MCAP storage) of the poses with their covariance "
+    "(PoseWithCovarianceStamped on /pnvlad/pose), the path, NavSatFix and /tf, for ros2 bag play.",
+    rich_help_panel=VIEW_PANEL,
+)
+TRAJECTORIES = typer.Option(
+    None,
+    "--trajectories",
+    help="Write the pose and the truth as TUM (STEM.tum, STEM.truth.tum) and KITTI files "
+    "(STEM.kitti, STEM.truth.kitti, STEM.kitti.times) that evo_traj / evo_ape read.",
+    rich_help_panel=VIEW_PANEL,
+)
+UTM_ZONE = typer.Option(
+    None,
+    "--utm-zone",
+    help="The map's UTM zone (e.g. 32U, '17 south') when its bundle does not record one: the "
+    "outputs then carry latitude and longitude.",
+    rich_help_panel=VIEW_PANEL,
+)
+
 
 def check_per_scan(
     truth_topic: str | None,
@@ -152,6 +189,23 @@ def check_per_scan(
     for flag, value in given.items():  # fmt: skip
         if value is not None:
             raise InputError("applies to following a drive (not with --per-scan)", flag)
+
+
+def view_outputs(
+    foxglove: str | None,
+    mcap: Path | None,
+    ros2_bag: Path | None,
+    trajectories: Path | None,
+    utm_zone: str | None,
+) -> dict[str, Any]:
+    """The output section's robotics outputs from the options (``--foxglove`` parsed as
+    HOST:PORT)."""
+    from pnvlad_service.localization.outputs.foxglove_view import parse_host_port
+
+    return {
+        "foxglove": None if foxglove is None else parse_host_port(foxglove),
+        "mcap": mcap, "ros2_bag": ros2_bag, "trajectories": trajectories, "utm_zone": utm_zone,
+    }  # fmt: skip
 
 
 def parse_origin(text: str | None) -> tuple[float, float]:
@@ -219,6 +273,10 @@ def run(config: DriveConfig) -> None:
                 close()
     for line in result.lines():
         typer.echo(line)
+    for error in result.errors:
+        typer.secho(f"error: {error}", err=True, fg=typer.colors.RED)
+    if result.errors:
+        raise typer.Exit(code=2)
 
 
 @contextmanager

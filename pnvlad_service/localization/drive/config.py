@@ -56,12 +56,22 @@ class OutputConfig(_Section):
     """What is written: ``out``.csv (a row a scan) and ``out``.png (``plot``; default: beside
     the source, named for the drive and the policy); ``map_bundle``: a copy of the server's
     bundle, to draw the map (with ``service.index`` that bundle is used); ``progress``: a
-    progress bar on stderr."""
+    progress bar on stderr.
+
+    The robotics outputs (:mod:`pnvlad_service.localization.outputs`): ``foxglove``, the live
+    view's ``(host, port)``; ``mcap``, the same to a file; ``ros2_bag``, a ROS 2 bag folder;
+    ``trajectories``: TUM and KITTI files at ``trajectories``.tum, ...; ``utm_zone``: the map's
+    zone when its bundle does not say (``""``: unknown, no latitude and longitude)."""
 
     out: Path | None = None
     map_bundle: Path | None = None
     plot: bool = True
     progress: bool = True
+    foxglove: tuple[str, int] | None = None
+    mcap: Path | None = None
+    ros2_bag: Path | None = None
+    trajectories: Path | None = None
+    utm_zone: str | None = None
 
 
 class DriveConfig(_Section):

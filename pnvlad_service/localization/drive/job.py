@@ -15,13 +15,14 @@ from typing import Any
 
 import numpy as np
 
-from pnvlad_service.localization.drive.config import DriveConfig
+from pnvlad_service.localization.drive.config import DriveConfig, OutputConfig
 from pnvlad_service.localization.drive.maps import DriveMap
 from pnvlad_service.localization.drive.plot import plot_drive
 from pnvlad_service.localization.drive.report import DriveSummary, stage_means, summarise
 from pnvlad_service.localization.drive.rows import PER_SCAN, TRACKED, DriveRow, write_rows
 from pnvlad_service.localization.drive.runner import Windows, choose_odometry, run_drive
 from pnvlad_service.localization.drive.service import Service
+from pnvlad_service.localization.outputs.sinks import Outputs, open_outputs
 
 #: The default name of each policy's outputs: DRIVE.follow.csv, DRIVE.replay.csv.
 STEM = {TRACKED: "follow", PER_SCAN: "replay"}
@@ -30,12 +31,14 @@ STEM = {TRACKED: "follow", PER_SCAN: "replay"}
 @dataclass(frozen=True)
 class DriveResult:
     """A drive done: its ``rows``, ``summary``, the files ``written`` and, tracked, the
-    ``odometry`` used."""
+    ``odometry`` used; ``errors``: the outputs that failed (one line each; the CSV is written
+    whatever they did)."""
 
     rows: list[DriveRow]
     summary: DriveSummary
     written: list[Path]
     odometry: str | None = None
+    errors: tuple[str, ...] = ()
 
     def lines(self) -> list[str]:
         """What ``pnvlad localize`` prints: the files written, the odometry and the stages'
@@ -76,14 +79,18 @@ def run_job(
         posed = config.odometry == "kiss-icp" or (config.odometry == "auto" and poses is None)
         record = known.record() if known is not None else service.map_record()
         windows = Windows(config.window_m, odometry=posed, map_record=record)
+    outputs = _outputs(config.output, bundle)
     t0 = time.perf_counter()
-    rows = run_drive(
-        drive, service.ask, policy, every=every, odometry=how or "none", truth=truth,
-        config=config.tracking, windows=windows, progress=config.output.progress,
-        positions=None if known is None else known.positions,
-        truth_of_map=None if known is None else known.truth,
-    )  # fmt: skip
-    wall = time.perf_counter() - t0
+    try:
+        rows = run_drive(
+            drive, service.ask, policy, every=every, odometry=how or "none", truth=truth,
+            config=config.tracking, windows=windows, progress=config.output.progress,
+            positions=None if known is None else known.positions,
+            truth_of_map=None if known is None else known.truth, outputs=outputs,
+        )  # fmt: skip
+    finally:
+        wall = time.perf_counter() - t0
+        outputs.close()
     out.parent.mkdir(parents=True, exist_ok=True)
     written = [write_rows(rows, out.with_name(out.name + ".csv"), policy)]
     if config.output.plot:
@@ -92,7 +99,24 @@ def run_job(
             rows, out.with_name(out.name + ".png"), policy, title=_title(config, drive.name),
             map_ne=None if known is None else known.ne, trajectory_ne=trajectory,
         ))  # fmt: skip
-    return DriveResult(rows, summarise(rows, policy, wall), written, how)
+    written.extend(outputs.written)
+    return DriveResult(rows, summarise(rows, policy, wall), written, how, tuple(outputs.errors))
+
+
+def _outputs(output: OutputConfig, bundle: Path | None) -> Outputs:
+    """The robotics outputs ``output`` asks for, opened and started with the map of
+    ``bundle`` (its entries, a cloud of them and its zone; ``output.utm_zone`` when given)."""
+    outputs = open_outputs(foxglove=output.foxglove, mcap=output.mcap, ros2_bag=output.ros2_bag,
+                           trajectories=output.trajectories)  # fmt: skip
+    if not outputs.sinks and not outputs.errors:
+        return outputs
+    view = None
+    if bundle is not None and outputs.sinks:
+        from pnvlad_service.localization.outputs.map_view import load_map_view
+
+        view = load_map_view(bundle)
+    outputs.start(view, output.utm_zone)
+    return outputs
 
 
 def _title(config: DriveConfig, name: str) -> str:

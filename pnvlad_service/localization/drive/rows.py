@@ -20,6 +20,7 @@ from typing import Any, Literal
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_write_rows
+from pnvlad_service.localization.outputs.step import COVARIANCE_COLUMNS
 
 #: How a drive is asked: each scan alone (a search), or followed by the tracker.
 Policy = Literal["per-scan", "tracked"]
@@ -49,7 +50,13 @@ class DriveRow:
     distance driven (``driven_m``); the stages' times (ms): reading the scan, odometry, the
     step (the request included), what the service was ``asked`` (``search``, or ``prior``: a
     registration near the prediction) and its ``server_ms`` total; ``reason``;
-    ``stages_ms``: the service's stages (not a column)."""
+    ``stages_ms``: the service's stages (not a column).
+
+    Both policies, after the columns above: the pose's ``pose_height`` (metres, UTM up),
+    ``pose_roll_deg`` and ``pose_pitch_deg`` (ROS's fixed axes, docs/TRACKING.md) and its
+    ``covariance`` (the 21 values on and above the diagonal of the [6, 6], columns
+    ``cov_x_x`` ... ``cov_yaw_yaw``: a registered pose's point-to-plane covariance; empty for
+    a pose found by search or carried on by the odometry)."""
 
     scan: int
     timestamp: int
@@ -89,7 +96,18 @@ class DriveRow:
     asked: str | None = None
     server_ms: float | None = None
     reason: str | None = None
+    pose_height: float | None = None
+    pose_roll_deg: float | None = None
+    pose_pitch_deg: float | None = None
+    covariance: tuple[float, ...] | None = field(default=None, repr=False)
     stages_ms: dict[str, float] = field(default_factory=dict, repr=False)
+
+    def __getattr__(self, name: str) -> float | None:
+        # The covariance's columns (cov_x_x, ...) read from ``covariance``.
+        if name.startswith("cov_") and name in _COV_INDEX:
+            cov = self.covariance
+            return None if cov is None else cov[_COV_INDEX[name]]
+        raise AttributeError(name)
 
     @property
     def answered(self) -> bool:
@@ -113,6 +131,11 @@ COLUMNS: dict[Policy, tuple[str, ...]] = {
         "read_ms", "odometry_ms", "step_ms", "asked", "server_ms", "reason",
     ),
 }  # fmt: skip
+#: The columns both policies' CSVs end with: the pose's height, roll, pitch and covariance.
+POSE_COLUMNS = ("pose_height", "pose_roll_deg", "pose_pitch_deg", *COVARIANCE_COLUMNS)
+for _policy in POLICIES:
+    COLUMNS[_policy] = (*COLUMNS[_policy], *POSE_COLUMNS)
+_COV_INDEX = {name: k for k, name in enumerate(COVARIANCE_COLUMNS)}
 #: Decimal places of a float cell (``None``: all a float's repr has).
 DIGITS: dict[Policy, int | None] = {PER_SCAN: None, TRACKED: 6}
 
@@ -133,8 +156,13 @@ def read_rows(path: str | Path) -> list[DriveRow]:
             if "scan" not in doc or "timestamp" not in doc:
                 raise InputError("not a drive's CSV (no scan and timestamp columns)", path)
             kw: dict[str, Any] = {}
+            cov = [doc.get(c) or "" for c in COVARIANCE_COLUMNS]
+            if all(cov):
+                kw["covariance"] = tuple(float(v) for v in cov)
             for name, text in doc.items():
                 f = names.get(name)
+                if name == "covariance":
+                    continue
                 if f is None:
                     continue
                 kind = str(hints[name])

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,8 @@ from pnvlad_service.localization.drive.tracking import (
     wrap_deg,
     yaw_of,
 )
+from pnvlad_service.localization.outputs.sinks import Outputs, Sink
+from pnvlad_service.localization.outputs.step import DriveStep, roll_pitch_yaw, upper_triangle
 
 #: Where a tracked drive's motion between scans comes from.
 ODOMETRY = ("auto", "poses", "kiss-icp", "none")
@@ -101,13 +104,17 @@ class _PerScan:
 
     def __init__(self, ask: Ask, windows: Windows | None) -> None:
         self.ask, self.windows = ask, windows
+        self.points: np.ndarray | None = None
+        self.covariance: np.ndarray | None = None
 
     def fill(self, drive: Any, i: int, row: DriveRow) -> np.ndarray | None:
         t0 = time.perf_counter()
         reply = None
+        self.points = self.covariance = None
         try:
             if self.windows is None:
-                reply = self.ask(drive.scan(i))
+                self.points = drive.scan(i)
+                reply = self.ask(self.points)
             else:
                 reply = self.ask(self.windows.through(drive, i), None, "window")
         except InputError as exc:
@@ -123,6 +130,7 @@ class _PerScan:
         row.submap, row.run, row.kind = top.timestamp, top.run, top.kind
         row.northing, row.easting, row.distance = top.northing, top.easting, top.distance
         row.verified, row.confidence = reply.verified, reply.confidence
+        self.covariance = reply.covariance if reply.pose is not None else None
         return reply.pose
 
     def postfix(self, row: DriveRow) -> dict[str, str]:
@@ -151,10 +159,13 @@ class _Tracked:
 
             self.lidar = LidarOdometry()
         self.localizer = DriveLocalizer(ask, config, initial_pose=initial_pose)
+        self.points: np.ndarray | None = None
+        self.covariance: np.ndarray | None = None
+        self.step: Any = None
 
     def fill(self, drive: Any, i: int, row: DriveRow) -> np.ndarray | None:
         t0 = time.perf_counter()
-        points = drive.scan(i)
+        points = self.points = drive.scan(i)
         t1 = time.perf_counter()
         odo = None
         if self.odometry == "poses":
@@ -166,7 +177,11 @@ class _Tracked:
             except InputError:
                 odo = None
         t2 = time.perf_counter()
-        step = self.localizer.step(DriveScan(i, row.timestamp, points, odo))
+        step = self.step = self.localizer.step(DriveScan(i, row.timestamp, points, odo))
+        # A registered pose's covariance is its registration's; a fix found by search and a
+        # pose carried on by the odometry have none.
+        registered = step.how == "registered" and step.reply is not None
+        self.covariance = step.reply.covariance if registered else None
         row.state, row.verified, row.how = step.state, step.verified, step.how
         row.event = step.event
         row.fitness, row.sigma_m, row.confidence = step.fitness, step.sigma_m, step.confidence
@@ -204,6 +219,7 @@ def run_drive(
     windows: Windows | None = None,
     initial_pose: np.ndarray | None = None,
     progress: bool = True,
+    outputs: Outputs | Sequence[Sink] = (),
 ) -> list[DriveRow]:
     """Scans 0, ``every``, 2 * ``every``, ... of ``drive`` asked by ``policy``
     (``every`` default: 1 tracked, 10 per-scan): one :class:`~.rows.DriveRow` a scan.
@@ -234,6 +250,9 @@ def run_drive(
     if truth is not None and len(truth) != len(stamps):
         raise InputError(f"{len(truth)} true poses for {len(stamps)} scans", "truth")
     driven = None if truth is None else _driven(truth[:, :3, 3])
+    sinks = outputs if isinstance(outputs, Outputs) else Outputs(outputs)
+    if sinks is not outputs:
+        sinks.start(None)
     rows: list[DriveRow] = []
     bar = tqdm(range(0, len(stamps), every), desc=runner.desc, unit=runner.unit,
                disable=None if progress else True)  # fmt: skip
@@ -241,17 +260,46 @@ def run_drive(
         row = DriveRow(scan=i, timestamp=int(stamps[i]), time_s=float(stamps[i] - stamps[0]) / 1e6)
         pose = runner.fill(drive, i, row)
         if pose is not None:
-            row.pose_northing, row.pose_easting = float(pose[1, 3]), float(pose[0, 3])
-            row.pose_yaw_deg = yaw_of(pose)
-        if truth is not None and np.isfinite(truth[i]).all():
+            _pose_columns(row, pose, runner.covariance)
+        known = truth is not None and np.isfinite(truth[i]).all()
+        if known:
             _errors(row, pose, truth[i], truth_of_map)
             row.driven_m = None if driven is None else float(driven[i])
             if positions is not None:
                 row.off_map_m = positions.nearest_m(row.true_northing, row.true_easting)
         rows.append(row)
+        if sinks:
+            sinks.step(_step(row, pose, runner, truth[i] if known else None))
         bar.set_postfix(runner.postfix(row), refresh=False)
     bar.close()
+    if sinks is not outputs:
+        sinks.close()
     return rows
+
+
+def _pose_columns(row: DriveRow, pose: np.ndarray, covariance: np.ndarray | None) -> None:
+    """The pose's columns: UTM northing, easting, height; yaw, roll, pitch (degrees); the
+    covariance's 21 values."""
+    row.pose_northing, row.pose_easting = float(pose[1, 3]), float(pose[0, 3])
+    row.pose_height = float(pose[2, 3])
+    row.pose_yaw_deg = yaw_of(pose)
+    roll, pitch, _ = roll_pitch_yaw(pose[:3, :3])
+    row.pose_roll_deg, row.pose_pitch_deg = math.degrees(roll), math.degrees(pitch)
+    row.covariance = None if covariance is None else upper_triangle(covariance)
+
+
+def _step(
+    row: DriveRow, pose: np.ndarray | None, runner: _PerScan | _Tracked, true: np.ndarray | None
+) -> DriveStep:
+    """The scan as the outputs say it (:class:`DriveStep`), from its row."""
+    return DriveStep(
+        scan=row.scan, stamp_ns=row.timestamp * 1000, state=row.state, event=row.event,
+        reason=row.reason, how=row.how, verified=row.verified, pose=pose,
+        covariance=runner.covariance if pose is not None else None, truth=true,
+        points=runner.points, pose_error_m=row.pose_error_m,
+        pose_yaw_error_deg=row.pose_yaw_error_deg, sigma_m=row.sigma_m, fitness=row.fitness,
+        confidence=row.confidence,
+    )  # fmt: skip
 
 
 def _driven(xyz: np.ndarray) -> np.ndarray:

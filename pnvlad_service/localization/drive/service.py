@@ -47,8 +47,10 @@ class Reply:
     best match (``None``: no match); ``confidence`` and ``reason``: the verification's
     (``None`` without one); ``fitness``, ``sigma_m`` (metres), ``correction_m`` (how far the
     registration moved the prior) and ``uncertain``: a prior answer's registration;
-    ``timings_ms``: the service's stages, milliseconds. ``==`` compares every field but the
-    ``pose`` (an array)."""
+    ``timings_ms``: the service's stages, milliseconds; ``covariance``: float64 [6, 6] of a
+    verified prior answer's pose (the registration's point-to-plane covariance: x, y, z, then
+    rotations about them; metres and radians, UTM axes), else ``None``. ``==`` compares every
+    field but the ``pose`` and the ``covariance`` (arrays)."""
 
     mode: str = "search"
     verified: bool | None = None
@@ -61,6 +63,7 @@ class Reply:
     correction_m: float | None = None
     uncertain: bool = False
     timings_ms: Mapping[str, float] = field(default_factory=dict)
+    covariance: np.ndarray | None = field(default=None, compare=False)
 
     @property
     def verified_pose(self) -> np.ndarray | None:
@@ -91,6 +94,9 @@ class Reply:
                 correction_m=_number(fit.correction_m),
                 uncertain=bool(fit.uncertain),
                 timings_ms=answer.timings.to_json(),
+                covariance=None
+                if pose is None or fit.covariance is None
+                else np.asarray(fit.covariance, dtype=np.float64),
             )
         v = answer.verification
         pose = None if v is None or v.pose is None else v.pose.transform
@@ -129,11 +135,16 @@ class Reply:
             correction_m=_number(fit.get("correction_m")),
             uncertain=bool(fit.get("uncertain")),
             timings_ms=dict(doc.get("timings_ms") or {}),
+            covariance=_matrix(pose.get("covariance")) if pose else None,
         )
 
 
 def _number(value: Any) -> float | None:
     return None if value is None else float(value)
+
+
+def _matrix(value: Any) -> np.ndarray | None:
+    return None if value is None else np.asarray(value, dtype=np.float64)
 
 
 class Ask(Protocol):
