@@ -65,7 +65,12 @@ def test_every_stage_is_listed() -> None:
 #: clouds and ids), the query path nothing of drives, and a drive asks queries and reads
 #: priors; the package's own ``__init__`` only names them.
 INSIDE: dict[str, dict[str, set[str]]] = {
-    "localization": {"verify": set(), "query": {"verify"}, "drive": {"query", "verify"}},
+    "localization": {
+        "verify": set(),
+        "query": {"verify"},
+        "outputs": set(),
+        "drive": {"query", "verify", "outputs"},
+    },
 }
 
 

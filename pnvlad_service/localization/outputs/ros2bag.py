@@ -42,6 +42,9 @@ class Ros2Bag:
 
         self.path = Path(path)
         self.name = f"--ros2-bag {self.path}"
+        if self.path.suffix == ".bag":
+            raise InputError("a ROS 2 bag is a folder; .bag names a ROS 1 bag's file (readers "
+                             "tell them by it): name it without .bag", self.path)  # fmt: skip
         if self.path.exists():
             raise InputError("already exists (a bag is never overwritten)", self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
