@@ -141,8 +141,24 @@ DIGITS: dict[Policy, int | None] = {PER_SCAN: None, TRACKED: 6}
 
 
 def write_rows(rows: Sequence[DriveRow], path: str | Path, policy: Policy) -> Path:
-    """The rows as a CSV (atomically): ``policy``'s :data:`COLUMNS`, a row a scan."""
-    return atomic_write_rows(rows, COLUMNS[policy], path, digits=DIGITS[policy])
+    """The rows as a CSV (atomically): ``policy``'s :data:`COLUMNS`, a row a scan (the
+    covariance's cells with 9 significant digits: its values are far below a column's
+    decimals)."""
+    return atomic_write_rows([_Cells(r) for r in rows], COLUMNS[policy], path,
+                             digits=DIGITS[policy])  # fmt: skip
+
+
+class _Cells:
+    """A row as its CSV cells: the covariance's written in significant digits."""
+
+    def __init__(self, row: DriveRow) -> None:
+        self.row = row
+
+    def __getattr__(self, name: str) -> Any:
+        value = getattr(self.row, name)
+        if name in _COV_INDEX and value is not None:
+            return f"{value:.9g}"
+        return value
 
 
 def read_rows(path: str | Path) -> list[DriveRow]:
