@@ -195,11 +195,9 @@ def localize(
     truth, and a summary line the time to the first fix, the share verified, the errors and
     the speed. --per-scan asks with every Nth scan alone instead.
 
-    A drive can be watched and replayed where robotics engineers look: --foxglove streams it
-    live to the Foxglove app, --mcap writes the same to a file, --ros2-bag a ROS 2 bag for
-    ros2 bag play, --trajectories TUM and KITTI files for evo (docs/TRACKING.md). An output
-    that fails (a port in use, an unwritable file) is one error line; the drive and its CSV
-    go on, and the command exits 2.
+    --foxglove streams a drive live to the Foxglove app, --mcap writes the same to a file,
+    --ros2-bag a ROS 2 bag, --trajectories TUM and KITTI files for evo (docs/TRACKING.md); one
+    that fails is an error line, the drive and its CSV go on, the command exits 2.
 
     --mode says which of the three it is (scan, follow or per-scan); without it, the SCAN file,
     --rosbag / --kitti and --follow / --per-scan tell.
@@ -215,9 +213,6 @@ def localize(
       --map map.index --out follow/drive
 
       pnvlad localize --kitti sequences/00 --index map.index --out follow/kitti00
-
-      pnvlad localize --rosbag drive.bag --cloud-topic /points --pose-topic /odom
-      --index map.index --foxglove :8765 --mcap follow/drive.mcap --trajectories follow/drive
 
       pnvlad localize --mode per-scan --rosbag drive.bag --cloud-topic /points --every 5
       --index map.index
@@ -250,11 +245,7 @@ def localize(
             return
         if window is not None:
             raise InputError("applies to --rosbag --per-scan only", "--window")
-        views = {"--foxglove": foxglove, "--mcap": mcap, "--ros2-bag": ros2_bag,
-                 "--trajectories": trajectories, "--utm-zone": utm_zone}  # fmt: skip
-        for flag, value in views.items():
-            if value is not None:
-                raise InputError("applies to a drive (--rosbag or --kitti)", flag)
+        _check_no_views(foxglove, mcap, ros2_bag, trajectories, utm_zone)
         bag_options.check_unused(
             None, cloud_topic=cloud_topic, pose_topic=pose_topic, tf_frame=tf_frame,
             max_pose_gap=max_pose_gap, origin=origin, every=every, out=out, map=map_bundle,
@@ -269,6 +260,16 @@ def localize(
         sys.stdout.write("\n")
     else:
         typer.echo(format_matches(answer))
+
+
+def _check_no_views(*values: object) -> None:
+    """InputError naming the first robotics output given without a drive."""
+    from pnvlad_service.errors import InputError
+
+    flags = ("--foxglove", "--mcap", "--ros2-bag", "--trajectories", "--utm-zone")
+    for flag, value in zip(flags, values, strict=True):
+        if value is not None:
+            raise InputError("applies to a drive (--rosbag or --kitti)", flag)
 
 
 def _check_drive_options(

@@ -68,6 +68,13 @@ def serve(
         "1 MB each; 0 keeps none).",
     ),
     log_level: str = typer.Option("info", "--log-level", help="uvicorn log level."),
+    foxglove: str = typer.Option(
+        None,
+        "--foxglove",
+        help="Stream each answered query live to Foxglove (ws://HOST:PORT): its candidates' "
+        "positions and its verified pose on the map. HOST:PORT, or :PORT on 127.0.0.1; needs "
+        "the 'view' extra; one worker.",
+    ),
 ) -> None:
     """Serve POST /localize over HTTP: a point cloud in, the nearest map places out.
 
@@ -112,6 +119,7 @@ def serve(
         "VERIFY_THRESHOLD": verify_threshold,
         "VERIFY_STOP_SCORE": verify_stop_score,
         "VERIFY_CACHE": verify_cache,
+        "FOXGLOVE": foxglove,
     }
     for name, value in options.items():
         if value is not None:
@@ -136,6 +144,8 @@ def serve(
         check_geometry(settings.index, verify=settings.verify_bundle)
         if choose_runtime(identity.checkpoint, settings.runtime) == "onnx":
             check_onnx_file(identity.checkpoint, identity.weights_sha256)
+        if settings.foxglove is not None:
+            _check_foxglove(settings.foxglove, settings.workers)
     os.environ["PNVLAD_CHECKPOINT"] = identity.checkpoint
     uvicorn.run(
         "pnvlad_service.server.app:create_app_from_env",
@@ -146,3 +156,23 @@ def serve(
         log_level=log_level,
         timeout_graceful_shutdown=10,
     )
+
+
+def _check_foxglove(host_port: str, workers: int) -> None:
+    """InputError naming ``--foxglove`` for a HOST:PORT that is not one, that cannot be bound
+    now, or with more than one worker (each would bind it); the extra is checked too."""
+    import socket
+
+    from pnvlad_service.errors import InputError
+    from pnvlad_service.extras import require
+    from pnvlad_service.localization.outputs.foxglove_view import parse_host_port
+
+    host, port = parse_host_port(host_port)
+    if workers > 1:
+        raise InputError("streams from one process: give --workers 1", "--foxglove")
+    require("foxglove", "foxglove-sdk", "view", "the live view (--foxglove)")
+    with socket.socket() as probe:
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise InputError(f"{host}:{port}: {exc.strerror or exc}", "--foxglove") from None

@@ -171,6 +171,10 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     )
     swapped(loc)
     state.serving = serving
+    if settings.foxglove is not None:  # the live view of the answers (docs/TRACKING.md)
+        from pnvlad_service.localization.outputs.query_view import open_query_view
+
+        state.query_view = open_query_view(settings.foxglove, settings.index or loc.bundle.path)
     age = process_age()
     log.info(
         "ready: bundle %s (%s, %d vectors), embedding with %s%s",
@@ -185,6 +189,9 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
             yield
     finally:
         state.serving = None
+        if state.query_view is not None:
+            state.query_view.close()
+            state.query_view = None
         if given is None or serving.current is not given:
             serving.close()  # the caller closes the localiser it gave
 
@@ -209,6 +216,7 @@ def create_app(
     app.state.metrics = metrics
     app.state.localizer = localizer  # given (tests), else the lifespan loads one
     app.state.serving = None
+    app.state.query_view = None  # pnvlad serve --foxglove: opened by the lifespan
     problems.install(app, on_error=metrics.error)
 
     # The bearer check is declared (and in the OpenAPI document) only when a key is set.

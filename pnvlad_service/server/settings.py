@@ -49,6 +49,11 @@ class ServerSettings(BaseSettings):
         "Its weights must be the ones the bundle was built with.",
     )
     host: str = Field("127.0.0.1", description="Interface to bind (loopback unless told).")
+    foxglove: str | None = Field(
+        None,
+        description="HOST:PORT: stream each answered query live to Foxglove (the 'view' "
+        "extra; docs/TRACKING.md).",
+    )
     port: int = Field(8000, ge=0, le=65535)
     workers: int = Field(1, ge=1, description="Server processes (each loads model and index).")
     api_key: SecretStr | None = Field(

@@ -12,6 +12,8 @@ import json
 import math
 import socket
 import struct
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -229,3 +231,52 @@ def test_a_port_in_use_an_unwritable_mcap_a_bad_zone(
             assert "follow: 30 scans" in res.stdout
     assert not list(tmp_path.glob(".*"))  # no partial file left
     assert Path(f"{tmp_path / 'zone'}.tum").is_file()  # the other outputs written
+
+
+def test_serve_streams_each_answered_query(tiny_maps: dict) -> None:
+    """`pnvlad serve --foxglove`: a client subscribed to the server's view receives each
+    answer's candidates, its verified pose and its JSON; a port in use is refused at start."""
+    from pnvlad_service.client import LocalizeClient
+    from pnvlad_service.localization.verify.prior import Prior
+    from pnvlad_service.synth.generate import get_preset, simulated_drive
+
+    sim = simulated_drive(get_preset("tiny"), 0, 0, 3)
+    port, view_port = free_port(), free_port()
+    env = {"PNVLAD_RERANK": "100", "PNVLAD_VERIFY_THRESHOLD": "0.04", "PNVLAD_PRIOR_MAX_SIGMA": "0",
+           "PNVLAD_FOXGLOVE": f"127.0.0.1:{view_port}"}  # fmt: skip
+    proc = start_server(tiny_maps["keys"], port, env)
+    try:
+        watcher = Watcher(view_port)
+        watcher.start()
+        deadline = time.monotonic() + 30
+        while "/pnvlad/query/pose" not in watcher.advertised.values():
+            assert time.monotonic() < deadline, watcher.advertised
+            time.sleep(0.05)
+        time.sleep(0.3)  # the subscription sent
+        with LocalizeClient(f"http://127.0.0.1:{port}") as client:
+            doc = client.localize(sim.scan(5), 5, kind="scan",
+                                  prior=Prior.of_matrix(sim.true_poses[5]))  # fmt: skip
+            client.localize(sim.scan(9), 5, kind="scan")
+        deadline = time.monotonic() + 10
+        while watcher.received.get("/pnvlad/query/answer", 0) < 2:
+            assert time.monotonic() < deadline, watcher.received
+            time.sleep(0.05)
+    finally:
+        stop_server(proc)
+    watcher.join(10)
+    assert watcher.error is None, watcher.error
+    assert doc["verified"] and doc["pose"] is not None
+    assert watcher.received["/pnvlad/query/candidates"] == 2
+    assert watcher.received["/pnvlad/query/pose"] >= 1
+    assert watcher.received["/pnvlad/map/entries"] >= 1  # sent again to a late subscriber
+    assert watcher.schemas["/pnvlad/query/candidates"] == "foxglove.PointCloud"
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        used = taken.getsockname()[1]
+        cmd = [sys.executable, "-m", "pnvlad_cli.main", "serve", "--index",
+               str(tiny_maps["keys"]), "--foxglove", f"127.0.0.1:{used}"]  # fmt: skip
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    errors = [ln for ln in done.stderr.splitlines() if ln.startswith("error: ")]
+    assert done.returncode == 2 and len(errors) == 1, done.stderr
+    assert errors[0].startswith(f"error: --foxglove: 127.0.0.1:{used}: "), errors

@@ -35,7 +35,7 @@ def assert_same(a: Reply, b: Reply) -> None:
     """Field by field; floats to 1e-9 (a registration's last digits vary between runs)."""
     for f in dataclasses.fields(Reply):
         x, y = getattr(a, f.name), getattr(b, f.name)
-        if f.name == "pose":
+        if f.name in ("pose", "covariance"):
             assert (x is None) == (y is None)
             if x is not None:
                 np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9)

@@ -368,3 +368,39 @@ def test_the_host_and_port_of_foxglove() -> None:
         parse_host_port("a:b")
     with pytest.raises(InputError, match="--foxglove: port 70000 is not in 0-65535"):
         parse_host_port(":70000")
+
+
+def test_the_layout_names_what_the_view_streams(tmp_path: Path) -> None:
+    """docs/foxglove_layout.json: every panel of its tree configured, every topic it draws one
+    the view writes, every field it plots one of ``/pnvlad/state``'s."""
+    import json
+
+    pytest.importorskip("foxglove")
+    reader_mod = pytest.importorskip("mcap.reader")
+    from pnvlad_service.localization.outputs.foxglove_view import STATE_SCHEMA
+
+    outputs = open_outputs(mcap=tmp_path / "drive.mcap")
+    outputs.start(a_map())
+    for s in steps():
+        outputs.step(s)
+    outputs.close()
+    with open(tmp_path / "drive.mcap", "rb") as fh:
+        summary = reader_mod.make_reader(fh).get_summary()
+    streamed = {c.topic for c in summary.channels.values()}
+    layout = json.loads((Path(__file__).parents[2] / "docs" / "foxglove_layout.json").read_text())
+    panels = layout["configById"]
+
+    def leaves(node: object) -> list[str]:
+        if isinstance(node, str):
+            return [node]
+        assert isinstance(node, dict)
+        return leaves(node["first"]) + leaves(node["second"])
+
+    assert sorted(leaves(layout["layout"])) == sorted(panels)
+    three_d = next(v for k, v in panels.items() if k.startswith("3D!"))
+    drawn = set(three_d["topics"])
+    paths = [p["value"] for k, v in panels.items() for p in v.get("paths", [])]
+    others = {v.get("topicPath") or v.get("followTopic") for v in panels.values()} - {None}
+    assert drawn | others <= streamed and {"/pnvlad/scan", "/pnvlad/pose"} <= drawn
+    fields = {p.split(".", 1)[1] for p in paths if p.startswith("/pnvlad/state.")}
+    assert fields and fields <= set(STATE_SCHEMA["properties"]) and len(fields) == len(paths)

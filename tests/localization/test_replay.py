@@ -14,7 +14,7 @@ import pytest
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.drive.plot import plot_drive
 from pnvlad_service.localization.drive.report import summarise
-from pnvlad_service.localization.drive.rows import COLUMNS, read_rows, write_rows
+from pnvlad_service.localization.drive.rows import COLUMNS, POSE_COLUMNS, read_rows, write_rows
 from pnvlad_service.localization.drive.runner import run_drive
 from pnvlad_service.localization.drive.service import Place, Reply
 
@@ -104,12 +104,12 @@ def test_per_scan_rows_csv_and_summary(tmp_path: Path) -> None:
     path = write_rows(rows, tmp_path / "answers.csv", "per-scan")
     with open(path, newline="") as fh:
         table = list(csv.DictReader(fh))
-    assert list(table[0]) == ["scan", "timestamp", "time_s", "status", "submap", "run", "kind",
+    assert list(table[0])[:21] == ["scan", "timestamp", "time_s", "status", "submap", "run", "kind",
                               "northing", "easting", "distance", "verified", "confidence",
                               "pose_northing", "pose_easting", "pose_yaw_deg", "true_northing",
                               "true_easting", "true_yaw_deg", "error_m", "pose_error_m",
                               "pose_yaw_error_deg"]  # fmt: skip
-    assert tuple(table[0]) == COLUMNS["per-scan"]
+    assert tuple(table[0]) == COLUMNS["per-scan"] == (*COLUMNS["per-scan"][:21], *POSE_COLUMNS)
     assert table[1]["timestamp"] == "7000000" and table[1]["time_s"] == "2.0"
     assert table[1]["submap"] == "1002" and table[1]["verified"] == "false"
     assert table[0]["verified"] == "true" and float(table[0]["pose_error_m"]) == 0.5

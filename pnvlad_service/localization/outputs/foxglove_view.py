@@ -135,6 +135,7 @@ class FoxgloveView:
         self.path: list[Any] = []
         self.truth_path: list[Any] = []
         self._last_ns = 0
+        self._started = False
 
     @property
     def port(self) -> int | None:
@@ -232,7 +233,7 @@ class FoxgloveView:
 
     def step(self, step: DriveStep) -> None:
         m, ns = self.fg.messages, step.stamp_ns
-        if not getattr(self, "_started", False) or self.latch.wanted.is_set():
+        if not self._started or self.latch.wanted.is_set():
             self.latch.wanted.clear()
             self._log_map(ns)
             self._started = True

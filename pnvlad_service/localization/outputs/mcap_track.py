@@ -9,6 +9,9 @@ Example::
 
     track = read_track("follow/drive.mcap")
     plot_mcap("follow/drive.mcap", "follow/drive.mcap.png")
+
+or from the shell: ``python -m pnvlad_service.localization.outputs.mcap_track DRIVE.mcap
+OUT.png``.
 """
 
 from __future__ import annotations
@@ -76,48 +79,61 @@ class _Decoders:
         return cls.FromString(data)
 
 
+class _Collect:
+    """What the messages say, topic by topic."""
+
+    def __init__(self) -> None:
+        self.origin: tuple[float, float] | None = None
+        self.poses: list[tuple[int, list[float]]] = []
+        self.truths: list[tuple[int, list[float]]] = []
+        self.states: list[tuple[int, str]] = []
+        self.hows: list[tuple[int, str]] = []
+        self.entries = np.zeros((0, 3))
+
+    def take(self, topic: str, ns: int, msg: Any) -> None:
+        if topic == "/tf":
+            for t in msg.transforms:
+                if t.parent_frame_id == "utm" and t.child_frame_id == "map":
+                    self.origin = (t.translation.x, t.translation.y)
+        elif topic in ("/pnvlad/pose", "/pnvlad/truth"):
+            p = msg.pose.position
+            (self.poses if topic == "/pnvlad/pose" else self.truths).append((ns, [p.x, p.y, p.z]))
+        elif topic == "/pnvlad/state":
+            self.states.append((ns, str(msg.get("state"))))
+            self.hows.append((ns, str(msg.get("how"))))
+        elif topic == "/pnvlad/map/entries":
+            self.entries = np.frombuffer(msg.data, dtype="<f4").reshape(-1, 3).astype(np.float64)
+
+
 def read_track(path: str | Path) -> McapTrack:
-    """The drive in the MCAP at ``path``; InputError naming it when it is not a drive's MCAP
-    (no ``utm`` -> ``map`` transform)."""
+    """The drive in the MCAP at ``path``; InputError naming it when it is not an MCAP, or not
+    a drive's (no ``utm`` -> ``map`` transform)."""
     reader_mod = require("mcap.reader", "mcap", "view", "reading an MCAP back")
+    from mcap.exceptions import McapError
+
     path = Path(path)
-    dec = _Decoders()
-    origin: tuple[float, float] | None = None
-    poses: list[tuple[int, list[float]]] = []
-    truths: list[tuple[int, list[float]]] = []
-    states: list[tuple[int, str]] = []
-    hows: list[tuple[int, str]] = []
-    entries = np.zeros((0, 3))
-    with open(path, "rb") as fh:
-        reader = reader_mod.make_reader(fh)
-        for schema, channel, message in reader.iter_messages(topics=list(TOPICS)):
-            msg = dec.decode(schema, message.data)
-            topic, ns = channel.topic, int(message.log_time)
-            if topic == "/tf":
-                for t in msg.transforms:
-                    if t.parent_frame_id == "utm" and t.child_frame_id == "map":
-                        origin = (t.translation.x, t.translation.y)
-            elif topic in ("/pnvlad/pose", "/pnvlad/truth"):
-                p = msg.pose.position
-                (poses if topic == "/pnvlad/pose" else truths).append((ns, [p.x, p.y, p.z]))
-            elif topic == "/pnvlad/state":
-                states.append((ns, str(msg.get("state"))))
-                hows.append((ns, str(msg.get("how"))))
-            elif topic == "/pnvlad/map/entries":
-                entries = np.frombuffer(msg.data, dtype="<f4").reshape(-1, 3).astype(np.float64)
-    if origin is None:
+    dec, got = _Decoders(), _Collect()
+    try:
+        with open(path, "rb") as fh:
+            reader = reader_mod.make_reader(fh)
+            for schema, channel, message in reader.iter_messages(topics=list(TOPICS)):
+                got.take(channel.topic, int(message.log_time), dec.decode(schema, message.data))
+    except McapError as exc:
+        raise InputError(f"not a readable MCAP file ({exc})", path) from None
+    if got.origin is None:
         raise InputError("not a drive's MCAP: no utm -> map transform on /tf", path)
-    shift = np.array([origin[0], origin[1], 0.0])
+    shift = np.array([got.origin[0], got.origin[1], 0.0])
 
     def arrays(items: list[tuple[int, list[float]]]) -> tuple[np.ndarray, np.ndarray]:
         ns = np.array([t for t, _ in items], dtype=np.int64)
         xyz = np.array([v for _, v in items], dtype=np.float64).reshape(-1, 3) + shift
         return ns, xyz
 
-    pose_ns, pose_enu = arrays(poses)
-    truth_ns, truth_enu = arrays(truths)
-    return McapTrack(pose_ns, pose_enu, truth_ns, truth_enu, tuple(states), tuple(hows),
-                     entries + shift if len(entries) else entries, origin)  # fmt: skip
+    pose_ns, pose_enu = arrays(got.poses)
+    truth_ns, truth_enu = arrays(got.truths)
+    entries = got.entries + shift if len(got.entries) else got.entries
+    return McapTrack(pose_ns, pose_enu, truth_ns, truth_enu, tuple(got.states), tuple(got.hows),
+                     entries, got.origin)  # fmt: skip
 
 
 def plot_mcap(path: str | Path, out: str | Path, title: str | None = None) -> Path:
@@ -153,3 +169,28 @@ def plot_mcap(path: str | Path, out: str | Path, title: str | None = None) -> Pa
     finally:
         plt.close(fig)
     return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m pnvlad_service.localization.outputs.mcap_track DRIVE.mcap OUT.png``."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(
+        prog="python -m pnvlad_service.localization.outputs.mcap_track",
+        description="Draw the drive in an MCAP written by `pnvlad localize --mcap` as a PNG: "
+        "the map's entries, the truth, the poses coloured by how each came.",
+    )
+    parser.add_argument("mcap", type=Path, help="the MCAP file (pnvlad localize --mcap)")
+    parser.add_argument("png", type=Path, help="the PNG to write")
+    args = parser.parse_args(argv)
+    try:
+        print(f"wrote {plot_mcap(args.mcap, args.png)}")
+    except (InputError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

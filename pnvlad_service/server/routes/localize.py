@@ -110,7 +110,10 @@ def router(contract: Contract) -> APIRouter:
         parse = functools.partial(read_query, contract, ctype, body, p)
         answer = await run(loc, parse, THREADS, t0=t0)
         metrics.observe(answer.timings.seconds())
-        return JSONResponse({**answer.to_json(), **loc.info.to_json()})
+        doc = answer.to_json()
+        if request.app.state.query_view is not None:  # pnvlad serve --foxglove
+            request.app.state.query_view.answer(doc)
+        return JSONResponse({**doc, **loc.info.to_json()})
 
     @_post(
         r,
