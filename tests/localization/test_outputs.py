@@ -95,6 +95,16 @@ def test_quaternion_and_roll_pitch_yaw_agree_with_scipy() -> None:
         assert np.abs(back - m).max() < 1e-9
 
 
+def test_a_long_path_is_thinned_evenly_and_keeps_its_last_pose() -> None:
+    from pnvlad_service.localization.outputs.step import thinned
+
+    assert thinned(list(range(5)), 10) == [0, 1, 2, 3, 4]
+    long = list(range(10_001))
+    out = thinned(long, 2000)
+    assert len(out) <= 2000 and out[0] == 0 and out[-1] == 10_000
+    assert len(set(np.diff(out[:-1]))) == 1  # evenly
+
+
 def test_the_covariance_round_trips_through_its_21_values() -> None:
     c = covariance(5)
     values = upper_triangle(c)
@@ -171,7 +181,12 @@ def test_the_ros2_bag_read_by_rosbags(tmp_path: Path) -> None:
             "/tf_static": "tf2_msgs/msg/TFMessage",
         }
         counts = {c.topic: c.msgcount for c in reader.connections}
-        assert counts["/pnvlad/pose"] == counts["/pnvlad/path"] == counts["/tf"] == len(posed)
+        assert counts["/pnvlad/pose"] == counts["/tf"] == len(posed)
+        # The path every 10th scan (scan 11 here; scans 1-3 had no pose) and at the end.
+        assert counts["/pnvlad/path"] == 2
+        paths = [c for c in reader.connections if c.topic == "/pnvlad/path"]
+        *_, (_, _, raw) = reader.messages(paths)
+        path = reader.deserialize(raw, paths[0].msgtype)
         assert counts["/pnvlad/state"] == len(done) and counts["/tf_static"] == 1
         assert counts["/pnvlad/truth"] == sum(s.truth is not None for s in done)
         poses = [c for c in reader.connections if c.topic == "/pnvlad/pose"]
@@ -179,6 +194,9 @@ def test_the_ros2_bag_read_by_rosbags(tmp_path: Path) -> None:
         static = next(c for c in reader.connections if c.topic == "/tf_static")
         (_, _, raw), = reader.messages([static])  # fmt: skip
         origin = reader.deserialize(raw, static.msgtype).transforms[0]
+    assert [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in path.poses] == [
+        s.stamp_ns for s in posed
+    ]
     assert (origin.header.frame_id, origin.child_frame_id) == ("utm", "map")
     assert (origin.transform.translation.x, origin.transform.translation.y) == frames.origin
     for msg, s in zip(msgs, posed, strict=True):
@@ -226,7 +244,8 @@ def test_the_mcap_read_by_the_mcap_reader(tmp_path: Path) -> None:
     posed = [s for s in done if s.pose is not None]
     assert counts["/pnvlad/pose"] == counts["/pnvlad/scan"] == counts["/pnvlad/fix"] == len(posed)
     assert counts["/pnvlad/pose/covariance"] == sum(s.covariance is not None for s in posed)
-    assert counts["/pnvlad/state"] == counts["/pnvlad/path"] == len(done)
+    assert counts["/pnvlad/state"] == len(done)
+    assert counts["/pnvlad/path"] == counts["/pnvlad/truth/path"] == 3  # steps 1, 11, the end
     assert counts["/pnvlad/map/entries"] == counts["/pnvlad/map/cloud"] == 1
     assert counts["/tf"] == len(posed) + 1  # map -> sensor each pose, utm -> map once
     frames = a_map().frames()

@@ -13,8 +13,8 @@ Topics (frame ``map`` unless said; :mod:`.step` for the frames and units):
 ``/pnvlad/pose``            PoseInFrame          the pose
 ``/pnvlad/pose/covariance`` SceneUpdate          the pose's 1-sigma ellipsoid (x, y, z)
 ``/pnvlad/truth``           PoseInFrame          the true pose
-``/pnvlad/path``            PosesInFrame         the poses so far
-``/pnvlad/truth/path``      PosesInFrame         the true poses so far
+``/pnvlad/path``            PosesInFrame         the poses so far (every 10th step, the end)
+``/pnvlad/truth/path``      PosesInFrame         the true poses so far (the same)
 ``/pnvlad/state``           JSON                 state, state_code, reason, errors, sigma
 ``/pnvlad/fix``             LocationFix          latitude, longitude (where the zone is known)
 ==========================  ===================  ==============================================
@@ -35,10 +35,12 @@ import numpy as np
 from pnvlad_service.errors import InputError
 from pnvlad_service.extras import require
 from pnvlad_service.localization.outputs.step import (
+    PATH_EVERY,
     DriveStep,
     Frames,
     MapView,
     quaternion,
+    thinned,
 )
 
 #: The most points of a scan sent (a stride thins a larger one).
@@ -136,6 +138,7 @@ class FoxgloveView:
         self.truth_path: list[Any] = []
         self._last_ns = 0
         self._started = False
+        self._steps = self._paths_at = 0
 
     @property
     def port(self) -> int | None:
@@ -251,14 +254,13 @@ class FoxgloveView:
             if step.points is not None and len(step.points):
                 pts = step.points[:: max(1, -(-len(step.points) // SCAN_POINTS))]
                 self.scan.log(self._cloud(pts, ns, pose), log_time=ns)
-        self.poses.log(m.PosesInFrame(timestamp=stamp, frame_id="map", poses=self.path),
-                       log_time=ns)  # fmt: skip
         if step.truth is not None:
             g = self._pose(self.frames.to_map(step.truth))
             self.truth.log(m.PoseInFrame(timestamp=stamp, frame_id="map", pose=g), log_time=ns)
             self.truth_path.append(g)
-            self.truths.log(m.PosesInFrame(timestamp=stamp, frame_id="map",
-                                           poses=self.truth_path), log_time=ns)  # fmt: skip
+        self._steps += 1
+        if self._steps % PATH_EVERY == 1 or PATH_EVERY == 1:
+            self._log_paths(ns)
         self.state.log(step.figures(), log_time=ns)
         if step.latlon is not None and step.pose is not None:
             cov = step.covariance_or_unknown()[:3, :3].reshape(-1)
@@ -269,6 +271,16 @@ class FoxgloveView:
                 longitude=step.latlon[1], altitude=float(step.pose[2, 3]),
                 position_covariance=[float(v) for v in cov], position_covariance_type=kind,
             ), log_time=ns)  # fmt: skip
+
+    def _log_paths(self, ns: int) -> None:
+        """The paths so far (:data:`~.step.PATH_EVERY`, :func:`~.step.thinned`)."""
+        m, stamp = self.fg.messages, self._stamp(ns)
+        self.poses.log(m.PosesInFrame(timestamp=stamp, frame_id="map", poses=thinned(self.path)),
+                       log_time=ns)  # fmt: skip
+        if self.truth_path:
+            truth = m.PosesInFrame(timestamp=stamp, frame_id="map", poses=thinned(self.truth_path))
+            self.truths.log(truth, log_time=ns)
+        self._paths_at = self._steps
 
     def abort(self) -> None:
         """Stop the server and drop the MCAP (a failed view leaves no file)."""
@@ -281,6 +293,8 @@ class FoxgloveView:
             self._partial.unlink(missing_ok=True)
 
     def close(self) -> list[Path]:
+        if self._started and self._paths_at != self._steps:
+            self._log_paths(self._last_ns)  # the whole drive's
         if self.server is not None:
             self.server.stop()
             self.server = None

@@ -5,7 +5,8 @@
 ``/pnvlad/pose``       geometry_msgs/msg/PoseWithCovarianceStamped  the pose and its
                                                                     covariance (nav2 / AMCL's
                                                                     ``/initialpose`` type)
-``/pnvlad/path``       nav_msgs/msg/Path                            the poses so far
+``/pnvlad/path``       nav_msgs/msg/Path                            the poses so far (every
+                                                                    10th scan, the end)
 ``/pnvlad/truth``      geometry_msgs/msg/PoseStamped                the true pose
 ``/pnvlad/fix``        sensor_msgs/msg/NavSatFix                    latitude, longitude
                                                                     (zone known)
@@ -31,7 +32,14 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.outputs.step import DriveStep, Frames, MapView, quaternion
+from pnvlad_service.localization.outputs.step import (
+    PATH_EVERY,
+    DriveStep,
+    Frames,
+    MapView,
+    quaternion,
+    thinned,
+)
 
 
 class Ros2Bag:
@@ -58,6 +66,7 @@ class Ros2Bag:
         self.frames = Frames((0.0, 0.0))
         self.path_poses: list[Any] = []
         self._static = False
+        self._steps = self._path_at = self._last_ns = 0
 
     def start(self, frames: Frames, view: MapView | None) -> None:
         self.frames = frames
@@ -109,11 +118,6 @@ class Ros2Bag:
             ), ns)  # fmt: skip
             self.path_poses.append(t["geometry_msgs/msg/PoseStamped"](
                 header=self._header(ns, "map"), pose=msg))  # fmt: skip
-            write(
-                "/pnvlad/path",
-                t["nav_msgs/msg/Path"](header=self._header(ns, "map"), poses=list(self.path_poses)),
-                ns,
-            )
             write("/tf", tf_type(transforms=[self._transform(ns, "map", "sensor", pose)]), ns)
             if step.latlon is not None:
                 write("/pnvlad/fix", self._fix(step, ns), ns)
@@ -122,6 +126,17 @@ class Ros2Bag:
                 header=self._header(ns, "map"), pose=self._pose(self.frames.to_map(step.truth)),
             ), ns)  # fmt: skip
         write("/pnvlad/state", t["std_msgs/msg/String"](data=json.dumps(step.figures())), ns)
+        self._steps, self._last_ns = self._steps + 1, ns
+        if self.path_poses and (self._steps % PATH_EVERY == 1 or PATH_EVERY == 1):
+            self._write_path(ns)
+
+    def _write_path(self, ns: int) -> None:
+        """The poses so far (:data:`~.step.PATH_EVERY`, :func:`~.step.thinned`)."""
+        t = self.types
+        path = t["nav_msgs/msg/Path"](header=self._header(ns, "map"),
+                                      poses=thinned(self.path_poses))  # fmt: skip
+        self.bag.write("/pnvlad/path", path, ns)
+        self._path_at = self._steps
 
     def _fix(self, step: DriveStep, ns: int) -> Any:
         t = self.types
@@ -146,6 +161,8 @@ class Ros2Bag:
             shutil.rmtree(self._tmp, ignore_errors=True)
 
     def close(self) -> list[Path]:
+        if self.path_poses and self._path_at != self._steps:
+            self._write_path(self._last_ns)  # the whole drive's
         self.bag.__exit__(None, None, None)
         os.replace(self._partial, self.path)
         self._tmp.rmdir()

@@ -33,6 +33,11 @@ AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 UNKNOWN_VARIANCE = 1e6
 #: The origin of the ``map`` frame is the map's south-west corner rounded down to this (m).
 ORIGIN_GRID_M = 1000.0
+#: A path (the poses so far) is sent on the first step, every this many steps and at the end:
+#: sent each step, a long drive's paths would grow its files with the square of its length.
+PATH_EVERY = 10
+#: ... of at most this many poses (a longer one thinned evenly, its last pose kept).
+PATH_POSES = 2000
 #: The states a drive step can be in, and the number each is plotted as.
 STATE_CODES = {"searching": 0, "tracking": 1, "lost": 2}
 
@@ -141,6 +146,18 @@ class MapView:
     def frames(self) -> Frames:
         """The ``map`` frame of this map (:meth:`Frames.around` its entries)."""
         return Frames.around(self.entries[:, 0], self.entries[:, 1], self.utm_zone)
+
+
+def thinned(items: list, most: int = PATH_POSES) -> list:
+    """``items`` when at most ``most`` of them, else every k-th (k the smallest that gives at
+    most ``most``) and the last."""
+    if len(items) <= most:
+        return list(items)
+    k = -(-len(items) // (most - 1))
+    out = list(items[::k])
+    if out[-1] is not items[-1]:
+        out.append(items[-1])
+    return out
 
 
 def quaternion(rotation: np.ndarray) -> tuple[float, float, float, float]:
