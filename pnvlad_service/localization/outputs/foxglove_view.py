@@ -25,6 +25,7 @@ the start; a client that subscribes to them later gets them again at the next st
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 from pathlib import Path
@@ -42,6 +43,8 @@ from pnvlad_service.localization.outputs.step import (
     quaternion,
     thinned,
 )
+
+log = logging.getLogger(__name__)
 
 #: The most points of a scan sent (a stride thins a larger one).
 SCAN_POINTS = 20_000
@@ -120,9 +123,13 @@ class FoxgloveView:
         self.latch = _Latch()
         self._channels()
         if self.mcap is not None:
-            self.mcap.parent.mkdir(parents=True, exist_ok=True)
             self._partial = self.mcap.with_name(f".{self.mcap.name}.partial")
-            self.writer = fg.open_mcap(self._partial, allow_overwrite=True, context=self.context)
+            try:
+                self.mcap.parent.mkdir(parents=True, exist_ok=True)
+                self.writer = fg.open_mcap(self._partial, allow_overwrite=True,
+                                           context=self.context)  # fmt: skip
+            except (OSError, RuntimeError) as exc:
+                raise OSError(f"--mcap {self.mcap}: {exc}") from None
         if serve is not None:
             try:
                 self.server = fg.start_server(
@@ -132,6 +139,8 @@ class FoxgloveView:
             except RuntimeError as exc:
                 self.abort()
                 raise RuntimeError(f"--foxglove {serve[0]}:{serve[1]}: {exc}") from None
+            log.info("the live view: ws://%s:%d (Foxglove: Open connection, Foxglove WebSocket)",
+                     serve[0], self.server.port)  # fmt: skip
         self.frames = Frames((0.0, 0.0))
         self.view: MapView | None = None
         self.path: list[Any] = []
