@@ -423,3 +423,18 @@ def test_the_layout_names_what_the_view_streams(tmp_path: Path) -> None:
     assert drawn | others <= streamed and {"/pnvlad/scan", "/pnvlad/pose"} <= drawn
     fields = {p.split(".", 1)[1] for p in paths if p.startswith("/pnvlad/state.")}
     assert fields and fields <= set(STATE_SCHEMA["properties"]) and len(fields) == len(paths)
+
+
+def test_a_ros2_bag_named_like_a_ros1_file_or_already_there_is_refused(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    (tmp_path / "there").mkdir()
+    outputs = open_outputs(ros2_bag=tmp_path / "drive.bag")
+    outputs.add(lambda: __import__(
+        "pnvlad_service.localization.outputs.ros2bag", fromlist=["Ros2Bag"]
+    ).Ros2Bag(tmp_path / "there"))  # fmt: skip
+    assert outputs.sinks == [] and outputs.errors == [
+        f"{tmp_path / 'drive.bag'}: a ROS 2 bag is a folder; .bag names a ROS 1 bag's file "
+        "(readers tell them by it): name it without .bag",
+        f"{tmp_path / 'there'}: already exists (a bag is never overwritten)",
+    ]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["there"]

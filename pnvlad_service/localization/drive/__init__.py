@@ -12,6 +12,10 @@ a scan, a CSV, a report and a PNG.
 - :mod:`.config` and :mod:`.job`: a whole drive from its settings (``pnvlad localize
   --rosbag`` / ``--kitti``).
 
+Each scan also goes, as a :class:`~pnvlad_service.localization.outputs.step.DriveStep`, to the
+run's sinks (:mod:`pnvlad_service.localization.outputs`: the live view in Foxglove, MCAP, a
+ROS 2 bag, TUM / KITTI trajectories).
+
 Example, a KITTI sequence followed against a server::
 
     from pnvlad_service.client import LocalizeClient

@@ -97,7 +97,7 @@ class Outputs:
         try:
             self.sinks.append(opener())
         except (OSError, RuntimeError, InputError) as exc:
-            text = f"{getattr(exc, 'detail', None) or exc}".splitlines()[0]
+            text = str(exc).splitlines()[0]  # an InputError's names its file
             log.error("%s (the drive goes on without it)", text)
             self.errors.append(text)
 
