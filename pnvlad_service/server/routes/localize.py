@@ -140,8 +140,12 @@ def router(contract: Contract) -> APIRouter:
         total_s = time.perf_counter() - t0
         for a in answers:
             metrics.observe(a.timings.seconds())
+        results = [a.to_json() for a in answers]
+        if request.app.state.query_view is not None:  # pnvlad serve --foxglove
+            for result in results:
+                request.app.state.query_view.answer(result)
         doc: dict[str, Any] = {
-            "results": [a.to_json() for a in answers],
+            "results": results,
             "timings_ms": {"parse": milliseconds(parse_s), "total": milliseconds(total_s)},
             **loc.info.to_json(),
         }
