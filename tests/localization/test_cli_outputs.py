@@ -139,6 +139,7 @@ def test_follow_live_and_to_files(drive: dict, tiny_maps: dict, tmp_path: Path) 
     from pnvlad_service.localization.outputs.mcap_track import plot_mcap, read_track
 
     evo = pytest.importorskip("evo.tools.file_interface")
+    pytest.importorskip("pyproj")  # the zone's latitude and longitude (the geo extra)
     port = free_port()
     out = tmp_path / "run0"
     watcher = Watcher(port)

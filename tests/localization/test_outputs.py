@@ -438,3 +438,21 @@ def test_a_ros2_bag_named_like_a_ros1_file_or_already_there_is_refused(tmp_path:
         f"{tmp_path / 'there'}: already exists (a bag is never overwritten)",
     ]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["there"]
+
+
+def test_without_pyproj_the_outputs_go_on_without_latitude(tmp_path: Path) -> None:
+    from pnvlad_service.errors import MissingDependencyError
+
+    calls = []
+
+    def latlon(zone: str, east: float, north: float) -> tuple[float, float]:
+        calls.append(zone)
+        raise MissingDependencyError("pyproj", "geo", "latitude and longitude")
+
+    outputs = Outputs([Trajectories(tmp_path / "drive")], latlon=latlon)
+    outputs.start(a_map(), utm_zone="32U")
+    for s in steps():
+        outputs.step(s)
+    assert (tmp_path / "drive.tum") in outputs.close()
+    assert calls == ["32U"] and len(outputs.errors) == 1
+    assert "pip install 'pnvlad[geo]'" in outputs.errors[0]

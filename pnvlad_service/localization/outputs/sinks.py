@@ -147,7 +147,7 @@ class Outputs:
                 ll = self._latlon(self._frames.utm_zone, float(step.pose[0, 3]),
                                   float(step.pose[1, 3]))  # fmt: skip
                 step = dataclasses.replace(step, latlon=ll)
-            except InputError as exc:
+            except (InputError, ImportError) as exc:  # ImportError: the geo extra missing
                 self.errors.append(str(exc))
                 log.error("%s: latitude and longitude left out", exc)
                 self._frames = dataclasses.replace(self._frames, utm_zone="")
