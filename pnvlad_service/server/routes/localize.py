@@ -55,6 +55,14 @@ class Threads:
 THREADS = Threads()
 
 
+def _show(request: Request, answers: list[dict[str, Any]]) -> None:
+    """``pnvlad serve --foxglove``: each answer's JSON to the live view."""
+    view = request.app.state.query_view
+    if view is not None:
+        for doc in answers:
+            view.answer(doc)
+
+
 def _post(r: APIRouter, path: str, summary: str, answer: type, content: dict[str, Any]) -> Any:
     """``r.post`` for a localisation route: answered with ``answer`` or one of the problems
     both routes share; its required body is one of ``content``'s media types."""
@@ -111,8 +119,7 @@ def router(contract: Contract) -> APIRouter:
         answer = await run(loc, parse, THREADS, t0=t0)
         metrics.observe(answer.timings.seconds())
         doc = answer.to_json()
-        if request.app.state.query_view is not None:  # pnvlad serve --foxglove
-            request.app.state.query_view.answer(doc)
+        _show(request, [doc])
         return JSONResponse({**doc, **loc.info.to_json()})
 
     @_post(
@@ -141,9 +148,7 @@ def router(contract: Contract) -> APIRouter:
         for a in answers:
             metrics.observe(a.timings.seconds())
         results = [a.to_json() for a in answers]
-        if request.app.state.query_view is not None:  # pnvlad serve --foxglove
-            for result in results:
-                request.app.state.query_view.answer(result)
+        _show(request, results)
         doc: dict[str, Any] = {
             "results": results,
             "timings_ms": {"parse": milliseconds(parse_s), "total": milliseconds(total_s)},
