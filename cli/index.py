@@ -100,6 +100,12 @@ def build(
     geometry: str = typer.Option(
         "auto", "--geometry", callback=_geometry_mode, help=_GEOMETRY_HELP
     ),
+    utm_zone: str = typer.Option(
+        None,
+        "--utm-zone",
+        help="UTM zone of the tree's coordinates (30U, 32N, 17S, 17 south), carried by every "
+        "answer (default: the one the runs were prepared with, else unknown).",
+    ),
     progress: bool = progress_option(),
 ) -> None:
     """Embed every database submap of a benchmark tree and write an index bundle.
@@ -131,6 +137,7 @@ def build(
             overwrite=overwrite,
             geometry=geometry,
             progress=progress,
+            utm_zone=utm_zone,
         )
     if rep.path is None:  # a non-zero torchrun rank
         return

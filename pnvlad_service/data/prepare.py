@@ -59,6 +59,7 @@ from pnvlad_service.data.tree import write_locations_csv
 from pnvlad_service.data.truth import drive_true_poses, true_columns
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import write_submap
+from pnvlad_service.io.utm import normalize_zone
 from pnvlad_service.preprocess.filter_g import GConfig, GResult, apply_g, scan_config
 
 log = logging.getLogger(__name__)
@@ -457,6 +458,7 @@ def prepare_drive(
     resume: bool = False,
     overwrite: bool = False,
     progress: bool = True,
+    utm_zone: str = "",
 ) -> PrepareResult:
     """Cut one drive into the submaps of several kinds (default: train and test) in one pass.
 
@@ -483,6 +485,9 @@ def prepare_drive(
       accumulation fast on dense drives.
     - ``raw_scans``: also keep the raw scan at each test submap, sensor frame, with its poses
       (:mod:`.scans`: the single-scan queries of ``pnvlad eval --queries scans``).
+    - ``utm_zone``: the zone of the drive's UTM coordinates (``30U``, ``17 south``:
+      :mod:`pnvlad_service.io.utm`), recorded in each folder's prepare record for ``pnvlad
+      index build`` to give its answers; ``""``: unknown. Malformed: ``InputError``.
     - ``resume``: keep submaps already on disk with the right size (same parameters required);
       ``overwrite``: remove what the folders hold first.
 
@@ -498,6 +503,7 @@ def prepare_drive(
     started = time.perf_counter()
     out = Path(out_run_dir)
     stamps, poses = check_drive(drive)
+    normalize_zone(utm_zone)  # a malformed zone refused before anything is read
     check_box_m(box_m, allow_zero=True)  # checked even where only keyframes (no box) are cut
     opts = _check_options(
         kinds,
@@ -516,6 +522,8 @@ def prepare_drive(
     )
     # Only now, with every argument checked, touch the output folders.
     manifests = [_manifest(drive, len(stamps), layout, plan, opts) for plan in plans]
+    if normalize_zone(utm_zone):
+        manifests = [{**m, "utm_zone": normalize_zone(utm_zone)} for m in manifests]
     targets = [(p.result.folder, p.result.csv) for p in plans]
     if raw_scans:
         targets.append((out / RAW_FOLDER, out / RAW_CSV))

@@ -96,6 +96,7 @@ class PrepareRequest:
     raw_scans: bool = False
     resume: bool = False
     overwrite: bool = False
+    utm_zone: str = ""
 
     @classmethod
     def checked(
@@ -156,6 +157,7 @@ class PrepareRequest:
             resume=self.resume,
             overwrite=self.overwrite,
             progress=progress,
+            utm_zone=self.utm_zone,
         )
 
 
