@@ -45,6 +45,15 @@ _RESUME = typer.Option(
     "--config is given; options given here still apply).",
     rich_help_panel=_RUN,
 )
+_INIT = typer.Option(
+    None,
+    "--init",
+    help="Start from these weights instead of random ones (fine-tuning on your map): "
+    "pretrained:NAME, a training run or model directory, or a .safetensors/.pt weights file. "
+    "They must fit the config's model (-c: the one they were trained with); a layer that "
+    "does not is named.",
+    rich_help_panel=_MODEL,
+)
 _EPOCHS = typer.Option(None, "--epochs", help="Epochs (paper: 20).", rich_help_panel=_RUN)
 _MAX_STEPS = typer.Option(None, "--max-steps", help="Stop after N steps.", rich_help_panel=_RUN)
 _MAX_MINUTES = typer.Option(
@@ -117,6 +126,7 @@ def train(
     pickles: Path = pickles_option("Folder of the published pickles instead of --splits.", _DATA),
     out: Path = _OUT,
     resume: bool = _RESUME,
+    init: str = _INIT,
     epochs: int = _EPOCHS,
     max_steps: int = _MAX_STEPS,
     max_minutes: float = _MAX_MINUTES,
@@ -152,6 +162,9 @@ def train(
       pnvlad train -c compact -o runs/a --resume
 
       pnvlad train -c compact --set model.output_dim=128 --dump-config
+
+      pnvlad train -c bev --init runs/a --root campus/ --splits campus/splits.json -o runs/b
+      --max-minutes 5   (fine-tune runs/a's weights on another map)
     """
     with user_errors():
         from pnvlad_service.errors import InputError
@@ -168,6 +181,7 @@ def train(
                 "train.epochs": epochs,
                 "train.max_steps": max_steps,
                 "train.max_minutes": max_minutes,
+                "train.init": init,
                 "train.batch_size": batch_size,
                 "train.lr": lr,
                 "train.loss": loss,
