@@ -46,6 +46,22 @@ def check(
         raise typer.Exit(code=1)
 
 
+_KIND = typer.Option(
+    "submap",
+    "--kind",
+    help="submap (the 20 m submaps: train and test layouts; default ROOT/splits.json) or "
+    "keyframe (the single-scan keyframe maps, for -c bev_scan/cpu_scan; default "
+    "ROOT/splits_keyframes.json).",
+)
+_QUERY_RUN = typer.Option(
+    None,
+    "--query-run",
+    help="A run held out as queries (repeatable): the training tuples come from every "
+    "place of the other runs (the map) and none of these, no test regions needed; each "
+    "query run is evaluated against the map runs. For a map of your own drives.",
+)
+
+
 def splits(
     root: Path = typer.Argument(..., help="Tree root holding dataset folders."),
     dataset: list[str] = typer.Option(
@@ -72,20 +88,8 @@ def splits(
         help="Use the runs the published scripts picked (Oxford: train on all sorted runs but "
         "the last, evaluate on 23 of them; in-house: evaluate entries 1-14). Default: all runs.",
     ),
-    kind: str = typer.Option(
-        "submap",
-        "--kind",
-        help="submap (the 20 m submaps: train and test layouts; default ROOT/splits.json) or "
-        "keyframe (the single-scan keyframe maps, for -c bev_scan/cpu_scan; default "
-        "ROOT/splits_keyframes.json).",
-    ),
-    query_run: list[str] = typer.Option(
-        None,
-        "--query-run",
-        help="A run held out as queries (repeatable): the training tuples come from every "
-        "place of the other runs (the map) and none of these, no test regions needed; each "
-        "query run is evaluated against the map runs. For a map of your own drives.",
-    ),
+    kind: str = _KIND,
+    query_run: list[str] = _QUERY_RUN,
     progress: bool = progress_option(),
 ) -> None:
     """Build training tuples and evaluation sets by the published rules.
@@ -129,7 +133,7 @@ def splits(
             keyframes=kind == "keyframe",
             query_runs=query_run or None,
         )
-        target = out or (root / ("splits.json" if kind == "submap" else "splits_keyframes.json"))
+        target = out or root / ("splits.json" if kind == "submap" else "splits_keyframes.json")
         sp.save_splits(target, result)
         _summary(result)
         typer.echo(f"wrote {target}")

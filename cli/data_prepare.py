@@ -288,7 +288,6 @@ def prepare(
         from pnvlad_service.data.prepare_request import PrepareRequest, report_lines
         from pnvlad_service.data.sources.registry import DriveOptions, chosen, close_drive
         from pnvlad_service.errors import InputError
-        from pnvlad_service.io.utm import normalize_zone
 
         if list_topics:
             if rosbag is None:
@@ -315,7 +314,7 @@ def prepare(
             scan_step=scan_step,
             min_scan_spacing_m=min_spacing,
             raw_scans=raw_scans,
-            utm_zone=normalize_zone(utm_zone, "--utm-zone"),
+            utm_zone=utm_zone,
         )
         options = DriveOptions(
             poses=poses,

@@ -145,13 +145,12 @@ def train(
 ) -> None:
     """Train PointNetVLAD on a benchmark tree and its splits.
 
-    Each step takes tuples of 1 anchor, 2 positives, 18 negatives (hard ones chosen with a
-    descriptor cache refreshed on schedule) and 1 other negative, embeds every distinct cloud
-    once and applies the lazy quadruplet loss; Adam with the paper's learning rate and decay.
-    Writes OUT/checkpoints/ (resumable with --resume), OUT/metrics.jsonl (loss, learning rate,
-    cache refreshes, validation recall) and the final weights in OUT/model/ for 'pnvlad eval'.
-
-    Several processes or machines: torchrun --nproc-per-node 2 -m pnvlad_cli.main train ...
+    Each step takes tuples of 1 anchor, 2 positives, 18 negatives (hard ones from a descriptor
+    cache refreshed on schedule) and 1 other negative, embeds every distinct cloud once and
+    applies the lazy quadruplet loss; Adam with the paper's learning rate and decay. Writes
+    OUT/checkpoints/ (resumable with --resume), OUT/metrics.jsonl (loss, learning rate, cache
+    refreshes, validation recall) and the final weights in OUT/model/ for 'pnvlad eval'. Several
+    processes or machines: torchrun --nproc-per-node 2 -m pnvlad_cli.main train ...
 
     Examples:
 
@@ -162,9 +161,6 @@ def train(
       pnvlad train -c compact -o runs/a --resume
 
       pnvlad train -c compact --set model.output_dim=128 --dump-config
-
-      pnvlad train -c bev --init runs/a --root campus/ --splits campus/splits.json -o runs/b
-      --max-minutes 5   (fine-tune runs/a's weights on another map)
     """
     with user_errors():
         from pnvlad_service.errors import InputError

@@ -104,6 +104,7 @@ class _Options:
     scan_step: int
     min_scan_spacing_m: float
     keyframe_config: GConfig
+    utm_zone: str = ""
 
 
 @dataclass
@@ -143,8 +144,10 @@ def _check_options(
     max_range_m: float | None,
     scan_step: int,
     min_scan_spacing_m: float,
+    utm_zone: str = "",
 ) -> _Options:
-    """The shared settings, checked: ``InputError`` naming the argument that is out of range."""
+    """The shared settings, checked: ``InputError`` naming the argument that is out of range
+    (or the UTM zone that is malformed: :mod:`pnvlad_service.io.utm`)."""
     if scan_step < 1:
         raise InputError(f"must be >= 1, got {scan_step}", "scan_step")
     if not (math.isfinite(min_scan_spacing_m) and min_scan_spacing_m >= 0):
@@ -161,6 +164,7 @@ def _check_options(
         scan_step,
         min_scan_spacing_m,
         keyframe_config,
+        normalize_zone(utm_zone),
     )
 
 
@@ -232,6 +236,7 @@ def _manifest(
         "scan_step": opts.scan_step,
         "min_scan_spacing_m": opts.min_scan_spacing_m,
         "g_config": plan.config.model_dump(mode="json"),
+        **({"utm_zone": opts.utm_zone} if opts.utm_zone else {}),
     }
 
 
@@ -465,8 +470,7 @@ def prepare_drive(
     - ``layout``: ``oxford`` or ``inhouse`` (folder and CSV names, default geometry);
       ``kinds``: ``train``, ``test`` and/or ``keyframe`` (single scans, one every
       ``KEYFRAME_STRIDE_M`` unless ``strides_m`` says otherwise, each whole through
-      ``keyframe_config``: default
-      :func:`~pnvlad_service.preprocess.filter_g.scan_config`, G with a range crop).
+      ``keyframe_config``: default :func:`~.filter_g.scan_config`, G with a range crop).
     - ``window_m``: travelled distance accumulated per submap (default: the layout's, 20 m
       oxford, 25 m inhouse), centred on the submap position.
     - ``box_m``: side of a square crop (UTM-aligned) around the submap position (default: none
@@ -481,15 +485,12 @@ def prepare_drive(
     - ``max_points_per_scan`` (random subset per scan, seeded by scan index), ``max_range_m``
       (drop points farther from the sensor), ``scan_step`` (every k-th scan) and
       ``min_scan_spacing_m`` (skip scans less than this far along the trajectory from the last
-      one used: a car waiting at a light adds one scan, not hundreds) keep the
-      accumulation fast on dense drives.
+      one used: a car waiting at a light adds one scan) keep the accumulation fast.
     - ``raw_scans``: also keep the raw scan at each test submap, sensor frame, with its poses
       (:mod:`.scans`: the single-scan queries of ``pnvlad eval --queries scans``).
-    - ``utm_zone``: the zone of the drive's UTM coordinates (``30U``, ``17 south``:
-      :mod:`pnvlad_service.io.utm`), recorded in each folder's prepare record for ``pnvlad
-      index build`` to give its answers; ``""``: unknown. Malformed: ``InputError``.
     - ``resume``: keep submaps already on disk with the right size (same parameters required);
-      ``overwrite``: remove what the folders hold first.
+      ``overwrite``: remove what the folders hold first. ``utm_zone``: the zone of the poses
+      (``30U``, :mod:`pnvlad_service.io.utm`), recorded for ``pnvlad index build``.
 
     Every scan is read once (windows slide forward over a cache); a window shared by two kinds
     runs G once and is written to both folders. A submap is named by the timestamp of its
@@ -497,13 +498,11 @@ def prepare_drive(
     are written last, atomically.
 
     Returns a :class:`PrepareResult`. Raises :class:`InputError` on a bad drive or arguments,
-    ``FileExistsError`` when an output folder already holds submaps and neither ``resume`` nor
-    ``overwrite`` is given.
+    ``FileExistsError`` on output folders that hold submaps, without ``resume``/``overwrite``.
     """
     started = time.perf_counter()
     out = Path(out_run_dir)
     stamps, poses = check_drive(drive)
-    normalize_zone(utm_zone)  # a malformed zone refused before anything is read
     check_box_m(box_m, allow_zero=True)  # checked even where only keyframes (no box) are cut
     opts = _check_options(
         kinds,
@@ -514,6 +513,7 @@ def prepare_drive(
         max_range_m=max_range_m,
         scan_step=scan_step,
         min_scan_spacing_m=min_scan_spacing_m,
+        utm_zone=utm_zone,
     )
     travelled = travelled_distance(poses)
     use = used_scans(travelled, min_scan_spacing_m, scan_step)
@@ -522,8 +522,6 @@ def prepare_drive(
     )
     # Only now, with every argument checked, touch the output folders.
     manifests = [_manifest(drive, len(stamps), layout, plan, opts) for plan in plans]
-    if normalize_zone(utm_zone):
-        manifests = [{**m, "utm_zone": normalize_zone(utm_zone)} for m in manifests]
     targets = [(p.result.folder, p.result.csv) for p in plans]
     if raw_scans:
         targets.append((out / RAW_FOLDER, out / RAW_CSV))
