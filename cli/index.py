@@ -224,6 +224,8 @@ def info(
         typer.echo(json.dumps({"manifest": manifest.to_json(), "files_ok": checks}, indent=2))
     else:
         rows = _info_rows(bundle, manifest, checks)
+        if checks.get("metadata.npz"):
+            rows.insert(4, ("utm zone", _zones(bundle)))
         width = max(len(k) for k, _ in rows)
         for k, v in rows:
             typer.echo(f"{k:<{width}}  {v}")
@@ -277,6 +279,14 @@ def _checkpoint_state(manifest: Manifest) -> str:
     except InputError:
         return "DIFFERENT weights"
     return "OK (same weights)"
+
+
+def _zones(bundle: Path) -> str:
+    """The UTM zones of a bundle's entries (one, where a map is made as it should be)."""
+    from pnvlad_service.index.bundle import Metadata
+
+    zones = sorted({str(z) for z in Metadata.load(bundle / "metadata.npz").utm_zone.tolist()})
+    return ", ".join(z or "unknown (index build --utm-zone gives one)" for z in zones)
 
 
 def _info_rows(bundle: Path, manifest: Manifest, checks: dict[str, bool]) -> list[tuple[str, str]]:

@@ -86,6 +86,11 @@ def test_index_build_gives_a_zone_to_runs_prepared_without_one(tmp_path: Path, c
     )  # fmt: skip
     assert res.exit_code == 0, res.output
     assert set(IndexBundle.load(tmp_path / "z.index").metadata.utm_zone.tolist()) == {"30U"}
+    res = CliRunner().invoke(app, ["index", "info", str(tmp_path / "z.index")])
+    assert res.exit_code == 0 and [x.split()[2:] for x in res.output.splitlines()
+                                   if x.startswith("utm zone")] == [["30U"]]  # fmt: skip
+    res = CliRunner().invoke(app, ["index", "info", str(tmp_path / "none.index")])
+    assert "utm zone" in res.output and "unknown" in res.output
     res = CliRunner().invoke(
         app,
         ["index", "build", "-m", str(ckpt), "-r", str(tree), "-o", str(tmp_path / "bad.index"),
