@@ -46,6 +46,22 @@ def check(
         raise typer.Exit(code=1)
 
 
+_KIND = typer.Option(
+    "submap",
+    "--kind",
+    help="submap (the 20 m submaps: train and test layouts; default ROOT/splits.json) or "
+    "keyframe (the single-scan keyframe maps, for -c bev_scan/cpu_scan; default "
+    "ROOT/splits_keyframes.json).",
+)
+_QUERY_RUN = typer.Option(
+    None,
+    "--query-run",
+    help="A run held out as queries (repeatable): the training tuples come from every "
+    "place of the other runs (the map) and none of these, no test regions needed; each "
+    "query run is evaluated against the map runs. For a map of your own drives.",
+)
+
+
 def splits(
     root: Path = typer.Argument(..., help="Tree root holding dataset folders."),
     dataset: list[str] = typer.Option(
@@ -72,6 +88,8 @@ def splits(
         help="Use the runs the published scripts picked (Oxford: train on all sorted runs but "
         "the last, evaluate on 23 of them; in-house: evaluate entries 1-14). Default: all runs.",
     ),
+    kind: str = _KIND,
+    query_run: list[str] = _QUERY_RUN,
     progress: bool = progress_option(),
 ) -> None:
     """Build training tuples and evaluation sets by the published rules.
@@ -84,13 +102,25 @@ def splits(
     --truth-radius (25 m). Test regions: squares of +-150 m (strict)
     around given centres. Writes our JSON format (docs/SPLITS.md).
 
-    Example:
+    With --query-run, a map of your own drives: training tuples from every
+    place of the map runs, the query runs evaluated against them. Positions
+    are a run's aligned ones (RUN/poses_aligned.csv, from pnvlad map align)
+    where it has them, else the recorded ones.
+
+    Examples:
 
         pnvlad data splits benchmark_datasets/ -d oxford --export-pickles pickles/
+
+        pnvlad data splits campus/ --kind keyframe --query-run 2026-05-04-run4
     """
     from pnvlad_service.data import splits as sp
+    from pnvlad_service.errors import InputError
 
     with user_errors():
+        if kind not in ("submap", "keyframe"):
+            raise InputError(f"expected submap or keyframe, got {kind!r}", "--kind")
+        if query_run and (regions or published_runs):
+            raise InputError("test regions and published runs do not apply", "--query-run")
         reg = sp.load_regions(regions) if regions else None
         result = sp.build_splits(
             root,
@@ -100,8 +130,10 @@ def splits(
             neg_radius=neg_radius,
             truth_radius=truth_radius,
             published=published_runs,
+            keyframes=kind == "keyframe",
+            query_runs=query_run or None,
         )
-        target = out or (root / "splits.json")
+        target = out or root / ("splits.json" if kind == "submap" else "splits_keyframes.json")
         sp.save_splits(target, result)
         _summary(result)
         typer.echo(f"wrote {target}")

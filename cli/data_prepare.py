@@ -61,6 +61,14 @@ _ORIGIN = typer.Option(
     "frame's origin (default 0,0: local metres).",
     rich_help_panel=_INPUT,
 )
+_UTM_ZONE = typer.Option(
+    None,
+    "--utm-zone",
+    help="UTM zone of the poses' coordinates: number and latitude band (30U, 32N, 17S) or "
+    "hemisphere (17 south). Recorded with the run; the index and its answers carry it "
+    "(default: unknown). Give every run of a map the same.",
+    rich_help_panel=_INPUT,
+)
 _YAW = typer.Option(
     0.0,
     "--yaw",
@@ -225,6 +233,7 @@ def prepare(
     skip_missing: bool = _SKIP_MISSING,
     origin: str = _ORIGIN,
     yaw: float = _YAW,
+    utm_zone: str = _UTM_ZONE,
     rosbag: Path = bag_options.ROSBAG,
     cloud_topic: str = bag_options.CLOUD_TOPIC,
     pose_topic: str = bag_options.POSE_TOPIC,
@@ -262,7 +271,7 @@ def prepare(
     Examples:
 
       pnvlad data prepare --kitti dataset/sequences/00 --origin 5735712.8,620084.4
-      --out bench/kitti/00
+      --utm-zone 30U --out bench/kitti/00
 
       pnvlad data prepare --scans drive/scans --poses drive/poses.csv --layout inhouse
       --out bench/campus/run1
@@ -305,6 +314,7 @@ def prepare(
             scan_step=scan_step,
             min_scan_spacing_m=min_spacing,
             raw_scans=raw_scans,
+            utm_zone=utm_zone,
         )
         options = DriveOptions(
             poses=poses,

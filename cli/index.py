@@ -100,6 +100,12 @@ def build(
     geometry: str = typer.Option(
         "auto", "--geometry", callback=_geometry_mode, help=_GEOMETRY_HELP
     ),
+    utm_zone: str = typer.Option(
+        None,
+        "--utm-zone",
+        help="UTM zone of the tree's coordinates (30U, 32N, 17S, 17 south), carried by every "
+        "answer (default: the one the runs were prepared with, else unknown).",
+    ),
     progress: bool = progress_option(),
 ) -> None:
     """Embed every database submap of a benchmark tree and write an index bundle.
@@ -131,6 +137,7 @@ def build(
             overwrite=overwrite,
             geometry=geometry,
             progress=progress,
+            utm_zone=utm_zone,
         )
     if rep.path is None:  # a non-zero torchrun rank
         return
@@ -217,6 +224,8 @@ def info(
         typer.echo(json.dumps({"manifest": manifest.to_json(), "files_ok": checks}, indent=2))
     else:
         rows = _info_rows(bundle, manifest, checks)
+        if checks.get("metadata.npz"):
+            rows.insert(4, ("utm zone", _zones(bundle)))
         width = max(len(k) for k, _ in rows)
         for k, v in rows:
             typer.echo(f"{k:<{width}}  {v}")
@@ -270,6 +279,14 @@ def _checkpoint_state(manifest: Manifest) -> str:
     except InputError:
         return "DIFFERENT weights"
     return "OK (same weights)"
+
+
+def _zones(bundle: Path) -> str:
+    """The UTM zones of a bundle's entries (one, where a map is made as it should be)."""
+    from pnvlad_service.index.bundle import Metadata
+
+    zones = sorted({str(z) for z in Metadata.load(bundle / "metadata.npz").utm_zone.tolist()})
+    return ", ".join(z or "unknown (index build --utm-zone gives one)" for z in zones)
 
 
 def _info_rows(bundle: Path, manifest: Manifest, checks: dict[str, bool]) -> list[tuple[str, str]]:

@@ -45,6 +45,15 @@ _RESUME = typer.Option(
     "--config is given; options given here still apply).",
     rich_help_panel=_RUN,
 )
+_INIT = typer.Option(
+    None,
+    "--init",
+    help="Start from these weights instead of random ones (fine-tuning on your map): "
+    "pretrained:NAME, a training run or model directory, or a .safetensors/.pt weights file. "
+    "They must fit the config's model (-c: the one they were trained with); a layer that "
+    "does not is named.",
+    rich_help_panel=_MODEL,
+)
 _EPOCHS = typer.Option(None, "--epochs", help="Epochs (paper: 20).", rich_help_panel=_RUN)
 _MAX_STEPS = typer.Option(None, "--max-steps", help="Stop after N steps.", rich_help_panel=_RUN)
 _MAX_MINUTES = typer.Option(
@@ -117,6 +126,7 @@ def train(
     pickles: Path = pickles_option("Folder of the published pickles instead of --splits.", _DATA),
     out: Path = _OUT,
     resume: bool = _RESUME,
+    init: str = _INIT,
     epochs: int = _EPOCHS,
     max_steps: int = _MAX_STEPS,
     max_minutes: float = _MAX_MINUTES,
@@ -135,13 +145,12 @@ def train(
 ) -> None:
     """Train PointNetVLAD on a benchmark tree and its splits.
 
-    Each step takes tuples of 1 anchor, 2 positives, 18 negatives (hard ones chosen with a
-    descriptor cache refreshed on schedule) and 1 other negative, embeds every distinct cloud
-    once and applies the lazy quadruplet loss; Adam with the paper's learning rate and decay.
-    Writes OUT/checkpoints/ (resumable with --resume), OUT/metrics.jsonl (loss, learning rate,
-    cache refreshes, validation recall) and the final weights in OUT/model/ for 'pnvlad eval'.
-
-    Several processes or machines: torchrun --nproc-per-node 2 -m pnvlad_cli.main train ...
+    Each step takes tuples of 1 anchor, 2 positives, 18 negatives (hard ones from a descriptor
+    cache refreshed on schedule) and 1 other negative, embeds every distinct cloud once and
+    applies the lazy quadruplet loss; Adam with the paper's learning rate and decay. Writes
+    OUT/checkpoints/ (resumable with --resume), OUT/metrics.jsonl (loss, learning rate, cache
+    refreshes, validation recall) and the final weights in OUT/model/ for 'pnvlad eval'. Several
+    processes or machines: torchrun --nproc-per-node 2 -m pnvlad_cli.main train ...
 
     Examples:
 
@@ -168,6 +177,7 @@ def train(
                 "train.epochs": epochs,
                 "train.max_steps": max_steps,
                 "train.max_minutes": max_minutes,
+                "train.init": init,
                 "train.batch_size": batch_size,
                 "train.lr": lr,
                 "train.loss": loss,

@@ -31,7 +31,7 @@ LONG_FUNCTIONS: dict[str, tuple[int, str]] = {
         "the public entry of `pnvlad data prepare`: a 21-line signature and a 37-line "
         "docstring of its options; its code is 48 lines",
     ),
-    "cli/data_prepare.py:prepare": (112, _TYPER + " (34 lines of options, 54 of code)"),
+    "cli/data_prepare.py:prepare": (114, _TYPER + " (35 lines of options, 55 of code)"),
     "cli/data_preprocess.py:preprocess": (94, _TYPER + " (54 lines of options)"),
     "cli/evaluate.py:evaluate": (128, _TYPER + " (30 lines of options, 77 of code)"),
     "cli/localize.py:localize": (

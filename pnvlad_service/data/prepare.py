@@ -59,6 +59,7 @@ from pnvlad_service.data.tree import write_locations_csv
 from pnvlad_service.data.truth import drive_true_poses, true_columns
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import write_submap
+from pnvlad_service.io.utm import normalize_zone
 from pnvlad_service.preprocess.filter_g import GConfig, GResult, apply_g, scan_config
 
 log = logging.getLogger(__name__)
@@ -103,6 +104,7 @@ class _Options:
     scan_step: int
     min_scan_spacing_m: float
     keyframe_config: GConfig
+    utm_zone: str = ""
 
 
 @dataclass
@@ -142,8 +144,10 @@ def _check_options(
     max_range_m: float | None,
     scan_step: int,
     min_scan_spacing_m: float,
+    utm_zone: str = "",
 ) -> _Options:
-    """The shared settings, checked: ``InputError`` naming the argument that is out of range."""
+    """The shared settings, checked: ``InputError`` naming the argument that is out of range
+    (or the UTM zone that is malformed: :mod:`pnvlad_service.io.utm`)."""
     if scan_step < 1:
         raise InputError(f"must be >= 1, got {scan_step}", "scan_step")
     if not (math.isfinite(min_scan_spacing_m) and min_scan_spacing_m >= 0):
@@ -160,6 +164,7 @@ def _check_options(
         scan_step,
         min_scan_spacing_m,
         keyframe_config,
+        normalize_zone(utm_zone),
     )
 
 
@@ -231,6 +236,7 @@ def _manifest(
         "scan_step": opts.scan_step,
         "min_scan_spacing_m": opts.min_scan_spacing_m,
         "g_config": plan.config.model_dump(mode="json"),
+        **({"utm_zone": opts.utm_zone} if opts.utm_zone else {}),
     }
 
 
@@ -457,14 +463,14 @@ def prepare_drive(
     resume: bool = False,
     overwrite: bool = False,
     progress: bool = True,
+    utm_zone: str = "",
 ) -> PrepareResult:
     """Cut one drive into the submaps of several kinds (default: train and test) in one pass.
 
     - ``layout``: ``oxford`` or ``inhouse`` (folder and CSV names, default geometry);
       ``kinds``: ``train``, ``test`` and/or ``keyframe`` (single scans, one every
       ``KEYFRAME_STRIDE_M`` unless ``strides_m`` says otherwise, each whole through
-      ``keyframe_config``: default
-      :func:`~pnvlad_service.preprocess.filter_g.scan_config`, G with a range crop).
+      ``keyframe_config``: default :func:`~.filter_g.scan_config`, G with a range crop).
     - ``window_m``: travelled distance accumulated per submap (default: the layout's, 20 m
       oxford, 25 m inhouse), centred on the submap position.
     - ``box_m``: side of a square crop (UTM-aligned) around the submap position (default: none
@@ -479,12 +485,12 @@ def prepare_drive(
     - ``max_points_per_scan`` (random subset per scan, seeded by scan index), ``max_range_m``
       (drop points farther from the sensor), ``scan_step`` (every k-th scan) and
       ``min_scan_spacing_m`` (skip scans less than this far along the trajectory from the last
-      one used: a car waiting at a light adds one scan, not hundreds) keep the
-      accumulation fast on dense drives.
+      one used: a car waiting at a light adds one scan) keep the accumulation fast.
     - ``raw_scans``: also keep the raw scan at each test submap, sensor frame, with its poses
       (:mod:`.scans`: the single-scan queries of ``pnvlad eval --queries scans``).
     - ``resume``: keep submaps already on disk with the right size (same parameters required);
-      ``overwrite``: remove what the folders hold first.
+      ``overwrite``: remove what the folders hold first. ``utm_zone``: the zone of the poses
+      (``30U``, :mod:`pnvlad_service.io.utm`), recorded for ``pnvlad index build``.
 
     Every scan is read once (windows slide forward over a cache); a window shared by two kinds
     runs G once and is written to both folders. A submap is named by the timestamp of its
@@ -492,8 +498,7 @@ def prepare_drive(
     are written last, atomically.
 
     Returns a :class:`PrepareResult`. Raises :class:`InputError` on a bad drive or arguments,
-    ``FileExistsError`` when an output folder already holds submaps and neither ``resume`` nor
-    ``overwrite`` is given.
+    ``FileExistsError`` on output folders that hold submaps, without ``resume``/``overwrite``.
     """
     started = time.perf_counter()
     out = Path(out_run_dir)
@@ -508,6 +513,7 @@ def prepare_drive(
         max_range_m=max_range_m,
         scan_step=scan_step,
         min_scan_spacing_m=min_scan_spacing_m,
+        utm_zone=utm_zone,
     )
     travelled = travelled_distance(poses)
     use = used_scans(travelled, min_scan_spacing_m, scan_step)

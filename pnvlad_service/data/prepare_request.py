@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from pnvlad_service.data.cuts import Kind, Layout
 from pnvlad_service.data.prepare import PrepareResult, prepare_drive
 from pnvlad_service.errors import InputError
+from pnvlad_service.io.utm import normalize_zone
 from pnvlad_service.preprocess.filter_g import GConfig, scan_config
 
 if TYPE_CHECKING:
@@ -96,6 +97,7 @@ class PrepareRequest:
     raw_scans: bool = False
     resume: bool = False
     overwrite: bool = False
+    utm_zone: str = ""
 
     @classmethod
     def checked(
@@ -110,12 +112,14 @@ class PrepareRequest:
         g_config: str | Path | None = None,
         resume: bool = False,
         overwrite: bool = False,
+        utm_zone: str | None = None,
         **settings: object,
     ) -> PrepareRequest:
         """The request of the options ``--kind``, ``--stride``, ``--test-stride``,
         ``--keyframe-stride``, ``--scan-range``, ``--g-config`` (a YAML or JSON file of G's
-        settings), ``--resume`` and ``--overwrite``, checked in that order (the first wrong one
-        is the :class:`InputError`); ``settings``: the other fields, as they are."""
+        settings), ``--resume``, ``--overwrite`` and ``--utm-zone``, checked in that order (the
+        first wrong one is the :class:`InputError`); ``settings``: the other fields, as they
+        are."""
         kinds = parse_kinds(kind)
         if out is None:
             raise InputError("missing: the run folder to write", "--out")
@@ -124,6 +128,7 @@ class PrepareRequest:
         keyframe_config = keyframe_g(config, kinds, scan_range)
         if resume and overwrite:
             raise InputError("--resume and --overwrite exclude each other", "--resume")
+        zone = normalize_zone(utm_zone, "--utm-zone")
         return cls(
             out=Path(out),
             kinds=kinds,
@@ -132,6 +137,7 @@ class PrepareRequest:
             keyframe_config=keyframe_config,
             resume=resume,
             overwrite=overwrite,
+            utm_zone=zone,
             **settings,  # type: ignore[arg-type]
         )
 
@@ -156,6 +162,7 @@ class PrepareRequest:
             resume=self.resume,
             overwrite=self.overwrite,
             progress=progress,
+            utm_zone=self.utm_zone,
         )
 
 

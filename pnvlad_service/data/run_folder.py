@@ -163,3 +163,16 @@ def recorded_accumulation(run_dir: Path, folder: str) -> dict[str, Any] | None:
     if doc is None:
         return None
     return {k: doc.get(k) for k in ACCUMULATION_KEYS if doc.get(k) is not None}
+
+
+def recorded_utm_zone(run_dir: Path, folder: str) -> str | None:
+    """The UTM zone a prepare call recorded for a layout folder of a run (``--utm-zone``,
+    canonical, :mod:`pnvlad_service.io.utm`); ``None`` where none is recorded.
+    :class:`InputError` naming the record when it holds a malformed zone."""
+    from pnvlad_service.io.utm import normalize_zone
+
+    doc = _prepare_record(run_dir, folder)
+    zone = doc.get("utm_zone") if doc is not None else None
+    if not zone:
+        return None
+    return normalize_zone(str(zone), str(manifest_path(Path(run_dir), Path(folder))))

@@ -86,8 +86,9 @@ def scan_query_set(
     root: str | Path, splits: Any, sets: Sequence[str] | None = None
 ) -> ScanQuerySet:
     """The evaluation runs of ``splits`` (``splits.Splits``; every set, or those named in
-    ``sets``) with raw scans as queries. ``InputError`` naming the run when a run has no raw
-    scans (made before them: regenerate, or ``pnvlad data prepare --scans``)."""
+    ``sets``) with raw scans as queries; those of its ``query_runs`` alone where it names them,
+    searched in the other runs. ``InputError`` naming the run when a run has no raw scans (made
+    before them: regenerate, or ``pnvlad data prepare --scans``)."""
     root = Path(root)
     map_kind = str(splits.params.get("kind", "submap"))
     names = list(sets) if sets else list(splits.evaluation)
@@ -95,6 +96,7 @@ def scan_query_set(
     scans: list[list[RawScan]] = []
     opposite: list[dict[int, np.ndarray]] = []
     g_config: GConfig | None = None
+    held = set(splits.params.get("query_runs") or ())
     for name in names:
         if name not in splits.evaluation:
             raise InputError(f"no evaluation set {name!r}", "sets")
@@ -116,10 +118,10 @@ def scan_query_set(
                 )
             raw.append(read_raw_scans(run_dir))
         q_scans = []
-        for all_scans in raw:
+        for run, all_scans in zip(es.runs, raw, strict=True):
             n = np.array([s.northing for s in all_scans])
             e = np.array([s.easting for s in all_scans])
-            inside = regions.contains(n, e)
+            inside = regions.contains(n, e) & (not held or run in held)
             q_scans.append([s for s, k in zip(all_scans, inside, strict=True) if k])
         for j, qs in enumerate(q_scans):
             qn = np.array([s.northing for s in qs])
@@ -130,6 +132,8 @@ def scan_query_set(
                 if i == j:
                     continue
                 found = within_radius(db.northing, db.easting, qn, qe, es.truth_radius or 25.0)
+                if es.runs[i] in held:  # a query run is never another's map
+                    found = [np.empty(0, np.int64)] * len(qs)
                 for q, f in enumerate(found):
                     truth[q][offset + i] = np.asarray(f, dtype=np.int64)
                 # the other run's heading at the place: its raw scan nearest the query

@@ -19,7 +19,7 @@ import logging
 import os
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -184,6 +184,30 @@ def tree_accumulation(root: Path, records: Sequence[Submap]) -> dict[str, Any] |
     return found
 
 
+def tree_utm_zone(root: Path, records: Sequence[Submap], given: str | None = None) -> str:
+    """The UTM zone of the records' coordinates: ``given`` (``--utm-zone``) or the one the
+    runs' prepare records agree on; ``""`` where neither says. :class:`InputError` when the
+    runs record different zones, or one other than ``given``, or a zone is malformed."""
+    from pnvlad_service.data.run_folder import recorded_utm_zone
+    from pnvlad_service.io.utm import normalize_zone
+
+    zone = normalize_zone(given, "--utm-zone")
+    found, differs = _recorded_by_runs(root, records, recorded_utm_zone)
+    if differs is not None:
+        raise InputError(
+            f"run {differs} records another UTM zone than {found}: a map is in one zone",
+            "utm_zone",
+        )
+    if zone and found and zone != found:
+        raise InputError(f"{zone} given, but the runs were prepared in {found}", "--utm-zone")
+    return zone or found or ""
+
+
+def with_zone(records: Sequence[Submap], zone: str) -> list[Submap]:
+    """``records`` tagged with UTM zone ``zone``."""
+    return [replace(r, utm_zone=zone) for r in records]
+
+
 # --------------------------------------------------------------------------------------------
 # Sharded embedding under torchrun
 # --------------------------------------------------------------------------------------------
@@ -287,6 +311,7 @@ def build_bundle(
     encoder: Embedder | None = None,
     preprocess: dict[str, Any] | None = None,
     geometry: str = "auto",
+    utm_zone: str | None = None,
 ) -> BuildReport:
     """Embed every ``layout`` submap of the tree at ``root`` and write a bundle to ``out``.
 
@@ -296,13 +321,15 @@ def build_bundle(
     contiguous shard, rank 0 gathers them (gloo) and writes the same bundle a single process
     would; other ranks return a report with ``path=None``. ``encoder`` defaults to the
     model's, ``preprocess`` to the default filter G config. ``geometry`` (see the module
-    docstring): rank 0 writes it from the tree, never from the shards.
+    docstring): rank 0 writes it from the tree, never from the shards. ``utm_zone``: the zone
+    of the tree's coordinates, which every answer carries (:func:`tree_utm_zone`).
     """
     out = Path(out)
     root = Path(root)
     if out.exists() and not overwrite:
         raise InputError("bundle already exists (use --overwrite to replace it)", source=out)
     records = list_database_submaps(root, datasets, runs, layout)
+    records = with_zone(records, tree_utm_zone(root, records, utm_zone))
     frames = _frames_for(root, records, geometry)
     identity = model_identity(model)
     record = ModelRecord.from_identity(identity)
@@ -414,6 +441,17 @@ def _indexed_entry(root: Path, layout: str, records: Sequence[Submap]) -> dict[s
     }
 
 
+def _bundle_zone(bundle: IndexBundle, zone: str) -> str:
+    """The zone of runs added to ``bundle`` (theirs, ``zone``, or the bundle's where they
+    record none); :class:`InputError` when both are known and differ."""
+    have = sorted({str(z) for z in bundle.metadata.utm_zone.tolist() if z})
+    if zone and have and have != [zone]:
+        raise InputError(
+            f"the runs were prepared in {zone}, the bundle is in {have[0]}", "utm_zone"
+        )
+    return zone or (have[0] if len(have) == 1 else "")
+
+
 def add_to_bundle(
     bundle_dir: str | Path,
     model: str | Path,
@@ -448,6 +486,7 @@ def add_to_bundle(
             "layout",
         )
     records = list_database_submaps(root, datasets, runs, layout)
+    records = with_zone(records, _bundle_zone(bundle, tree_utm_zone(root, records)))
     present = set(bundle.metadata.submap_id.tolist())
     dup = [r.submap_id for r in records if r.submap_id in present]
     if dup:

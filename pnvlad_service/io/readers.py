@@ -24,6 +24,13 @@ Readers (name: suffixes; layout; returned dtype):
 - ``ply``: .ply; element ``vertex`` with x, y, z (plyfile, extra ``io``); as saved.
 - ``las``: .las, .laz; scaled coordinates X * scale + offset (laspy + lazrs, extra ``io``);
   float64 (UTM-sized values keep full precision).
+
+A *scan* (one sweep of a LiDAR, in its sensor's frame) is read by :func:`read_scan`: the same,
+less its missing returns. Some drivers write a beam that saw nothing as a point at the sensor's
+origin instead of leaving it out or writing NaN (Ouster's, in organised clouds: x = y = z = 0,
+or the beam's own origin a few centimetres from it); :func:`drop_no_returns` drops every point
+nearer the sensor than :data:`NO_RETURN_M` and counts them. Submaps and map files are not
+scans (their origin is a place like any other) and keep every point.
 """
 
 from __future__ import annotations
@@ -268,6 +275,38 @@ def reader_for(path: str | Path, reader: str | None = None) -> Reader:
         f"(or pass --reader {'|'.join(READERS)})",
         source=path,
     )
+
+
+#: Metres: a scan's point nearer its sensor than this is a missing return written as a point
+#: (at the origin, or at the beam's origin: Ouster's OS sensors place that 1 to 3 cm off it).
+#: Spinning LiDARs' minimum ranges are several times this (Ouster OS1: 0.3 m or more).
+NO_RETURN_M = 0.1
+
+
+def drop_no_returns(points: np.ndarray) -> tuple[np.ndarray, int]:
+    """``points`` (a scan, ``[N, 3]`` in its sensor's frame) without those nearer the sensor
+    than :data:`NO_RETURN_M` (row order kept), and how many were dropped."""
+    x, y, z = (np.asarray(points[:, k], dtype=np.float64) for k in range(3))
+    keep = x * x + y * y + z * z >= NO_RETURN_M**2
+    dropped = len(keep) - int(np.count_nonzero(keep))
+    return (points[keep] if dropped else points), dropped
+
+
+def read_scan(path: str | Path, reader: str | None = None) -> tuple[np.ndarray, int]:
+    """A LiDAR scan from a file (:func:`read_points`) without its missing returns
+    (:func:`drop_no_returns`): ``(points [N, 3], how many were dropped)``. :class:`InputError`
+    naming the file when no point is left."""
+    points = read_points(path, reader)
+    kept, dropped = drop_no_returns(points)
+    if dropped:
+        log.debug("%s: %d points at the sensor's origin (missing returns) dropped", path, dropped)
+    if len(kept) == 0:
+        raise InputError(
+            f"all {dropped:,} points lie within {NO_RETURN_M} m of the sensor: a scan without "
+            "returns",
+            path,
+        )
+    return kept, dropped
 
 
 def read_points(path: str | Path, reader: str | None = None) -> np.ndarray:

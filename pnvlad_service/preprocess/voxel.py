@@ -113,10 +113,9 @@ def find_leaf_size(points: np.ndarray, target: int, *, iterations: int = 30) -> 
         else:
             (l0, c0), (l1, c1) = tries[-2], tries[-1]
             slope = (math.log(max(c1, 1)) - math.log(max(c0, 1))) / (math.log(l1) - math.log(l0))
-            if slope < 0:
-                nxt = math.exp(math.log(l1) + (math.log(target) - math.log(max(c1, 1))) / slope)
-            else:
-                nxt = 0.0
+            step = (math.log(target) - math.log(max(c1, 1))) / slope if slope < 0 else math.inf
+            # A count nearly flat in the leaf (duplicated points) makes the step huge: bisect.
+            nxt = math.exp(math.log(l1) + step) if abs(step) < 50.0 else 0.0
         if not lo < nxt < hi:
             nxt = math.sqrt(lo * hi)
         tries.append((nxt, count(nxt)))

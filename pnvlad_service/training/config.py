@@ -80,6 +80,12 @@ class TrainSection(BaseModel):
     threads: int = Field(0, ge=0, description="torch CPU threads (0: the cores of this process).")
     workers: int = Field(4, ge=0, description="Threads loading submaps into RAM.")
     max_minutes: float | None = Field(None, gt=0, description="Wall-clock budget of the run.")
+    init: str | None = Field(
+        None,
+        description="Weights to start from (fine-tuning): pretrained:NAME, a model directory, a "
+        "training run, or a .safetensors/.pt file; they must fit model.* (training/init.py). "
+        "None: random weights.",
+    )
     max_steps: int | None = Field(None, ge=1, description="Stop after this many steps.")
     checkpoint_every: int = Field(500, ge=1, description="Steps between checkpoints.")
     keep_checkpoints: int = Field(2, ge=1, description="Step checkpoints kept on disk.")

@@ -141,16 +141,21 @@ def build_state(
     rt: Runtime,
     data: TrainData,
     on_model: Callable[[torch.nn.Module], None] | None = None,
+    init: dict[str, Any] | None = None,
 ) -> TrainState:
-    """A fresh model (seeded with ``train.seed``), Adam, the grad scaler (fp16 only), the anchor
-    sampler and the tuple RNG, all as at step 0."""
+    """A fresh model (seeded with ``train.seed``; ``init``: with those weights, as
+    :func:`~pnvlad_service.training.init.initial_weights` read them), Adam, the grad scaler
+    (fp16 only), the anchor sampler and the tuple RNG, all as at step 0."""
     import torch
 
     from pnvlad_service.models.factory import build_model
 
     t = cfg.train
     torch.manual_seed(t.seed)
-    model = build_model(cfg.model).to(rt.device)
+    model = build_model(cfg.model)
+    if init is not None:
+        model.load_state_dict(init, strict=True)
+    model = model.to(rt.device)
     if on_model is not None:
         on_model(model)
     return TrainState(

@@ -45,6 +45,7 @@ from pnvlad_service.models.embedding import embed_in_chunks, module_embedder
 from pnvlad_service.training import mining
 from pnvlad_service.training.augment import augment
 from pnvlad_service.training.config import TrainConfig
+from pnvlad_service.training.init import initial_weights
 from pnvlad_service.training.runtime import (
     Runtime,
     any_rank,
@@ -374,10 +375,12 @@ def train(
     t0 = time.monotonic()
     out = Path(out)
     t = cfg.train
-    rt = setup_runtime(t)
     ckpt = checkpoint_to_resume(out, resume)
+    # A resumed run takes its weights from its checkpoint; a fresh one from train.init, if any.
+    init = initial_weights(cfg.model, t.init) if ckpt is None and t.init is not None else None
+    rt = setup_runtime(t)
     data = prepare_data(cfg, rt, training_set, val_runs, progress)
-    state = build_state(cfg, rt, data, on_model)
+    state = build_state(cfg, rt, data, on_model, init=init)
     if ckpt is not None:
         resume_state(state, ckpt)
         if rt.dist.main:

@@ -132,3 +132,19 @@ def test_eval_cli_refuses_scan_queries_it_cannot_make(tiny: Path, tmp_path: Path
         res = CliRunner().invoke(app, ["eval", "--baseline", *args])
         assert res.exit_code == 2, res.output
         assert message in res.output, res.output
+
+
+def test_splits_with_a_query_run_ask_with_its_scans_alone(tiny: Path) -> None:
+    """`data splits --query-run`: the held-out run's raw scans are the only queries (every one
+    of them: no test regions), each with truth in the map runs alone."""
+    from pnvlad_service.data import splits as sp
+
+    runs = sorted(p.name for p in (tiny / "business").iterdir() if p.is_dir())
+    held = runs[-1]
+    qs = scan_query_set(tiny, sp.build_splits(tiny, query_runs=[held], keyframes=True))
+    counts = {r.name: len(r.query_paths) for r in qs.runs}
+    assert counts[held] == len(read_raw_scans(tiny / "business" / held))
+    assert all(n == 0 for r, n in counts.items() if r != held)
+    j = [r.name for r in qs.runs].index(held)
+    assert all(set(t) == {i for i in range(len(runs)) if i != j} for t in qs.runs[j].truth)
+    assert any(len(t[i]) for t in qs.runs[j].truth for i in t)

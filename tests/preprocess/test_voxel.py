@@ -85,3 +85,20 @@ def test_voxel_count_on_a_bitmap_equals_the_count_of_distinct_keys(
     pts = rng.normal(0.0, spread, (n, 3)) * [1.0, 1.0, 0.1]
     cells = np.floor((pts - pts.min(axis=0)) / leaf).astype(np.int64)
     assert voxel_count(pts, leaf) == len({tuple(c) for c in cells.tolist()})
+
+
+def test_a_count_nearly_flat_in_the_leaf_bisects_instead_of_overflowing(monkeypatch) -> None:
+    """Duplicated points leave the voxel count a plateau just above the target (4,600, one
+    voxel fewer past 1 m): the secant's step through two such counts is a thousand e-folds,
+    which overflowed ``math.exp``; the search bisects there and still brackets."""
+    from pnvlad_service.preprocess import voxel
+
+    pts = np.random.default_rng(2).uniform(-10, 10, (6000, 3))
+    fine = 20.0 / 2e5 * 1.5
+
+    def plateau(points, leaf, *, shifted=None):
+        return 6000 if leaf < fine else (4600 if leaf < 1.0 else (4599 if leaf < 10.0 else 100))
+
+    monkeypatch.setattr(voxel, "voxel_count", plateau)
+    leaf, count = find_leaf_size(pts, 4096)
+    assert count in (4599, 4600) and math.isfinite(leaf) and leaf > 0  # 100 is farther off

@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from pnvlad_service.data.drive import snap_m
+from pnvlad_service.data.sources.returns import NoReturnCount
 from pnvlad_service.errors import InputError
-from pnvlad_service.io.readers import read_points
+from pnvlad_service.io.readers import read_scan
 
 log = logging.getLogger(__name__)
 
@@ -231,6 +232,7 @@ class CsvDrive:
         self.timestamps = stamps
         self.poses = poses
         self.files = [files[int(t)] for t in stamps]
+        self.no_returns = NoReturnCount()
 
     @staticmethod
     def _match(
@@ -264,5 +266,8 @@ class CsvDrive:
         return len(self.files)
 
     def scan(self, i: int) -> np.ndarray:
-        """Scan ``i`` through :func:`pnvlad_service.io.readers.read_points`: [N, 3] metres."""
-        return read_points(self.files[i], self.reader)
+        """Scan ``i`` through :func:`pnvlad_service.io.readers.read_scan`: [N, 3] metres,
+        missing returns written as points at the origin dropped (counted in ``no_returns``)."""
+        points, dropped = read_scan(self.files[i], self.reader)
+        self.no_returns.add(dropped, self.files[i])
+        return points

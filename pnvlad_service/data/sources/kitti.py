@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from pnvlad_service.data.drive import place_in_utm
+from pnvlad_service.data.sources.returns import NoReturnCount
 from pnvlad_service.errors import InputError
-from pnvlad_service.io.readers import read_points
+from pnvlad_service.io.readers import read_scan
 
 log = logging.getLogger(__name__)
 
@@ -180,11 +181,15 @@ class KittiSequence:
             stamps = np.round(np.arange(len(self.files)) * 1e6 / KITTI_DEFAULT_RATE_HZ)
             stamps = stamps.astype(np.int64)
         self.timestamps = stamps + np.int64(time_offset_us)
+        self.no_returns = NoReturnCount()
 
     def __len__(self) -> int:
         return len(self.files)
 
     def scan(self, i: int) -> np.ndarray:
         """Scan ``i``: float32 [N, 3], Velodyne frame, metres (reflectance dropped), read by
-        the ``kitti`` reader of :mod:`pnvlad_service.io.readers`."""
-        return read_points(self.files[i], "kitti")
+        the ``kitti`` reader of :mod:`pnvlad_service.io.readers`, missing returns written as
+        points at the origin dropped (and counted in ``no_returns``)."""
+        points, dropped = read_scan(self.files[i], "kitti")
+        self.no_returns.add(dropped, self.files[i])
+        return points

@@ -248,7 +248,17 @@ def rosbag_report(drive: Any) -> str:
         line += f" (dropped: {dropped})"
     if s.nonfinite_points:
         line += f"; {s.nonfinite_points:,} NaN returns dropped from {s.scans_with_nonfinite} scans"
+    zeros = drive.no_returns.line()
+    if zeros:
+        line += f"; {zeros}"
     return f"{line}; poses from {drive.pose_source}"
+
+
+def no_returns_report(drive: Any) -> str | None:
+    """The missing returns a drive of scan files dropped (points at the sensor's origin), or
+    ``None``."""
+    count = getattr(drive, "no_returns", None)
+    return None if count is None else count.line()
 
 
 #: The built-in sources: name, option, usage, summary, the options read, the opener.
@@ -257,11 +267,12 @@ for _source in (
         "kitti", "--kitti", "--kitti SEQ_DIR",
         "a KITTI-odometry sequence folder: velodyne/*.bin, poses.txt, times.txt, calib.txt",
         ("poses", "origin_ne", "yaw_deg"), _open_kitti, notes=_kitti_notes,
+        report=no_returns_report,
     ),
     DriveSource(
         "csv", "--scans", "--scans DIR --poses CSV",
         "a folder of scans named TIMESTAMP.EXT with a CSV of their poses",
-        ("poses", "reader", "skip_missing"), _open_csv,
+        ("poses", "reader", "skip_missing"), _open_csv, report=no_returns_report,
     ),
     DriveSource(
         "rosbag", "--rosbag", "--rosbag BAG",

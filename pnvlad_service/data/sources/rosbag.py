@@ -12,7 +12,9 @@ bag is cut into submaps by the same code path as a KITTI sequence or a CSV drive
   point step, extra fields (intensity, ring, time, ...), organised (height > 1, rows possibly
   padded) or not, either byte order. Decoded with a numpy structured dtype, no per-point loop;
   points with a NaN or infinite coordinate (an organised cloud's missing returns) are dropped
-  and counted in :attr:`RosbagDrive.stats`.
+  and counted in :attr:`RosbagDrive.stats`, and so are the missing returns a driver writes as
+  points at the sensor's origin (Ouster's; :func:`~pnvlad_service.io.readers.drop_no_returns`),
+  in :attr:`RosbagDrive.no_returns`.
 - Poses: a topic of ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/PoseStamped`` or
   ``geometry_msgs/msg/PoseWithCovarianceStamped`` (the pose of the message's child frame,
   else of the cloud's frame, in its header frame), or the transforms of ``/tf`` and
@@ -60,7 +62,9 @@ from pnvlad_service.data.sources.pose_streams import (
     TransformTree,
     rotations,
 )
+from pnvlad_service.data.sources.returns import NoReturnCount
 from pnvlad_service.errors import InputError, MissingDependencyError
+from pnvlad_service.io.readers import drop_no_returns
 
 if TYPE_CHECKING:
     from rosbags.highlevel import AnyReader
@@ -234,6 +238,7 @@ class RosbagClouds:
         self.use_log_time = use_log_time
         self.tf_topics = tf_topics
         self.stats = RosbagStats()
+        self.no_returns = NoReturnCount()
         self._reader: AnyReader | None = _open_bag(self.bag)
         self._stream: Generator[tuple[Any, int, bytes], None, None] | None = None
         self._next = 0
@@ -361,7 +366,9 @@ class RosbagClouds:
         return len(self.timestamps)
 
     def scan(self, i: int) -> np.ndarray:
-        """Scan ``i``: [N, 3] sensor frame, metres (float32 if the cloud is); NaNs dropped."""
+        """Scan ``i``: [N, 3] sensor frame, metres (float32 if the cloud is); NaNs and missing
+        returns written as points at the origin dropped (counted in ``stats`` and
+        ``no_returns``)."""
         pts = self._decode(int(self._msg_index[i]))
         finite = np.isfinite(pts[:, 0])  # column by column: 20x faster than .all(axis=1)
         finite &= np.isfinite(pts[:, 1])
@@ -371,6 +378,8 @@ class RosbagClouds:
             self.stats.nonfinite_points += bad
             self.stats.scans_with_nonfinite += 1
             pts = pts[finite]
+        pts, dropped = drop_no_returns(pts)
+        self.no_returns.add(dropped, self._where(f"scan {i}"))
         return pts
 
     def close(self) -> None:
