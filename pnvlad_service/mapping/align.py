@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -161,6 +161,9 @@ def align_nodes(
             raise InputError(message + "; allow_alone keeps them on their own fixes", alone[0])
         log.warning("%s: kept on their own fixes", message)
     solution = timer.run("solve", lambda: solve(nodes, edges, config.graph))
+    for i in solution.dropped:
+        reason = f"left over {config.graph.outlier_sigma:g} sigma off by the robust solve"
+        edges[i] = replace(edges[i], reason=reason)
     report: dict[str, Any] = {
         "format": "pnvlad-align",
         "version": 1,

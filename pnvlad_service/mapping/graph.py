@@ -61,26 +61,36 @@ class GnssModel:
 @dataclass(frozen=True)
 class GraphConfig:
     """``gnss``: the recorded poses' error model; ``huber_k`` / ``cauchy_k``: the kernels'
-    widths in standard deviations of an edge; ``iterations``: Levenberg-Marquardt's most per
-    solve."""
+    widths in standard deviations of an edge (``cauchy_k`` None: Huber only);
+    ``outlier_sigma``: a closure the first solve leaves more than this many standard deviations
+    off is set aside and the Huber solve run again, until the set holds (at most
+    ``outlier_rounds`` times: a closure set aside while the map was bent comes back once it is
+    not; a wrong closure pulls a Huber solve with a bounded force, and a Cauchy solve started
+    from the bend may keep some of it); ``iterations`` and
+    ``tolerance`` (relative decrease of the error): Levenberg-Marquardt's stops per solve."""
 
     gnss: GnssModel = field(default_factory=GnssModel)
     huber_k: float = 1.345
     cauchy_k: float | None = 1.0
+    outlier_sigma: float = 10.0
+    outlier_rounds: int = 3
     iterations: int = 100
+    tolerance: float = 1e-6
 
 
 @dataclass
 class Solution:
     """The solved poses float64 [N, 4, 4] (local -> UTM) of every node, the graph's error
-    before and after each solve, the iterations, and each edge's whitened residual after the
-    last solve (``None`` for a rejected edge)."""
+    before and after each solve, the iterations, each edge's residual after the last solve
+    (metres; ``None`` for an edge rejected before the solve) and the edges (their indices)
+    the solve set aside as outliers."""
 
     poses: np.ndarray
     errors: list[tuple[float, float]]
     iterations: list[int]
     residuals: list[float | None]
     seconds: float
+    dropped: list[int] = field(default_factory=list)
 
 
 def _gtsam() -> Any:
@@ -163,60 +173,103 @@ def _gnss_factors(
             graph.add(gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(step), [a_g, b_g], walk))
 
 
-def _edge_noise(gtsam: Any, edge: Edge, kernel: Any) -> Any:
-    """The edge's covariance in GTSAM's tangent of the measured pose (rotation, then
-    translation, source axes), under ``kernel``."""
+def _edge_covariance(edge: Edge) -> np.ndarray:
+    """The edge's covariance in GTSAM's tangent of the measured pose: float64 [6, 6]
+    (rotation, then translation, source axes)."""
     R = edge.transform[:3, :3]
     rot = np.zeros((6, 6))
     rot[:3, :3] = rot[3:, 3:] = R.T
     cov = rot @ edge.covariance @ rot.T  # type: ignore[operator]
     order = [3, 4, 5, 0, 1, 2]
     cov = cov[np.ix_(order, order)]
-    cov = (cov + cov.T) / 2
-    return gtsam.noiseModel.Robust.Create(kernel, gtsam.noiseModel.Gaussian.Covariance(cov))
+    return (cov + cov.T) / 2
+
+
+def mahalanobis(edge: Edge, poses: np.ndarray) -> float:
+    """How many standard deviations (Mahalanobis) ``poses`` [N, 4, 4] leave ``edge`` off."""
+    d = np.linalg.inv(edge.transform) @ np.linalg.inv(poses[edge.target]) @ poses[edge.source]
+    xi = np.concatenate([_log_rot(d[:3, :3]), d[:3, 3]])
+    return float(math.sqrt(max(xi @ np.linalg.solve(_edge_covariance(edge), xi), 0.0)))
+
+
+def _optimise(
+    gtsam: Any,
+    nodes: MapNodes,
+    recorded: np.ndarray,
+    edges: list[Edge],
+    kernel: Any,
+    start: Any,
+    config: GraphConfig,
+) -> tuple[Any, tuple[float, float], int]:
+    """One Levenberg-Marquardt solve of the GNSS/INS chains and ``edges`` under ``kernel``
+    from ``start``: the values, the error before and after, the iterations."""
+    graph = gtsam.NonlinearFactorGraph()
+    _gnss_factors(gtsam, graph, nodes, recorded, config.gnss)
+    for e in edges:
+        noise = gtsam.noiseModel.Gaussian.Covariance(_edge_covariance(e))
+        robust = gtsam.noiseModel.Robust.Create(kernel, noise)
+        graph.add(gtsam.BetweenFactorPose3(e.target, e.source, gtsam.Pose3(e.transform), robust))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(config.iterations)
+    params.setRelativeErrorTol(config.tolerance)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, start, params)
+    values = optimizer.optimize()
+    return values, (float(graph.error(start)), float(graph.error(values))), optimizer.iterations()
+
+
+def _poses(values: Any, n: int) -> np.ndarray:
+    return np.stack([_matrix(values.atPose3(g)) for g in range(n)])
 
 
 def solve(
     nodes: MapNodes, edges: list[Edge], config: GraphConfig, origin: np.ndarray | None = None
 ) -> Solution:
     """Solve the graph of ``nodes`` (their recorded poses the start) and the accepted
-    ``edges``: Huber, then Cauchy (see the module doc). Poses come back in UTM."""
+    ``edges``: Huber from the recorded poses; the closures that solution leaves more than
+    ``outlier_sigma`` off set aside (``Solution.dropped``) and Huber again without them; then
+    Cauchy from there (see the module doc). Poses come back in UTM."""
     gtsam = _gtsam()
     started = time.perf_counter()
     recorded = nodes.poses.copy()
     shift = recorded[0, :3, 3].copy() if origin is None else np.asarray(origin, np.float64)
     recorded[:, :3, 3] -= shift
-    accepted = [e for e in edges if e.accepted]
-    values = gtsam.Values()
+    kept = [i for i, e in enumerate(edges) if e.accepted]
+    start = gtsam.Values()
     for g, pose in enumerate(recorded):
-        values.insert(g, gtsam.Pose3(pose))
+        start.insert(g, gtsam.Pose3(pose))
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
     errors, iterations = [], []
-    kernels = [gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)]
+
+    def run(kernel: Any, initial: Any) -> Any:
+        values, err, its = _optimise(
+            gtsam, nodes, recorded, [edges[i] for i in kept], kernel, initial, config
+        )
+        errors.append(err)
+        iterations.append(int(its))
+        return values
+
+    values = run(huber, start)
+    accepted = list(kept)
+    for _ in range(config.outlier_rounds):
+        solved = _poses(values, len(recorded))
+        within = [
+            i for i in accepted
+            if edges[i].kind != "closure" or mahalanobis(edges[i], solved) <= config.outlier_sigma
+        ]  # fmt: skip
+        if within == kept:
+            break
+        kept = within
+        values = run(huber, start)
+    dropped = [i for i in accepted if i not in set(kept)]
+    if dropped:
+        log.info("%d closures over %g sigma off: set aside", len(dropped), config.outlier_sigma)
     if config.cauchy_k is not None:
-        kernels.append(gtsam.noiseModel.mEstimator.Cauchy.Create(config.cauchy_k))
-    graph = None
-    for kernel in kernels:
-        graph = gtsam.NonlinearFactorGraph()
-        _gnss_factors(gtsam, graph, nodes, recorded, config.gnss)
-        for e in accepted:
-            graph.add(
-                gtsam.BetweenFactorPose3(
-                    e.target, e.source, gtsam.Pose3(e.transform), _edge_noise(gtsam, e, kernel)
-                )
-            )
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(config.iterations)
-        params.setRelativeErrorTol(1e-7)
-        before = graph.error(values)
-        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        values = optimizer.optimize()
-        errors.append((float(before), float(graph.error(values))))
-        iterations.append(int(optimizer.iterations()))
-    poses = np.stack([_matrix(values.atPose3(g)) for g in range(len(recorded))])
+        values = run(gtsam.noiseModel.mEstimator.Cauchy.Create(config.cauchy_k), values)
+    poses = _poses(values, len(recorded))
     poses[:, :3, 3] += shift
     residuals = _residuals(edges, poses)
-    log.info("graph: %d nodes, %d edges; error %s", len(poses), len(accepted), errors)
-    return Solution(poses, errors, iterations, residuals, time.perf_counter() - started)
+    log.info("graph: %d nodes, %d edges; error %s", len(poses), len(kept), errors)
+    return Solution(poses, errors, iterations, residuals, time.perf_counter() - started, dropped)
 
 
 def _residuals(edges: list[Edge], poses: np.ndarray) -> list[float | None]:
