@@ -10,7 +10,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from tests.kitti00 import velodyne_pose
 
@@ -57,8 +56,12 @@ def _off(measured: np.ndarray, true: np.ndarray) -> tuple[float, float]:
 
 
 def test_the_revisit_is_found_and_accepted_as_a_closure(real_scans: Path) -> None:
-    from pnvlad_service.mapping.candidates import CandidateConfig, merged, nearby_candidates
-    from pnvlad_service.mapping.candidates import query_nodes
+    from pnvlad_service.mapping.candidates import (
+        CandidateConfig,
+        merged,
+        nearby_candidates,
+        query_nodes,
+    )
     from pnvlad_service.mapping.edges import Clouds, EdgeConfig, closure_edges
     from pnvlad_service.mapping.nodes import MapNodes
 
