@@ -36,7 +36,7 @@ def _shift_keyframes(run_dir: Path, first: int, shift_e: float) -> None:
         f = frames[k]
         moved = f.origin.copy()
         moved[0] += shift_e
-        true = None if f.true_position is None else f.true_position + [shift_e, 0.0, 0.0]
+        true = None if f.true_position is None else f.true_position + np.array([shift_e, 0.0, 0.0])
         frames[k] = SubmapFrame(
             f.timestamp, moved, f.centre, f.scale, f.frame, true, f.true_yaw_deg
         )
