@@ -216,7 +216,7 @@ def closure_edges(
         cands = [
             Candidate(rank, np.empty((0, 3)), poses[g], key=g) for rank, g in enumerate(group, 1)
         ]
-        cache = _Lookup(clouds, query)
+        cache = _Lookup(clouds)
         v = verify(q, cands, config.verify, cache=cache, query_key=query)
         if not v.checks:
             continue
@@ -263,7 +263,7 @@ class _Lookup(dict):  # type: ignore[type-arg]
     """What :func:`verify` sees as its cache: every node's prepared cloud, made on demand by
     :class:`Clouds` (role both serves as source and as target)."""
 
-    def __init__(self, clouds: Clouds, query: int) -> None:
+    def __init__(self, clouds: Clouds) -> None:
         super().__init__()
         self.clouds = clouds
 
