@@ -46,13 +46,14 @@ def _root(
 def _register() -> None:
     # Imported here so each module stays importable on its own; none of them imports heavy
     # libraries at module level.
-    from pnvlad_cli import data, evaluate, index, localize, model, serve, synth, train
+    from pnvlad_cli import data, evaluate, index, localize, map, model, serve, synth, train
 
     app.add_typer(data.app, name="data", rich_help_panel="Data")
     app.command("synth", rich_help_panel="Data")(synth.synth)
     app.command("train", rich_help_panel="Model")(train.train)
     app.command("eval", rich_help_panel="Model")(evaluate.evaluate)
     app.add_typer(model.app, name="model", rich_help_panel="Model")
+    app.add_typer(map.app, name="map", rich_help_panel="Data")
     app.add_typer(index.app, name="index", rich_help_panel="Service")
     app.command("serve", rich_help_panel="Service")(serve.serve)
     app.command("localize", rich_help_panel="Service")(localize.localize)

@@ -22,6 +22,7 @@ ALLOWED: dict[str, set[str]] = {
     "evaluation": {"io", "preprocess", "data", "models", "localization"},
     "training": {"io", "data", "models", "evaluation"},
     "server": {"io", "localization"},
+    "mapping": {"io", "preprocess", "data", "models", "index", "localization"},
 }
 SHARED = {"errors", "fileio", "extras", "progress", "configs"}
 WEB = ("fastapi", "starlette", "uvicorn")
