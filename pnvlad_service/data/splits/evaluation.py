@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from pnvlad_service.data.splits.geometry import within_radius
-from pnvlad_service.data.splits.poses import run_locations
 from pnvlad_service.data.splits.regions import TestRegions, resolve_regions
 from pnvlad_service.data.tree import BenchmarkTree, Kind
 
@@ -93,7 +92,7 @@ def build_evaluation_set(
     queries: list[RunSubmaps] = []
     for run in runs:
         subs = tree.submaps(dataset, run, kind)
-        loc = run_locations(tree, dataset, run, kind)
+        loc = tree.locations(dataset, run, kind)
         database.append(RunSubmaps(run, [s.path for s in subs], loc.northing, loc.easting))
         inside = regions.contains(loc.northing, loc.easting)
         queries.append(

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from pnvlad_service.data.splits.geometry import within_radius
-from pnvlad_service.data.splits.poses import run_locations
 from pnvlad_service.data.splits.regions import TestRegions
 from pnvlad_service.data.tree import BenchmarkTree, Kind
 from pnvlad_service.errors import InputError
@@ -97,7 +96,7 @@ def build_training_tuples(
             log.warning("%s/%s: no %s-layout CSV, skipped", dataset, run, kind)
             continue
         subs = tree.submaps(dataset, run, kind)
-        loc = run_locations(tree, dataset, run, kind)
+        loc = tree.locations(dataset, run, kind)
         keep = regions.contains(loc.northing, loc.easting) == inside
         files.extend(s.path for s, k in zip(subs, keep, strict=True) if k)
         north.append(loc.northing[keep])

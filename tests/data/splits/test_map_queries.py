@@ -1,18 +1,15 @@
 """Splits of a map of one's own drives: training tuples from every place of the map runs and
-no query run, each query run evaluated against the map alone, positions from a run's aligned
-poses where it has them; checked against plain loops over hand-placed entries."""
+no query run, each query run evaluated against the map alone; checked against plain loops over
+hand-placed entries."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-import pytest
 from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
 from pnvlad_service.data import splits as sp
-from pnvlad_service.errors import InputError
 from tests.data.splits.helpers import CE, CN, brute_within, make_run
 
 # Keyframes along the easting axis, 5 m apart with some gaps; positions exact in float64.
@@ -61,45 +58,6 @@ def test_two_query_runs_are_never_each_others_map(tmp_path: Path) -> None:
     es = s.evaluation["campus"]
     assert all(len(x) == 0 for x in es.truth[1][2]) and all(len(x) == 0 for x in es.truth[2][1])
     assert any(len(x) for x in es.truth[2][0])
-
-
-def test_aligned_poses_place_the_entries_and_the_recording_is_kept(tmp_path: Path) -> None:
-    root = _campus(tmp_path)
-    csv = root / "campus" / "r2" / "pointcloud_locations_keyframes.csv"
-    recorded = csv.read_bytes()
-    # r2's corrected trajectory: 30 m further east, sampled between its keyframes (times 1005 to
-    # 1055 around keyframes 1010..1050): each keyframe sits halfway, so it is the mean of two.
-    stamps = [1005, 1015, 1025, 1035, 1045, 1055]
-    east = {1010: 2.5, 1020: 7.5, 1030: 12.5, 1040: 62.5, 1050: 120.0}
-    lines = ["timestamp,northing,easting,height"]
-    for a in stamps:
-        # linear between the keyframes: a keyframe's value is the mean of its two neighbours
-        e = np.interp(a, list(east), list(east.values()))
-        lines.append(f"{a},{CN!r},{float(CE + 30.0 + e)!r},1.5")
-    (root / "campus" / "r2" / "poses_aligned.csv").write_text("\n".join(lines) + "\n")
-    s = sp.build_splits(root, query_runs=["r3"], keyframes=True)
-    t = s.training["campus"]
-    got = t.easting[7:] - CE
-    want = []
-    for k in east:  # halfway between two samples of the line through the keyframes
-        lo, hi = k - 5, k + 5
-        want.append(
-            30.0
-            + (
-                np.interp(lo, list(east), list(east.values()))
-                + np.interp(hi, list(east), list(east.values()))
-            )
-            / 2
-        )
-    np.testing.assert_allclose(got, want, atol=1e-6)
-    ref = [(CN, CE + x) for x in OFFSETS["r1"]] + [(CN, CE + x) for x in got]
-    for i, q in enumerate(ref):
-        assert t.positives[i].tolist() == [j for j in brute_within(ref, q, 10.0) if j != i]
-    assert csv.read_bytes() == recorded
-    # A keyframe outside the aligned span: the file named, no splits.
-    (root / "campus" / "r2" / "poses_aligned.csv").write_text("\n".join(lines[:-1]) + "\n")
-    with pytest.raises(InputError, match=r"poses_aligned\.csv: 1 keyframe entries of r2"):
-        sp.build_splits(root, query_runs=["r3"], keyframes=True)
 
 
 def test_cli_writes_the_keyframe_splits_and_refuses_bad_runs(tmp_path: Path) -> None:
