@@ -2,10 +2,13 @@
 conditions, street detail) and :data:`PRESETS` by name (:func:`get_preset`).
 
 The spinning-sensor presets (``tiny``, ``demo``, ``benchmark``, ``benchmark_v1``) and the
-push-broom ones (``pushbroom_tiny``, ``pushbroom_demo``): a SICK LMS-151 mounted as the Oxford
-RobotCar's ``lms_front`` (:class:`~pnvlad_service.synth.sensors.PushbroomConfig`), its lines
-laid with the run's recorded poses and cut as the PointNetVLAD paper cut Oxford: the points
-recorded along 20 m of trajectory, every 10 m (training) and 20 m (testing).
+push-broom ones (``pushbroom_tiny``, ``pushbroom_demo``, ``oxford``, ``oxford_tiny``): a SICK
+LMS-151 mounted as the Oxford RobotCar's ``lms_front``
+(:class:`~pnvlad_service.synth.sensors.PushbroomConfig`), its lines laid with the run's recorded
+poses and cut as the PointNetVLAD paper cut Oxford: the points recorded along 20 m of
+trajectory, every 10 m (training) and 20 m (testing), in a city with street variety
+(:class:`~pnvlad_service.synth.world.StreetVariety`). ``oxford`` is the paper's Oxford: an old
+town over the RobotCar's coordinates, partial runs, the published layout.
 """
 
 from __future__ import annotations
