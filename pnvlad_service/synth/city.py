@@ -165,6 +165,8 @@ def _make_roads(
         pts = _polyline(nodes[a], nodes[b], bend)
         ja, jb = a // nx, b // nx
         main = ja == jb and ja in main_rows
+        if style.main_columns and a % nx == b % nx and a % nx in (0, nx // 2):
+            main = True
         roads.append(Road(pts, style.road_half_width[1 if main else 0], (a, b)))
     return nodes, roads
 
@@ -505,6 +507,10 @@ def generate_world(config: WorldConfig | None = None, seed: int = 0) -> World:
     placer.signs()
     placer.park_trees()
     detail = cfg.detail
+    if detail.variety is not None:  # a stream of its own, before the detail that follows it
+        from pnvlad_service.synth.variety import vary_city
+
+        vary_city(placer, roads, detail.variety, _rng(seed, sid, 6))
     if detail.any:  # a stream of its own: the rest of the city stays where it was
         from pnvlad_service.synth.furniture import clumped_crowns, place_detail
         from pnvlad_service.synth.structures import place_structures

@@ -92,7 +92,20 @@ def simulated_drive(spec: SynthPreset, area_index: int, run: int, seed: int) -> 
     return _job_drive(jobs[run])
 
 
+#: The last world built in this process, by what built it: a worker generating several runs of
+#: one area builds it once (an oxford-sized area takes about a minute).
+_LAST_WORLD: dict[str, World] = {}
+
+
 def _world(area: AreaSpec, seed: int, detail: CityDetail | None = None) -> World:
+    key = json.dumps([area.model_dump(), seed, (detail or CityDetail()).model_dump()])
+    if key not in _LAST_WORLD:
+        _LAST_WORLD.clear()
+        _LAST_WORLD[key] = _build_world(area, seed, detail)
+    return _LAST_WORLD[key]
+
+
+def _build_world(area: AreaSpec, seed: int, detail: CityDetail | None) -> World:
     if area.district not in DISTRICTS:
         raise InputError(
             f"unknown district {area.district!r}; choose one of {sorted(DISTRICTS)}", area.name
@@ -130,6 +143,15 @@ def route_from_csv(world: World, path: str | Path) -> Route:
     s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
     hw = np.full(len(pts), 5.0)
     return Route(pts, s, hw)
+
+
+def part_of_route(route: Route, start: float, end: float) -> Route:
+    """The stretch of ``route`` between the shares ``start`` and ``end`` of its length."""
+    s0, s1 = start * route.length, end * route.length
+    keep = (route.s >= s0) & (route.s <= s1)
+    if keep.sum() < 2:
+        raise InputError(f"a part {start}-{end} of a {route.length:.0f} m route is empty", "part")
+    return Route(route.points[keep], route.s[keep] - route.s[keep][0], route.half_width[keep])
 
 
 def choose_test_regions(
@@ -178,6 +200,8 @@ def _job_drive(job: dict[str, Any]) -> SimulatedDrive:
         if job.get("trajectory")
         else make_route(world, area.route_m, job["seed"])
     )
+    if job.get("part"):
+        route = part_of_route(route, *job["part"])
     lidar = job.get("lidar")
     run = {"seed": job["run_seed"], "start_us": job["start_us"], "conditions": preset.conditions}
     if lidar and lidar.get("kind") == "pushbroom":
@@ -212,6 +236,9 @@ def _run_jobs_of_area(
                 "lidar": spec.run_lidar(area_index, k).model_dump(),
             }
         )
+        part = spec.run_part(area_index, k, seed)
+        if part is not None:
+            jobs[-1]["part"] = part
     return jobs
 
 
@@ -248,7 +275,7 @@ def _run_job(job: dict[str, Any]) -> dict[str, Any]:
         "removed_objects": drive.scene.removed,
         "roadworks": len(drive.scene.roadworks),
         "sensor": drive.lidar.name or f"{drive.lidar.beams} beams",
-    }
+    } | ({"part": job["part"]} if job.get("part") else {})
 
 
 def _trajectory_files(

@@ -2,22 +2,26 @@
 conditions, street detail) and :data:`PRESETS` by name (:func:`get_preset`).
 
 The spinning-sensor presets (``tiny``, ``demo``, ``benchmark``, ``benchmark_v1``) and the
-push-broom ones (``pushbroom_tiny``, ``pushbroom_demo``): a SICK LMS-151 mounted as the Oxford
-RobotCar's ``lms_front`` (:class:`~pnvlad_service.synth.sensors.PushbroomConfig`), its lines
-laid with the run's recorded poses and cut as the PointNetVLAD paper cut Oxford: the points
-recorded along 20 m of trajectory, every 10 m (training) and 20 m (testing).
+push-broom ones (``pushbroom_tiny``, ``pushbroom_demo``, ``oxford``, ``oxford_tiny``): a SICK
+LMS-151 mounted as the Oxford RobotCar's ``lms_front``
+(:class:`~pnvlad_service.synth.sensors.PushbroomConfig`), its lines laid with the run's recorded
+poses and cut as the PointNetVLAD paper cut Oxford: the points recorded along 20 m of
+trajectory, every 10 m (training) and 20 m (testing), in a city with street variety
+(:class:`~pnvlad_service.synth.world.StreetVariety`). ``oxford`` is the paper's Oxford: an old
+town over the RobotCar's coordinates, partial runs, the published layout.
 """
 
 from __future__ import annotations
 
 from typing import Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, Field, SerializerFunctionWrapHandler, model_serializer
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.synth.runs import RunConditions
 from pnvlad_service.synth.sensors import LidarConfig, PushbroomConfig, pushbroom, sensor
-from pnvlad_service.synth.world import CityDetail
+from pnvlad_service.synth.world import CityDetail, StreetVariety
 
 
 class AreaSpec(BaseModel):
@@ -78,6 +82,13 @@ class SynthPreset(BaseModel):
         description="a line scanner every run is recorded with instead (push-broom: a line "
         "every speed / rate_hz metres; ``lidar`` and ``lidars`` unused)",
     )
+    partial_runs: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="share of the runs after the first that drive only part of the route "
+        "(a stretch of 35-80 % of it, from a random start), as the benchmark's partial runs",
+    )
 
     @model_serializer(mode="wrap")
     def _dump(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
@@ -86,7 +97,21 @@ class SynthPreset(BaseModel):
         out = handler(self)
         if self.pushbroom is None:
             out.pop("pushbroom", None)
+        if not self.partial_runs:
+            out.pop("partial_runs", None)
         return out
+
+    def run_part(self, area_index: int, run: int, seed: int) -> tuple[float, float] | None:
+        """The stretch of the route run ``run`` drives, as shares of its length (start, end);
+        None: all of it (always the first run, on which the test regions are chosen)."""
+        if run == 0 or not self.partial_runs:
+            return None
+        rng = np.random.default_rng(np.random.SeedSequence([seed, area_index, run, 13]))
+        if rng.random() >= self.partial_runs:
+            return None
+        share = float(rng.uniform(0.35, 0.8))
+        start = float(rng.uniform(0.0, 1.0 - share))
+        return (round(start, 4), round(start + share, 4))
 
     def run_lidar(self, area_index: int, run: int) -> LidarConfig | PushbroomConfig:
         """The sensor run ``run`` of area ``area_index`` is recorded with."""
@@ -133,6 +158,20 @@ REAL_CITY = CityDetail(
     bridges_per_km=0.6,
     facade_bays=0.5,
     balconies=0.3,
+)
+#: Street detail of the push-broom presets: the realistic city with streets whose 30-40 m
+#: pieces differ (building heights, roofs, setbacks, gaps and open lots, trees of many sizes,
+#: avenues), what a push-broom submap must be told apart by.
+VARIED_CITY = REAL_CITY.model_copy(update={"variety": StreetVariety()})
+#: The oxford preset's area: the old town laid over the RobotCar's UTM coordinates (zone 30U),
+#: its 0.9 x 1.3 km holding the benchmark's four published test squares.
+OXFORD_AREA = AreaSpec(
+    name="oxford",
+    district="oldtown",
+    size=(920.0, 1270.0),
+    origin=(619780.0, 5734600.0),
+    route_m=5000.0,
+    test_regions="published",
 )
 
 PRESETS: dict[str, SynthPreset] = {
@@ -193,7 +232,7 @@ PRESETS: dict[str, SynthPreset] = {
         runs=3,
         pushbroom=pushbroom("lms151"),
         conditions=PUSHBROOM_CONDITIONS,
-        city=REAL_CITY,
+        city=VARIED_CITY,
         max_points_per_scan=1000,
         test_share=0.4,
         region_half_size=60.0,
@@ -207,12 +246,45 @@ PRESETS: dict[str, SynthPreset] = {
         runs=4,
         pushbroom=pushbroom("lms151"),
         conditions=PUSHBROOM_CONDITIONS,
-        city=REAL_CITY,
+        city=VARIED_CITY,
         max_points_per_scan=1000,
         test_share=0.35,
         region_half_size=120.0,
         keyframe_stride=None,
         raw_scans=False,
+    ),
+    # The paper's Oxford: an old-town route of 5 km over the RobotCar's own UTM coordinates
+    # (through the benchmark's four test squares), eight runs, a third of the later ones partial,
+    # recorded with the push-broom and written in the published layout.
+    "oxford": SynthPreset(
+        name="oxford",
+        areas=[OXFORD_AREA],
+        runs=8,
+        pushbroom=pushbroom("lms151"),
+        conditions=PUSHBROOM_CONDITIONS,
+        city=VARIED_CITY,
+        max_points_per_scan=1000,
+        keyframe_stride=None,
+        raw_scans=False,
+        partial_runs=0.35,
+    ),
+    # The same for tests: a corner of it, 300 m into the first test square, three runs (the
+    # last one partial). Seconds.
+    "oxford_tiny": SynthPreset(
+        name="oxford_tiny",
+        areas=[
+            OXFORD_AREA.model_copy(
+                update={"size": (360.0, 300.0), "origin": (619664.0, 5735513.0), "route_m": 300.0}
+            )
+        ],
+        runs=3,
+        pushbroom=pushbroom("lms151"),
+        conditions=PUSHBROOM_CONDITIONS,
+        city=VARIED_CITY,
+        max_points_per_scan=1000,
+        keyframe_stride=None,
+        raw_scans=False,
+        partial_runs=0.99,
     ),
 }
 

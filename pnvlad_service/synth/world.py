@@ -27,7 +27,14 @@ from dataclasses import dataclass, field, fields
 from typing import TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    field_validator,
+    model_serializer,
+)
 
 # Kinds, stored as int8 next to each primitive (used by runs.py for per-run edits and by
 # preview.py for colours).
@@ -46,6 +53,9 @@ class DistrictStyle(BaseModel):
     removed_share: float = Field(0.15, description="share of inner streets removed (T junctions)")
     diagonal_share: float = Field(0.08, description="share of blocks crossed by a diagonal street")
     road_half_width: tuple[float, float] = Field((4.0, 7.0), description="side, main; metres")
+    main_columns: bool = Field(
+        False, description="main roads along the first and middle columns too (not rows only)"
+    )
     n_templates: int = Field(4, description="building templates per district (repetition)")
     width: tuple[float, float] = Field(description="building frontage range, metres")
     depth: tuple[float, float] = Field(description="building depth range, metres")
@@ -119,7 +129,67 @@ DISTRICTS: dict[str, DistrictStyle] = {
         wall_share=0.2,
         parking_share=0.25,
     ),
+    # An Oxford-like old town: narrow side streets beside wide main roads, terraces and colleges
+    # of 2-5 storeys near the kerb, college and garden walls, many large trees.
+    "oldtown": DistrictStyle(
+        block_size=(75.0, 120.0),
+        jitter=15.0,
+        curved_share=0.35,
+        road_half_width=(3.0, 7.5),
+        main_columns=True,
+        n_templates=6,
+        width=(8.0, 30.0),
+        depth=(10.0, 22.0),
+        height=(7.0, 18.0),
+        wing_share=0.4,
+        setback=(0.5, 4.0),
+        gap=(0.0, 4.0),
+        street_tree_spacing=12.0,
+        street_tree_share=0.55,
+        park_tree_density=1.5,
+        crown_radius=(2.0, 4.5),
+        pole_spacing=30.0,
+        fence_share=0.15,
+        wall_share=0.25,
+        parking_share=0.6,
+    ),
 }
+
+
+class StreetVariety(BaseModel):
+    """How much the pieces of a street differ (applied by
+    :func:`pnvlad_service.synth.variety.vary_city`, which describes each piece)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    height_scale: tuple[float, float] = Field(
+        (0.35, 1.1), description="range of a building's height factor (drawn log-uniformly)"
+    )
+    roofs: float = Field(
+        0.6, ge=0, le=1, description="share of buildings with a pitched roof, top storey or plant"
+    )
+    setback_jitter_m: float = Field(
+        5.0, ge=0, le=20, description="most metres a building moves back from its street"
+    )
+    narrow_share: float = Field(
+        0.3, ge=0, le=1, description="share of buildings cut shorter along the street (gaps)"
+    )
+    vacant_lots: float = Field(
+        0.15, ge=0, le=1, description="share of buildings taken away, the lot left open"
+    )
+    tree_scale: tuple[float, float] = Field(
+        (0.55, 1.9), description="range of a tree's size factor (drawn log-uniformly)"
+    )
+    avenues: float = Field(
+        0.2, ge=0, le=1, description="share of street sides planted as an avenue (7-11 m apart)"
+    )
+
+    @field_validator("height_scale", "tree_scale")
+    @classmethod
+    def _range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not (0 < v[0] <= v[1] <= 5 and np.isfinite(v).all()):
+            raise ValueError(f"must be a range low <= high within (0, 5], not {v}")
+        return v
 
 
 class CityDetail(BaseModel):
@@ -163,6 +233,19 @@ class CityDetail(BaseModel):
     balconies: float = Field(
         0.0, ge=0, le=1, description="share of buildings whose street face has balconies"
     )
+    variety: StreetVariety | None = Field(
+        None,
+        description="how much the pieces of a street differ: building heights, roofs, "
+        "setbacks, gaps and open lots, tree sizes, avenues (None: the first city's templates)",
+    )
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler: SerializerFunctionWrapHandler) -> dict[str, object]:
+        # Without variety it dumps as before there was any (older trees' synth.json unchanged).
+        out = handler(self)
+        if self.variety is None:
+            out.pop("variety", None)
+        return out
 
     @property
     def any(self) -> bool:
