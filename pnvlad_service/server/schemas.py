@@ -222,6 +222,13 @@ class ReloadResponse(BaseModel):
 
 class Info(BaseModel):
     manifest: dict[str, Any]
+    utm_zone: str | None = Field(
+        None,
+        description="The UTM zone of the map's coordinates (e.g. '30U', '17 south'), which every "
+        "match carries; null when the map was built without one (pnvlad index build "
+        "--utm-zone, or data prepare --utm-zone, gives it).",
+        examples=["30U"],
+    )
     model: dict[str, Any]
     runtime: str
     limits: dict[str, Any]
