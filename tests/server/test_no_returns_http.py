@@ -1,8 +1,8 @@
 """Raw scans with missing returns written as zeros (Ouster's drivers) sent to a real `pnvlad
 serve` on 127.0.0.1, as a binary body and as JSON: the zeros are dropped before the filter G
-(the answer is the clean scan's), and a cloud with too few returns left is a 422 naming the
-field, as is one that is all zeros. `pnvlad localize SCAN --preprocess` counts them in a log
-line and refuses an all-zero file in one line naming it."""
+and counted (the answer is the clean scan's, with ``no_returns``), and a cloud with too few
+returns left is a 422 naming the field, as is one that is all zeros. `pnvlad localize SCAN
+--preprocess` counts them in a log line and refuses an all-zero file in one line naming it."""
 
 from __future__ import annotations
 
@@ -61,6 +61,8 @@ def test_zeros_are_dropped_before_the_filter(keys_server: str, tiny_maps: dict, 
     clean = _ask(keys_server, scan, as_json)
     dirty = _ask(keys_server, _with_zeros(scan, len(scan) // 3), as_json)
     assert clean.status_code == dirty.status_code == 200, dirty.text
+    assert clean.json()["no_returns"] == 0
+    assert dirty.json()["no_returns"] == len(scan) // 3  # counted in the answer
     a, b = clean.json()["matches"], dirty.json()["matches"]
     # The filter G is order-free: the cleaned scan is the clean one, so is every distance.
     assert [(m["run"], m["timestamp"]) for m in a] == [(m["run"], m["timestamp"]) for m in b]

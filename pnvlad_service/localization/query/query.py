@@ -14,7 +14,7 @@ rules, in this order:
    :data:`~.limits.MIN_RAW_POINTS` (the filter G's fewest) to ``max_raw_points`` points);
 4. a raw cloud loses its missing returns (points within :data:`~pnvlad_service.io.readers.
    NO_RETURN_M` of the sensor: drivers such as Ouster's write a beam that saw nothing as a
-   point at the origin), counted in ``no_returns`` and logged; one with fewer than
+   point at the origin), counted in ``no_returns`` (the answer's); one with fewer than
    :data:`~.limits.MIN_RAW_POINTS` returns left is refused;
 5. ``top_n`` and ``scale`` in bounds, and no ``scale`` on a raw scan (it is in metres).
 
@@ -149,6 +149,6 @@ def _returns(points: np.ndarray, limits: Limits, field: str) -> tuple[np.ndarray
             f"{limits.min_raw_points} returns",
             field,
         )
-    log.info("%d missing returns (points within %s m of the sensor) dropped from the %s",
+    log.debug("%d missing returns (points within %s m of the sensor) dropped from the %s",
              dropped, NO_RETURN_M, field)  # fmt: skip
     return np.ascontiguousarray(kept), dropped
