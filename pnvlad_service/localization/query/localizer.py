@@ -267,7 +267,7 @@ class Localizer:
     @property
     def utm_zone(self) -> str | None:
         """The UTM zone of the map's coordinates (its entries'), ``None`` when unknown."""
-        zones = sorted({str(z) for z in self.bundle.metadata.utm_zone.tolist() if str(z)})
+        zones = [str(z) for z in np.unique(self.bundle.metadata.utm_zone) if str(z)]
         return ", ".join(zones) or None
 
     # the steps of a query ---------------------------------------------------------------
