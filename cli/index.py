@@ -176,7 +176,9 @@ def add(
 
     The model must be the one the bundle was built with (same weights sha256); submaps
     already in the bundle are refused. A bundle with geometry keeps it: runs without a frame
-    sidecar are refused unless --geometry off drops it.
+    sidecar are refused unless --geometry off drops it. A map is in one UTM zone: runs that
+    record one (data prepare --utm-zone) give it to a bundle built without one, every entry
+    of it; runs of another zone than the bundle's are refused.
 
     Example: pnvlad index add map.index -m runs/model -r benchmark_datasets \
       --run 2015-02-03-08-45-10

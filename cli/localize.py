@@ -10,6 +10,7 @@ library imports happen inside the functions so that `pnvlad --help` stays fast.
 from __future__ import annotations
 
 import json
+import logging
 import sys
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,8 @@ import typer
 from pnvlad_cli import replay as replay_options
 from pnvlad_cli import rosbag as bag_options
 from pnvlad_cli.common import model_option, progress_option, user_errors
+
+log = logging.getLogger("pnvlad.localize")
 
 #: ``--mode``'s values.
 MODES = ("scan", "follow", "per-scan")
@@ -361,11 +364,17 @@ def _localize_scan(
     """The answer for one scan file, from the server at ``url`` or the bundle at ``index``.
     ``check``: ``verify``, ``scale`` and ``rerank`` as the command line gave them."""
     from pnvlad_service.errors import InputError
-    from pnvlad_service.io.readers import read_points
+    from pnvlad_service.io.readers import read_points, read_scan
 
     if scan is None:
         raise InputError("give a scan file (or --rosbag BAG to replay a bag)", "SCAN")
-    points = read_points(scan, reader)
+    if preprocess:  # a raw scan: its missing returns (points at the sensor) dropped and counted
+        points, dropped = read_scan(scan, reader)
+        if dropped:
+            log.info("%s: %d missing returns (points at the sensor's origin) dropped", scan,
+                     dropped)  # fmt: skip
+    else:  # a preprocessed submap: its origin is a place like any other
+        points = read_points(scan, reader)
     if url is None:
         assert index is not None
         return _localize_here(index, model, points, preprocess, top_n, check)

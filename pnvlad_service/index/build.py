@@ -452,6 +452,18 @@ def _bundle_zone(bundle: IndexBundle, zone: str) -> str:
     return zone or (have[0] if len(have) == 1 else "")
 
 
+def _adopt_zone(metadata: Metadata, zone: str) -> Metadata:
+    """``metadata`` with its entries of no zone in ``zone``: runs that record a zone, added to
+    a bundle built without one, give it to the whole map (a map is in one zone, and a mix of
+    zoned and unknown entries would answer with or without it by the match)."""
+    blank = metadata.utm_zone == ""
+    if not zone or not blank.any():
+        return metadata
+    log.info("the bundle had no UTM zone: its %d entries take the added runs' zone, %s",
+             int(blank.sum()), zone)  # fmt: skip
+    return replace(metadata, utm_zone=np.where(blank, zone, metadata.utm_zone))
+
+
 def add_to_bundle(
     bundle_dir: str | Path,
     model: str | Path,
@@ -471,7 +483,8 @@ def add_to_bundle(
     (:meth:`~pnvlad_service.index.manifest.Manifest.check_model`) and submaps already in it.
     A bundle with geometry keeps it (old rows copied, each checked against its digest) and
     gains the new submaps'; runs without a frame sidecar are refused unless ``geometry`` is
-    ``"off"``, which drops the bundle's geometry.
+    ``"off"``, which drops the bundle's geometry. Runs that record a UTM zone give it to a
+    bundle without one (every entry); runs of another zone than the bundle's are refused.
     """
     bundle_dir = Path(bundle_dir)
     root = Path(root)
@@ -486,7 +499,8 @@ def add_to_bundle(
             "layout",
         )
     records = list_database_submaps(root, datasets, runs, layout)
-    records = with_zone(records, _bundle_zone(bundle, tree_utm_zone(root, records)))
+    zone = _bundle_zone(bundle, tree_utm_zone(root, records))
+    records = with_zone(records, zone)
     present = set(bundle.metadata.submap_id.tolist())
     dup = [r.submap_id for r in records if r.submap_id in present]
     if dup:
@@ -508,7 +522,7 @@ def add_to_bundle(
     manifest = write_bundle(
         bundle_dir,
         bundle.index,
-        bundle.metadata.concat(Metadata.from_records(records)),
+        _adopt_zone(bundle.metadata, zone).concat(Metadata.from_records(records)),
         index_key=m.index_key,
         model=m.model,
         indexed=[*m.indexed, _indexed_entry(root, layout, records)],

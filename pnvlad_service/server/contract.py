@@ -58,7 +58,9 @@ PRIOR_DOC = (
 
 POINTS_DOC = (
     "Exactly 4096 preprocessed points in the benchmark's normalised frame ([-1, 1]), or with "
-    "preprocess=true a raw scan (sensor frame, metres) of any size up to the server's limit."
+    "preprocess=true a raw scan (sensor frame, metres) of any size up to the server's limit; "
+    "its points within 0.1 m of the sensor are missing returns written as zeros (Ouster's "
+    "drivers) and are dropped: at least 16 others must be left."
 )
 
 

@@ -98,7 +98,7 @@ QUERY_REFUSED = (
     "Invalid input: a body or parameter out of its bounds, a combination the fields' "
     "descriptions refuse, a kind of query the map does not hold, verification or a prior asked "
     "of a map without geometry, or a raw scan the filter G cannot use (fewer than 16 points "
-    "left after cropping and ground removal)"
+    "left after dropping missing returns, cropping and ground removal)"
 )
 
 

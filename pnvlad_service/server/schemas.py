@@ -142,6 +142,12 @@ _MODE = Field(
     "registered to the map near the prior pose it gave (no embedding).",
 )
 _PRIOR = Field(None, description="With a prior pose: that registration; null else.")
+_NO_RETURNS = Field(
+    0,
+    ge=0,
+    description="Points of a raw scan within 0.1 m of the sensor, dropped before the filter G: "
+    "missing returns that a driver wrote as zeros (Ouster's). 0 for a preprocessed submap.",
+)
 
 
 class LocalizeResponse(BaseModel):
@@ -157,6 +163,7 @@ class LocalizeResponse(BaseModel):
     pose: PoseOut | None = None
     verification: VerificationOut | None = None
     prior: PriorOut | None = _PRIOR
+    no_returns: int = _NO_RETURNS
     timings_ms: Timings
     batch_size: int = Field(..., description="Clouds embedded together with this one.")
     model: ModelOut
@@ -172,6 +179,7 @@ class BatchItem(BaseModel):
     pose: PoseOut | None = None
     verification: VerificationOut | None = None
     prior: PriorOut | None = _PRIOR
+    no_returns: int = _NO_RETURNS
     timings_ms: Timings
     batch_size: int
 
@@ -222,6 +230,13 @@ class ReloadResponse(BaseModel):
 
 class Info(BaseModel):
     manifest: dict[str, Any]
+    utm_zone: str | None = Field(
+        None,
+        description="The UTM zone of the map's coordinates (e.g. '30U', '17 south'), which every "
+        "match carries; null when the map was built without one (pnvlad index build "
+        "--utm-zone, or data prepare --utm-zone, gives it).",
+        examples=["30U"],
+    )
     model: dict[str, Any]
     runtime: str
     limits: dict[str, Any]

@@ -150,3 +150,26 @@ def test_prepare_refuses_a_malformed_zone_before_writing(tmp_path: Path) -> None
     assert res.exit_code == 2, res.output
     assert res.output.strip().count("\n") == 0 and "--utm-zone: 'north'" in res.output
     assert not (tmp_path / "run").exists()
+
+
+def test_runs_with_a_zone_give_it_to_a_bundle_without_one(tmp_path: Path, ckpt: Path) -> None:
+    tree = tmp_path / "tree"
+    _prepare(tree, "a", "")
+    build_bundle(tmp_path / "map.index", ckpt, tree, progress=False)
+    before = IndexBundle.load(tmp_path / "map.index")
+    old = before.metadata.submap_id.tolist()
+    assert set(before.metadata.utm_zone.tolist()) == {""}
+    zoned = tmp_path / "zoned"
+    _prepare(zoned, "b", "30u", seed=1)
+    res = CliRunner().invoke(
+        app, ["index", "add", str(tmp_path / "map.index"), "-m", str(ckpt), "-r", str(zoned),
+              "--no-progress"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    after = IndexBundle.load(tmp_path / "map.index")
+    meta = after.metadata
+    assert after.count == 2 * len(old) and meta.submap_id.tolist()[: len(old)] == old
+    assert set(meta.utm_zone.tolist()) == {"30U"}  # every entry, the old ones too: no mix
+    np.testing.assert_array_equal(meta.northing[: len(old)], before.metadata.northing)
+    res = CliRunner().invoke(app, ["index", "info", str(tmp_path / "map.index")])
+    assert [x.split()[2:] for x in res.output.splitlines() if x.startswith("utm zone")] == [["30U"]]

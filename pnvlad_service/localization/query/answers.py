@@ -71,7 +71,8 @@ class Answer:
     ``retrieval_ranks[i]`` is match ``i``'s rank by distance. ``batch_size``: clouds embedded
     together with this one. ``query_kind``: what was asked with (a preprocessed ``submap``, a
     raw ``scan`` or an accumulated ``window``); ``map_kind``: what every match is (a
-    ``submap`` or a ``keyframe``).
+    ``submap`` or a ``keyframe``). ``no_returns``: the missing returns (points at the sensor)
+    dropped from a raw query (:meth:`~.query.Query.make`).
 
     With ``prior`` (a query that said where it is: :meth:`Localizer.localize` with ``prior``)
     nothing was embedded: the matches are the map entries near the prior that the scan was
@@ -87,6 +88,7 @@ class Answer:
     query_kind: str = "submap"
     map_kind: str = "submap"
     prior: PriorFit | None = None
+    no_returns: int = 0
 
     @property
     def verified(self) -> bool | None:
@@ -119,6 +121,7 @@ class Answer:
             "verification": None if v is None else verification_json(v),
             "prior": None,
             "batch_size": self.batch_size,
+            "no_returns": self.no_returns,
             "timings_ms": self.timings.to_json(),
         }
 
@@ -143,6 +146,7 @@ class Answer:
             },
             "prior": prior_json(fit),
             "batch_size": self.batch_size,
+            "no_returns": self.no_returns,
             "timings_ms": self.timings.to_json(),
         }
 

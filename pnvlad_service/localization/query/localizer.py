@@ -264,6 +264,12 @@ class Localizer:
         """The bundle's manifest as JSON (``manifest.json``'s content)."""
         return self.bundle.manifest.to_json()
 
+    @property
+    def utm_zone(self) -> str | None:
+        """The UTM zone of the map's coordinates (its entries'), ``None`` when unknown."""
+        zones = [str(z) for z in np.unique(self.bundle.metadata.utm_zone) if str(z)]
+        return ", ".join(zones) or None
+
     # the steps of a query ---------------------------------------------------------------
     @contextlib.contextmanager
     def announce(self, count: int = 1) -> Iterator[None]:

@@ -12,7 +12,11 @@ rules, in this order:
    (:meth:`~.limits.Limits.check_prior`);
 3. the points (:meth:`~.limits.Limits.check_points`: exactly 4096 in [-1, 1], or a raw scan of
    :data:`~.limits.MIN_RAW_POINTS` (the filter G's fewest) to ``max_raw_points`` points);
-4. ``top_n`` and ``scale`` in bounds, and no ``scale`` on a raw scan (it is in metres).
+4. a raw cloud loses its missing returns (points within :data:`~pnvlad_service.io.readers.
+   NO_RETURN_M` of the sensor: drivers such as Ouster's write a beam that saw nothing as a
+   point at the origin), counted in ``no_returns`` (the answer's); one with fewer than
+   :data:`~.limits.MIN_RAW_POINTS` returns left is refused;
+5. ``top_n`` and ``scale`` in bounds, and no ``scale`` on a raw scan (it is in metres).
 
 What depends on the map (a kind the bundle does not hold, verification or a prior asked of a
 bundle without geometry) is the localiser's to check when the query runs
@@ -21,12 +25,14 @@ bundle without geometry) is the localiser's to check when the query runs
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.io.readers import NO_RETURN_M, drop_no_returns
 from pnvlad_service.localization.query.limits import Limits, query_kind
 from pnvlad_service.localization.verify.prior import Prior
 
@@ -38,6 +44,8 @@ PRIOR_RAW = (
 )
 
 PRIOR_VERIFY = "a query with a prior is registered to the map: no verify=false"
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -62,7 +70,8 @@ class Query:
     raw ``scan`` or ``window``); ``top_n`` matches; ``verify``: ``None`` (when the bundle can),
     true or false; ``scale``: metres per unit of a preprocessed cloud, when the caller knows it;
     ``prior``: where a raw scan's sensor is thought to be (it is then registered to the map
-    there, not searched for). Build it with :meth:`make`."""
+    there, not searched for); ``no_returns``: the missing returns dropped from a raw cloud.
+    Build it with :meth:`make`."""
 
     points: np.ndarray
     kind: str
@@ -70,6 +79,7 @@ class Query:
     verify: bool | None = None
     scale: float | None = None
     prior: Prior | None = None
+    no_returns: int = 0
 
     @property
     def raw(self) -> bool:
@@ -115,8 +125,30 @@ class Query:
                 raise InputError(PRIOR_VERIFY, "verify")
             pose = limits.check_prior(**given, field=where.prior, sep=where.sep)
         pts = limits.check_points(np.asarray(points), raw, where.points)
+        dropped = 0
+        if raw:
+            pts, dropped = _returns(pts, limits, where.points)
         n = limits.default_top_n if top_n is None else limits.check_top_n(top_n)
         scale = limits.check_scale(scale)
         if raw and scale is not None:
             raise InputError(SCALE_RAW, "scale")
-        return cls(pts, kind, n, verify, scale, pose)
+        return cls(pts, kind, n, verify, scale, pose, dropped)
+
+
+def _returns(points: np.ndarray, limits: Limits, field: str) -> tuple[np.ndarray, int]:
+    """A raw cloud without its missing returns, and how many there were; :class:`InputError`
+    naming ``field`` when fewer than ``limits.min_raw_points`` returns are left."""
+    kept, dropped = drop_no_returns(points)
+    if not dropped:
+        return points, 0
+    if len(kept) < limits.min_raw_points:
+        what = "none is a return" if len(kept) == 0 else f"only {len(kept)} are returns"
+        raise InputError(
+            f"{len(points):,} points, {what}: {dropped:,} lie within {NO_RETURN_M} m of the sensor "
+            f"(missing returns written as zeros); a raw scan needs at least "
+            f"{limits.min_raw_points} returns",
+            field,
+        )
+    log.debug("%d missing returns (points within %s m of the sensor) dropped from the %s",
+             dropped, NO_RETURN_M, field)  # fmt: skip
+    return np.ascontiguousarray(kept), dropped

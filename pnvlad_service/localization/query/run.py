@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable, Coroutine, Sequence
 from concurrent.futures import Future
 from contextlib import AbstractContextManager
+from dataclasses import replace
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
@@ -117,10 +118,13 @@ async def run(
         prepared = await _prepare(loc, query, runner, field)
         preprocess_s = time.perf_counter() - t0 - parse_s
         fit = await runner.blocking(loc.register_near, prepared, query.prior)
-        return loc.answer_near(fit, **_told(query, t0, parse_s, preprocess_s))
-    result = await runner.wait(future)
-    verification = await runner.blocking(loc.verify, prepared, result) if verify else None
-    return loc.answer(result, verification=verification, **_told(query, t0, parse_s, preprocess_s))
+        answer = loc.answer_near(fit, **_told(query, t0, parse_s, preprocess_s))
+    else:
+        result = await runner.wait(future)
+        verification = await runner.blocking(loc.verify, prepared, result) if verify else None
+        told = _told(query, t0, parse_s, preprocess_s)
+        answer = loc.answer(result, verification=verification, **told)
+    return replace(answer, no_returns=query.no_returns) if query.no_returns else answer
 
 
 def _told(query: Query, t0: float, parse_s: float, preprocess_s: float) -> dict[str, Any]:

@@ -29,9 +29,11 @@ def readyz(loc: Localizer = Depends(get_localizer)) -> dict[str, Any]:
 def info(
     loc: Localizer = Depends(get_localizer), settings: ServerSettings = Depends(get_settings)
 ) -> dict[str, Any]:
-    """The bundle's manifest, the model, the runtime and the request limits."""
+    """The bundle's manifest, the UTM zone of its map, the model, the runtime and the request
+    limits."""
     return {
         "manifest": loc.manifest_json(),
+        "utm_zone": loc.utm_zone,
         "model": loc.identity.to_json(),
         "runtime": loc.runtime,
         "limits": {"max_body_bytes": settings.max_body_bytes, **settings.limits().to_json()},
