@@ -103,9 +103,9 @@ def splits(
     around given centres. Writes our JSON format (docs/SPLITS.md).
 
     With --query-run, a map of your own drives: training tuples from every
-    place of the map runs, the query runs evaluated against them. Positions
-    are a run's aligned ones (RUN/poses_aligned.csv, from pnvlad map align)
-    where it has them, else the recorded ones.
+    place of the map runs, the query runs evaluated against them. Split the
+    tree pnvlad map align wrote (ROOT-aligned), whose entries lie where the
+    aligned poses put them, rather than the recorded one.
 
     Examples:
 
