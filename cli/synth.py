@@ -8,21 +8,26 @@ import typer
 
 from pnvlad_cli.common import progress_option, user_errors
 
+#: What --preset offers, each with its size and time.
+PRESETS_HELP = (
+    "tiny (tests, seconds), demo (README, ~600 submaps, under 2 min), benchmark "
+    "(3 districts x 5 runs recorded with four real sensors' layouts, quality figures, under "
+    "30 min), benchmark_v1 (the first benchmark: one perfect sensor, no street "
+    "detail), pushbroom_tiny / pushbroom_demo (the paper's Oxford sensor: a SICK "
+    "LMS-151 push-broom mounted as the RobotCar's lms_front, Oxford-style submaps), or "
+    "oxford (the paper's Oxford: an old town over the RobotCar's coordinates, 8 runs of "
+    "a 5 km route, partial runs, written as oxford/RUN/pointcloud_20m/ and "
+    "pointcloud_20m_10overlap/ with their CSVs; about 10 min of CPU, 5-6 min on 2 idle "
+    "cores) / oxford_tiny (tests, seconds)."
+)
+
 
 def synth(
     out: Path = typer.Option(..., "--out", "-o", help="Tree root to create."),
     preset: str = typer.Option(
         "demo",
         "--preset",
-        help="tiny (tests, seconds), demo (README, ~600 submaps, under 2 min), benchmark "
-        "(3 districts x 5 runs recorded with four real sensors' layouts, quality figures, under "
-        "30 min), benchmark_v1 (the first benchmark: one perfect sensor, no street "
-        "detail), pushbroom_tiny / pushbroom_demo (the paper's Oxford sensor: a SICK "
-        "LMS-151 push-broom mounted as the RobotCar's lms_front, Oxford-style submaps), or "
-        "oxford (the paper's Oxford: an old town over the RobotCar's coordinates, 8 runs of "
-        "a 5 km route, partial runs, written as oxford/RUN/pointcloud_20m/ and "
-        "pointcloud_20m_10overlap/ with their CSVs; about 10 min of CPU, 5-6 min on 2 idle "
-        "cores) / oxford_tiny (tests, seconds).",
+        help=PRESETS_HELP,
     ),
     seed: int = typer.Option(0, "--seed", "-s", help="Seed of the city and of every run."),
     workers: int = typer.Option(
