@@ -6,7 +6,8 @@
 Prints, for the keyframes and the 20 m test submaps of both trees, the position error of the
 entries against the simulator's truth (median, p90, p99, max), their yaw error, and the
 disagreement between runs at one place (each entry against the truly nearest entry of every
-other run within 2.5 m: how far apart the two runs put the same point); then the alignment's
+other run within 2.5 m: how far apart the two runs put the same point), for the whole tree and,
+where it holds several datasets (districts), for each; then the alignment's
 closures, residuals and the time of each stage from the aligned tree's align_report.json.
 Both trees are read from their frame sidecars (pnvlad_service/mapping/accuracy.py), so the
 figures do not depend on how the alignment computed them.
@@ -31,6 +32,7 @@ def _row(name: str, s: dict) -> str:
 
 
 def main() -> int:
+    from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.mapping.accuracy import tree_accuracy
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -45,11 +47,17 @@ def main() -> int:
     print("position error against the truth (m), yaw error (deg), disagreement between runs (m)")
     print(head)
     out: dict = {}
-    for kind in ("keyframe", "test"):
-        for name, root in (("recorded", args.recorded), ("aligned", args.aligned)):
-            s = tree_accuracy(root, kind).summary()  # type: ignore[arg-type]
-            out[f"{name}/{kind}"] = s
-            print(_row(f"{name}, {kind}", s))
+    datasets = BenchmarkTree(args.recorded).datasets
+    parts = [None] + (datasets if len(datasets) > 1 else [])
+    for part in parts:
+        if part is not None:
+            print(f"dataset {part}:")
+        for kind in ("keyframe", "test"):
+            for name, root in (("recorded", args.recorded), ("aligned", args.aligned)):
+                s = tree_accuracy(root, kind, dataset=part).summary()  # type: ignore[arg-type]
+                key = f"{name}/{kind}" if part is None else f"{part}/{name}/{kind}"
+                out[key] = s
+                print(_row(f"{name}, {kind}", s))
     report = json.loads((args.aligned / "align_report.json").read_text())
     c = report["closures"]
     print(

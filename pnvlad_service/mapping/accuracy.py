@@ -54,23 +54,25 @@ class Accuracy:
         }
 
 
-def tree_accuracy(root: str | Path, kind: Kind = "keyframe", pair_m: float = 2.5) -> Accuracy:
-    """The accuracy of the ``kind`` entries of the tree at ``root`` (see the module doc).
-    ``InputError`` when an entry has no true pose."""
+def tree_accuracy(
+    root: str | Path, kind: Kind = "keyframe", pair_m: float = 2.5, dataset: str | None = None
+) -> Accuracy:
+    """The accuracy of the ``kind`` entries of the tree at ``root`` (see the module doc), or
+    of its ``dataset`` alone. ``InputError`` when an entry has no true pose."""
     tree = BenchmarkTree(root)
     origin, true_pos, yaw, run_of = [], [], [], []
-    for dataset in tree.datasets:
-        for run in tree.runs(dataset):
-            frames = tree.frames(dataset, run, kind) if tree.has(dataset, run, kind) else None
+    for name in [dataset] if dataset is not None else tree.datasets:
+        for run in tree.runs(name):
+            frames = tree.frames(name, run, kind) if tree.has(name, run, kind) else None
             if not frames:
                 continue
             for f in frames:
                 if f.true_position is None or f.true_yaw_deg is None:
-                    raise InputError("no true pose in the frame sidecar", f"{dataset}/{run}")
+                    raise InputError("no true pose in the frame sidecar", f"{name}/{run}")
                 origin.append(f.origin)
                 true_pos.append(f.true_position)
                 yaw.append(f.true_yaw_deg)
-                run_of.append(f"{dataset}/{run}")
+                run_of.append(f"{name}/{run}")
     if not origin:
         raise InputError(f"no {kind} entries with frame sidecars", source=root)
     o, t, y = np.array(origin), np.array(true_pos), np.radians(np.array(yaw))

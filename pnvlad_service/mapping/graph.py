@@ -2,7 +2,9 @@
 
 Why GTSAM: the factor graph LIO-SAM and lt-mapper build their maps with, kept by its authors,
 on PyPI for this Python (extra ``align``): its robust noise models, its Levenberg-Marquardt and
-its custom factors are what this stage needs, and no solver is written here.
+its factors are what this stage needs, and no solver is written here. Every factor is one of
+GTSAM's own (C++): a Python factor costs a call into the interpreter per factor and
+linearisation, seconds an iteration for a district's 3,000 nodes.
 
 The variables are the nodes' true poses ``X`` (float64 [4, 4], local frame -> UTM, about a map
 origin subtracted for conditioning). The factors:
@@ -14,11 +16,14 @@ origin subtracted for conditioning). The factors:
   first node has the prior ``e_0 ~ N(0, std^2)`` and each next one the factor
   ``e_{k+1} - a e_k ~ N(0, (1 - a^2) std^2)``, ``a = exp(-d / correlation_m)`` for the ``d``
   metres between them. This is every fix and every recorded step in one honest model: a run's
-  kilometre of fixes is worth its correlated information, not one fix a node.
+  kilometre of fixes is worth its correlated information, not one fix a node. The same cost is
+  written as a prior on each node's error and a between factor on each step's change of it
+  (:func:`walk_weights`), so that GTSAM's own factors carry it.
 - **Odometry and closures** (:mod:`.edges`): ``BetweenFactorPose3`` with the registration's
   covariance under a robust kernel: Huber for a first solve from the recorded poses (where
   every closure is metres off and a redescending kernel would ignore the good ones too), then
   Cauchy from that solution (a wrong closure left metres off pulls with almost no force).
+  Each solve after the first starts from the one before it.
 """
 
 from __future__ import annotations
@@ -36,6 +41,13 @@ from pnvlad_service.mapping.edges import Edge
 from pnvlad_service.mapping.nodes import MapNodes
 
 log = logging.getLogger(__name__)
+
+#: The walk's largest step correlation (``1 - a^2`` at least 1e-6: two nodes at one place).
+A_MAX = math.sqrt(1.0 - 1e-6)
+#: How tightly a node's position variable is tied to its pose's translation (metres).
+TIE_M = 1e-3
+#: The standard deviation that leaves a factor's translation free (metres).
+FREE_M = 1e4
 
 
 @dataclass(frozen=True)
@@ -105,72 +117,72 @@ def _log_rot(R: np.ndarray) -> np.ndarray:
     return 0.5 * w if theta < 1e-9 else theta / (2.0 * math.sin(theta)) * w
 
 
-def _jr_inv(phi: np.ndarray) -> np.ndarray:
-    """The inverse right Jacobian of SO(3) at ``phi``: float64 [3, 3]."""
-    theta = float(np.linalg.norm(phi))
-    K = np.array([[0, -phi[2], phi[1]], [phi[2], 0, -phi[0]], [-phi[1], phi[0], 0]])
-    if theta < 1e-6:
-        return np.eye(3) + 0.5 * K
-    c = 1.0 / theta**2 - (1.0 + math.cos(theta)) / (2.0 * theta * math.sin(theta))
-    return np.eye(3) + 0.5 * K + c * K @ K
+def walk_weights(steps_m: np.ndarray, model: GnssModel) -> tuple[np.ndarray, np.ndarray]:
+    """The Gauss-Markov walk of a run's error as node priors and step differences.
 
-
-def _error(pose: np.ndarray, recorded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The recording's error of a node (recorded position minus the true one; the true frame's
-    turn against the laid one, negated) [6], and its Jacobian [6, 6] in GTSAM's Pose3
-    tangent (rotation, then translation; right perturbation)."""
-    R, t = pose[:3, :3], pose[:3, 3]
-    phi = _log_rot(R @ recorded[:3, :3].T)
-    e = np.concatenate([recorded[:3, 3] - t, -phi])
-    J = np.zeros((6, 6))
-    J[:3, 3:] = -R
-    J[3:, :3] = -_jr_inv(phi) @ recorded[:3, :3]
-    return e, J
+    The walk's cost ``e_0^2 + sum_k (e_{k+1} - a_k e_k)^2 / (1 - a_k^2)`` (in units of the
+    stationary variance; ``a_k = exp(-steps_m[k] / correlation_m)``) is, for any ``e``,
+    exactly ``sum_k w_k e_k^2 + sum_k v_k (e_{k+1} - e_k)^2`` with ``v_k = a_k / (1 - a_k^2)``
+    and ``w_k = 1 / (1 + a_{k-1}) - a_k / (1 + a_k)`` (the first node without the first
+    term and the last without the second, each then ``1 / (1 + a)``; a lone node 1): every
+    ``w_k`` and ``v_k`` is at least 0, so both are plain priors and between factors with
+    standard deviations ``std / sqrt(w)``. Returns ``w`` float64 [N] and ``v`` [N - 1] for
+    the ``N - 1`` ``steps_m``."""
+    a = np.minimum(np.exp(-np.asarray(steps_m, np.float64) / model.correlation_m), A_MAX)
+    w = np.ones(len(a) + 1)
+    w[1:] = 1.0 / (1.0 + a)
+    w[:-1] -= a / (1.0 + a)
+    return w, a / (1.0 - a * a)
 
 
 def _matrix(value: Any) -> np.ndarray:
     return np.asarray(value.matrix(), dtype=np.float64)
 
 
+def _diag(gtsam: Any, sigmas: np.ndarray) -> Any:
+    return gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, np.float64))
+
+
 def _gnss_factors(
     gtsam: Any, graph: Any, nodes: MapNodes, poses: np.ndarray, model: GnssModel
 ) -> None:
-    """The GNSS/INS chain of every run: a prior on its first node's error, then the walk."""
+    """The GNSS/INS chain of every run in GTSAM's own factors (see :func:`walk_weights`).
+
+    A node's position error is its position variable ``P`` (float [3], tied to the pose's
+    translation by a ``ReferenceFrameFactor`` against one shared zero point) minus the
+    recorded position: a ``PriorFactorPoint3`` per node and a ``BetweenFactorPoint3`` per step,
+    world axes. Its heading and tilt error is the pose's turn against the recorded one: a
+    ``PoseRotationPrior3D`` per node and a ``BetweenFactorPose3`` per step (the recorded
+    relative pose) whose translation is left free; both take the turn about the recorded
+    frame's axes, the same as about the world's for a recording whose roll and pitch are zero
+    and otherwise up to the tilt's mix of the heading and tilt standard deviations."""
     sig = model.sigmas()
+    n = len(poses)
+    zero = 2 * n
+    pin = gtsam.noiseModel.Isotropic.Sigma(3, TIE_M)
+    graph.add(gtsam.PriorFactorPoint3(zero, np.zeros(3), pin))
+    tie = gtsam.noiseModel.Isotropic.Sigma(3, TIE_M)
+    free = np.full(3, FREE_M)
     for start, run in zip(nodes.starts(), nodes.runs, strict=True):
-        rec0 = poses[start]
-
-        def prior(this: Any, values: Any, H: Any, rec: np.ndarray = rec0) -> np.ndarray:
-            e, J = _error(_matrix(values.atPose3(this.keys()[0])), rec)
-            if H is not None:
-                H[0] = J
-            return e
-
-        noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
-        graph.add(gtsam.CustomFactor(noise, [int(start)], prior))
-        for k in range(len(run) - 1):
+        stop = start + len(run)
+        centres = poses[start:stop, :3, 3]
+        prior_w, step_w = walk_weights(np.linalg.norm(np.diff(centres, axis=0), axis=1), model)
+        for g in range(start, stop):
+            graph.add(gtsam.ReferenceFrameFactorPoint3Pose3(zero, g, n + g, tie))
+            s = sig / math.sqrt(prior_w[g - start])
+            graph.add(gtsam.PriorFactorPoint3(n + g, poses[g, :3, 3], _diag(gtsam, s[:3])))
+            turn = gtsam.Rot3(poses[g, :3, :3])
+            graph.add(gtsam.PoseRotationPrior3D(g, turn, _diag(gtsam, s[3:])))
+        for k, w in enumerate(step_w):
+            if w <= 0.0:
+                continue
             a_g, b_g = start + k, start + k + 1
-            d = float(np.linalg.norm(poses[b_g, :3, 3] - poses[a_g, :3, 3]))
-            a = math.exp(-d / model.correlation_m)
-            step = sig * math.sqrt(max(1.0 - a * a, 1e-6))
-
-            def walk(
-                this: Any,
-                values: Any,
-                H: Any,
-                ra: Any = poses[a_g],
-                rb: Any = poses[b_g],
-                a: float = a,
-            ) -> np.ndarray:
-                keys = this.keys()
-                ea, Ja = _error(_matrix(values.atPose3(keys[0])), ra)
-                eb, Jb = _error(_matrix(values.atPose3(keys[1])), rb)
-                if H is not None:
-                    H[0] = -a * Ja
-                    H[1] = Jb
-                return eb - a * ea
-
-            graph.add(gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(step), [a_g, b_g], walk))
+            s = sig / math.sqrt(w)
+            d = poses[b_g, :3, 3] - poses[a_g, :3, 3]
+            graph.add(gtsam.BetweenFactorPoint3(n + a_g, n + b_g, d, _diag(gtsam, s[:3])))
+            rel = gtsam.Pose3(np.linalg.inv(poses[a_g]) @ poses[b_g])
+            noise = _diag(gtsam, np.r_[s[3:], free])
+            graph.add(gtsam.BetweenFactorPose3(a_g, b_g, rel, noise))
 
 
 def _edge_covariance(edge: Edge) -> np.ndarray:
@@ -234,9 +246,12 @@ def solve(
     shift = recorded[0, :3, 3].copy() if origin is None else np.asarray(origin, np.float64)
     recorded[:, :3, 3] -= shift
     kept = [i for i, e in enumerate(edges) if e.accepted]
+    n = len(recorded)
     start = gtsam.Values()
     for g, pose in enumerate(recorded):
         start.insert(g, gtsam.Pose3(pose))
+        start.insert(n + g, pose[:3, 3].copy())
+    start.insert(2 * n, np.zeros(3))
     huber = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
     errors, iterations = [], []
 
@@ -259,7 +274,7 @@ def solve(
         if within == kept:
             break
         kept = within
-        values = run(huber, start)
+        values = run(huber, values)
     dropped = [i for i in accepted if i not in set(kept)]
     if dropped:
         log.info("%d closures over %g sigma off: set aside", len(dropped), config.outlier_sigma)
