@@ -214,7 +214,7 @@ PRESETS: dict[str, SynthPreset] = {
         region_half_size=150.0,
     ),
     # The first benchmark (one perfect 64-beam sensor, boxes for cars, no street detail):
-    # what the figures of docs/results before 2026-12-05 (session c) were measured on.
+    # what the figures of docs/results before 2026-12-05 were first measured on.
     "benchmark_v1": SynthPreset(
         name="benchmark_v1",
         areas=_areas(3000.0, (1000.0, 800.0), ("business", "residential", "campus")),
