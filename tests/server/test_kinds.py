@@ -10,30 +10,15 @@ import httpx
 import numpy as np
 import pytest
 
-from pnvlad_service.data.scans import read_raw_scans
-from pnvlad_service.io.readers import read_points
 from tests.index.helpers import free_port
+from tests.server.helpers import held_scan
 from tests.server.test_app import start_server, stop_server
 
 PROBLEM = "application/problem+json"
 
 
-@pytest.fixture(scope="module")
-def keys_server(tiny_maps: dict) -> str:
-    port = free_port()
-    proc = start_server(tiny_maps["keys"], port)
-    yield f"http://127.0.0.1:{port}"
-    stop_server(proc)
-
-
-def _scan(tiny_maps: dict) -> np.ndarray:
-    tree = tiny_maps["tree"]
-    scan = read_raw_scans(tree.root / "business" / tiny_maps["query_run"])[3]
-    return np.ascontiguousarray(read_points(scan.path, "kitti"), dtype="<f4")
-
-
 def test_a_keyframe_map_answers_a_raw_scan(keys_server: str, tiny_maps: dict) -> None:
-    body = _scan(tiny_maps).tobytes()
+    body = held_scan(tiny_maps).tobytes()
     ctype = {"content-type": "application/octet-stream"}
     for params in ({"kind": "scan"}, {"preprocess": "true"}):  # kind alone implies raw
         r = httpx.post(f"{keys_server}/localize", params=params, content=body, headers=ctype)
@@ -65,7 +50,7 @@ def test_a_keyframe_map_answers_a_raw_scan(keys_server: str, tiny_maps: dict) ->
 def test_kinds_the_map_cannot_take_are_refused(
     keys_server: str, tiny_maps: dict, params: dict, json_body: dict | None, field: str
 ) -> None:
-    pts = _scan(tiny_maps)
+    pts = held_scan(tiny_maps)
     if json_body is None:
         r = httpx.post(
             f"{keys_server}/localize",
@@ -87,14 +72,14 @@ def test_a_submap_map_takes_a_window(tiny_maps: dict, tmp_path: Path) -> None:
     from pnvlad_service.localization.query.localizer import Localizer
 
     with Localizer.load(tiny_maps["map"], tiny_maps["ckpt"]) as loc:
-        answer = loc.localize(_scan(tiny_maps), kind="window", top_n=3).to_json()
+        answer = loc.localize(held_scan(tiny_maps), kind="window", top_n=3).to_json()
         assert answer["query_kind"] == "window" and answer["map_kind"] == "submap"
         assert [m["kind"] for m in answer["matches"]] == ["submap"] * 3
     with Localizer.load(tiny_maps["keys"], tiny_maps["ckpt"]) as loc:
         from pnvlad_service.errors import InputError
 
         with pytest.raises(InputError) as err:
-            loc.localize(_scan(tiny_maps), kind="window")
+            loc.localize(held_scan(tiny_maps), kind="window")
         assert err.value.source == "kind" and "keyframe" in err.value.detail
 
 
@@ -145,7 +130,7 @@ def test_a_window_is_laid_as_the_served_maps_windows_were(tiny_maps: dict) -> No
             assert acc.max_points_per_scan == record["max_points_per_scan"] == 3000
             assert acc.min_spacing_m == record["min_scan_spacing_m"]
             assert acc.window_m == 20.0 and acc.frame == "sensor"
-            scan = _scan(tiny_maps)
+            scan = held_scan(tiny_maps)
             acc.add(scan, np.eye(4))
             assert len(acc.cloud()) == 3000 < len(scan)
             answer = client.localize_window(acc, top_n=2)

@@ -14,26 +14,9 @@ import httpx
 import numpy as np
 import pytest
 
-from pnvlad_service.data.scans import read_raw_scans
-from pnvlad_service.io.readers import read_points
-from tests.index.helpers import free_port
-from tests.server.test_app import start_server, stop_server
+from tests.server.helpers import held_scan
 
 OCTET = {"content-type": "application/octet-stream"}
-
-
-@pytest.fixture(scope="module")
-def keys_server(tiny_maps: dict) -> str:
-    port = free_port()
-    proc = start_server(tiny_maps["keys"], port)
-    yield f"http://127.0.0.1:{port}"
-    stop_server(proc)
-
-
-def _scan(tiny_maps: dict) -> np.ndarray:
-    tree = tiny_maps["tree"]
-    scan = read_raw_scans(tree.root / "business" / tiny_maps["query_run"])[3]
-    return np.ascontiguousarray(read_points(scan.path, "kitti"), dtype="<f4")
 
 
 def _with_zeros(scan: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
@@ -57,7 +40,7 @@ def _ask(url: str, points: np.ndarray, as_json: bool) -> httpx.Response:
 
 @pytest.mark.parametrize("as_json", [False, True])
 def test_zeros_are_dropped_before_the_filter(keys_server: str, tiny_maps: dict, as_json: bool):
-    scan = _scan(tiny_maps)
+    scan = held_scan(tiny_maps)
     clean = _ask(keys_server, scan, as_json)
     dirty = _ask(keys_server, _with_zeros(scan, len(scan) // 3), as_json)
     assert clean.status_code == dirty.status_code == 200, dirty.text
@@ -73,7 +56,7 @@ def test_zeros_are_dropped_before_the_filter(keys_server: str, tiny_maps: dict, 
 @pytest.mark.parametrize("returns", [0, 5])
 def test_a_cloud_without_returns_is_a_422(keys_server: str, tiny_maps: dict, as_json: bool,
                                           returns: int) -> None:  # fmt: skip
-    pts = _with_zeros(_scan(tiny_maps)[:returns], 2000)
+    pts = _with_zeros(held_scan(tiny_maps)[:returns], 2000)
     r = _ask(keys_server, pts, as_json)
     assert r.status_code == 422, r.text
     doc = r.json()
@@ -87,7 +70,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_localize_a_scan_file_counts_and_refuses_zeros(tiny_maps: dict, tmp_path: Path) -> None:
-    scan = _scan(tiny_maps)
+    scan = held_scan(tiny_maps)
     dirty = tmp_path / "dirty.npy"
     np.save(dirty, _with_zeros(scan, 777))
     res = _cli(str(dirty), "--preprocess", "--index", str(tiny_maps["keys"]), "--no-verify")
