@@ -18,6 +18,7 @@ a bundle built with other weights, verification asked of a bundle without geomet
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import threading
 import time
@@ -264,9 +265,10 @@ class Localizer:
         """The bundle's manifest as JSON (``manifest.json``'s content)."""
         return self.bundle.manifest.to_json()
 
-    @property
+    @functools.cached_property
     def utm_zone(self) -> str | None:
-        """The UTM zone of the map's coordinates (its entries'), ``None`` when unknown."""
+        """The UTM zone of the map's coordinates (its entries'), ``None`` when unknown; read
+        once (the bundle does not change under a localiser: a reload makes a new one)."""
         zones = [str(z) for z in np.unique(self.bundle.metadata.utm_zone) if str(z)]
         return ", ".join(zones) or None
 
