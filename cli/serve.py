@@ -121,11 +121,12 @@ def serve(
         "VERIFY_CACHE": verify_cache,
         "FOXGLOVE": foxglove,
     }
+    from pnvlad_service.models.pretrained import is_pretrained
+
     for name, value in options.items():
-        if value is not None:
-            os.environ[f"PNVLAD_{name}"] = str(
-                Path(value).resolve() if isinstance(value, Path) else value
-            )
+        if value is not None:  # paths made absolute; a pretrained:NAME is a name, not a path
+            as_path = isinstance(value, Path) and not is_pretrained(value)
+            os.environ[f"PNVLAD_{name}"] = str(Path(value).resolve() if as_path else value)
 
     import uvicorn
 

@@ -30,7 +30,9 @@ MAX_BODY = 4 * 1024 * 1024
 PROBLEM = "application/problem+json"
 
 
-def start_server(bundle: Path, port: int, env: dict[str, str] | None = None) -> subprocess.Popen:
+def start_server(
+    bundle: Path, port: int, env: dict[str, str] | None = None, args: tuple[str, ...] = ()
+) -> subprocess.Popen:
     cmd = [
         sys.executable,
         "-m",
@@ -43,6 +45,7 @@ def start_server(bundle: Path, port: int, env: dict[str, str] | None = None) -> 
         str(port),
         "--log-level",
         "warning",
+        *args,
     ]
     full_env = {**os.environ, "PNVLAD_MAX_BODY_BYTES": str(MAX_BODY), **(env or {})}
     proc = subprocess.Popen(cmd, env=full_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
