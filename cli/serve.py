@@ -14,6 +14,17 @@ import typer
 from pnvlad_cli.common import model_option, user_errors
 
 
+def _export(options: dict[str, Any]) -> None:
+    """Each given option as its ``PNVLAD_*`` variable, the one place the server's settings are
+    read from: paths made absolute; a ``pretrained:NAME`` is a name, not a path."""
+    from pnvlad_service.models.pretrained import is_pretrained
+
+    for name, value in options.items():
+        if value is not None:
+            as_path = isinstance(value, Path) and not is_pretrained(value)
+            os.environ[f"PNVLAD_{name}"] = str(Path(value).resolve() if as_path else value)
+
+
 def serve(
     index: Path = typer.Option(
         None, "--index", "-i", help="Index bundle directory (pnvlad index build). Env PNVLAD_INDEX."
@@ -121,12 +132,7 @@ def serve(
         "VERIFY_CACHE": verify_cache,
         "FOXGLOVE": foxglove,
     }
-    from pnvlad_service.models.pretrained import is_pretrained
-
-    for name, value in options.items():
-        if value is not None:  # paths made absolute; a pretrained:NAME is a name, not a path
-            as_path = isinstance(value, Path) and not is_pretrained(value)
-            os.environ[f"PNVLAD_{name}"] = str(Path(value).resolve() if as_path else value)
+    _export(options)
 
     import uvicorn
 
