@@ -68,13 +68,13 @@ _CORRELATION = typer.Option(
     rich_help_panel=_GNSS,
 )
 _SWEEP_HZ = typer.Option(
-    10.0,
+    0.0,
     "--sweep-hz",
     min=0.0,
-    help="Sweeps a second of the spinning sensors: each keyframe's scan is de-skewed by the "
-    "motion its odometry measured before it is registered again (0: the scans are taken as "
-    "they are, for drivers that de-skew; a synthetic tree whose synth.json says its sensor "
-    "de-skews is never de-skewed).",
+    help="Sweeps a second of the spinning sensors (e.g. 10): each keyframe's scan is "
+    "de-skewed by the motion its odometry measured and registered again (0: the scans are "
+    "taken as they are; a synthetic tree whose synth.json says its sensor de-skews is never "
+    "de-skewed).",
 )
 _ALONE = typer.Option(
     False,

@@ -7,10 +7,10 @@ The stages, each timed:
 2. **embed** (with a model): each node's descriptor, for retrieval;
 3. **candidates**: per query node and other run, the nodes that may show its place, by
    retrieval and by the recorded poses (:mod:`.candidates`);
-4. **odometry**: each node registered onto the one before it (:mod:`.edges`); then, for the
-   runs whose scans are skewed by the sweep, each node's scan de-skewed by the motion that
-   odometry measured (:mod:`.deskew`) and the odometry registered again on the de-skewed
-   scans, which the closures use too;
+4. **odometry**: each node registered onto the one before it (:mod:`.edges`); then, with
+   ``sweep_hz``, for the runs whose scans are skewed by the sweep, each node's scan
+   de-skewed by the motion that odometry measured (:mod:`.deskew`) and the odometry
+   registered again on the de-skewed scans, which the closures use too;
 5. **closures**: each candidate group verified, the best match gated (:mod:`.edges`); a run
    that shares no accepted closure with any other run is refused, naming it (nothing ties it
    to the map: ``allow_alone`` keeps it on its own fixes);
@@ -42,7 +42,7 @@ from pnvlad_service.mapping.candidates import (
     query_nodes,
     retrieval_candidates,
 )
-from pnvlad_service.mapping.deskew import SWEEP_HZ, run_motion
+from pnvlad_service.mapping.deskew import run_motion
 from pnvlad_service.mapping.edges import Clouds, Edge, EdgeConfig, closure_edges, odometry_edges
 from pnvlad_service.mapping.graph import GraphConfig, Solution, solve
 from pnvlad_service.mapping.nodes import MapNodes, read_tree_nodes
@@ -66,13 +66,13 @@ PLOT = "align.png"
 class AlignConfig:
     """Every setting of an alignment: the ``kind`` of entries that are the graph's nodes,
     whether a run without a closure to another run is kept on its own fixes
-    (``allow_alone``), the sensors' sweeps a second (``sweep_hz``; 0: no scan is de-skewed
-    here, else those of the runs whose nodes are single scans given as fired, see
-    :attr:`~.nodes.RunNodes.skewed`), and each stage's settings."""
+    (``allow_alone``), the sensors' sweeps a second (``sweep_hz``; 0, the default: no scan
+    is de-skewed here; else those of the runs whose nodes are single scans given as fired,
+    see :attr:`~.nodes.RunNodes.skewed`), and each stage's settings."""
 
     kind: Kind = "keyframe"
     allow_alone: bool = False
-    sweep_hz: float = SWEEP_HZ
+    sweep_hz: float = 0.0
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     edges: EdgeConfig = field(default_factory=EdgeConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)

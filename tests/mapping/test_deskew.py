@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pnvlad_service.mapping.deskew import deskew_points, run_motion, skewed_sensors
+from pnvlad_service.mapping.deskew import SWEEP_HZ, deskew_points, run_motion, skewed_sensors
 from pnvlad_service.synth.lidar import cast_scan
 from pnvlad_service.synth.sensors import LidarConfig
 from pnvlad_service.synth.world import KIND_BUILDING, Boxes, Scene
@@ -123,10 +123,10 @@ def test_the_alignment_deskews_only_skewed_runs(tiny: Path) -> None:
         for s, r in zip(nodes.starts(), nodes.runs, strict=True)
         for g in range(s, s + len(r) - 1)
     ]
-    assert deskewed_nodes(nodes, odometry, AlignConfig()) is None
+    assert deskewed_nodes(nodes, odometry, AlignConfig(sweep_hz=SWEEP_HZ)) is None
     one = MapNodes([replace(nodes.runs[0], skewed=True), *nodes.runs[1:]])
-    assert deskewed_nodes(one, odometry, AlignConfig(sweep_hz=0.0)) is None
-    out = deskewed_nodes(one, odometry, AlignConfig())
+    assert deskewed_nodes(one, odometry, AlignConfig()) is None  # off unless asked for
+    out = deskewed_nodes(one, odometry, AlignConfig(sweep_hz=SWEEP_HZ))
     assert out is not None and out.runs[0].motion is not None
     assert all(r.motion is None for r in out.runs[1:])
     # the first run's scans are de-skewed by the motion its steps give, the others' untouched
@@ -190,7 +190,7 @@ def test_the_alignment_recovers_the_still_scans_of_a_turning_drive() -> None:
     edges = EdgeConfig()
     odometry = odometry_edges(nodes, Clouds(nodes, edges), edges)
     assert all(e.accepted for e in odometry)
-    fixed = deskewed_nodes(nodes, odometry, AlignConfig())
+    fixed = deskewed_nodes(nodes, odometry, AlignConfig(sweep_hz=SWEEP_HZ))
     assert fixed is not None
     np.testing.assert_allclose(fixed.runs[0].motion[:, 1], speed, rtol=0.03)
     np.testing.assert_allclose(fixed.runs[0].motion[:, 2], rate, rtol=0.05)
