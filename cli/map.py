@@ -67,6 +67,15 @@ _CORRELATION = typer.Option(
     help="Distance driven over which that error decorrelates (m).",
     rich_help_panel=_GNSS,
 )
+_SWEEP_HZ = typer.Option(
+    0.0,
+    "--sweep-hz",
+    min=0.0,
+    help="Sweeps a second of the spinning sensors (e.g. 10): each keyframe's scan is "
+    "de-skewed by the motion its odometry measured and registered again (0: the scans are "
+    "taken as they are; a synthetic tree whose synth.json says its sensor de-skews is never "
+    "de-skewed).",
+)
 _ALONE = typer.Option(
     False,
     "--allow-alone",
@@ -88,6 +97,7 @@ def align(
     heading_std_deg: float = _HEADING_STD,
     correlation_m: float = _CORRELATION,
     allow_alone: bool = _ALONE,
+    sweep_hz: float = _SWEEP_HZ,
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUT."),
 ) -> None:
     """Align the runs of a map into one consistent map and write it as a new tree.
@@ -113,6 +123,7 @@ def align(
     config = AlignConfig(
         kind=kind,  # type: ignore[arg-type]
         allow_alone=allow_alone,
+        sweep_hz=sweep_hz,
         candidates=CandidateConfig(every=every, radius_m=radius_m),
         edges=EdgeConfig(gate_m=gate_m),
         graph=GraphConfig(

@@ -7,7 +7,10 @@ The stages, each timed:
 2. **embed** (with a model): each node's descriptor, for retrieval;
 3. **candidates**: per query node and other run, the nodes that may show its place, by
    retrieval and by the recorded poses (:mod:`.candidates`);
-4. **odometry**: each node registered onto the one before it (:mod:`.edges`);
+4. **odometry**: each node registered onto the one before it (:mod:`.edges`); then, with
+   ``sweep_hz``, for the runs whose scans are skewed by the sweep, each node's scan
+   de-skewed by the motion that odometry measured (:mod:`.deskew`) and the odometry
+   registered again on the de-skewed scans, which the closures use too;
 5. **closures**: each candidate group verified, the best match gated (:mod:`.edges`); a run
    that shares no accepted closure with any other run is refused, naming it (nothing ties it
    to the map: ``allow_alone`` keeps it on its own fixes);
@@ -39,6 +42,7 @@ from pnvlad_service.mapping.candidates import (
     query_nodes,
     retrieval_candidates,
 )
+from pnvlad_service.mapping.deskew import run_motion
 from pnvlad_service.mapping.edges import Clouds, Edge, EdgeConfig, closure_edges, odometry_edges
 from pnvlad_service.mapping.graph import GraphConfig, Solution, solve
 from pnvlad_service.mapping.nodes import MapNodes, read_tree_nodes
@@ -62,10 +66,13 @@ PLOT = "align.png"
 class AlignConfig:
     """Every setting of an alignment: the ``kind`` of entries that are the graph's nodes,
     whether a run without a closure to another run is kept on its own fixes
-    (``allow_alone``), and each stage's settings."""
+    (``allow_alone``), the sensors' sweeps a second (``sweep_hz``; 0, the default: no scan
+    is de-skewed here; else those of the runs whose nodes are single scans given as fired,
+    see :attr:`~.nodes.RunNodes.skewed`), and each stage's settings."""
 
     kind: Kind = "keyframe"
     allow_alone: bool = False
+    sweep_hz: float = 0.0
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     edges: EdgeConfig = field(default_factory=EdgeConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
@@ -106,6 +113,27 @@ def check_overlap(nodes: MapNodes, edges: list[Edge]) -> list[str]:
     return [r.name for k, r in enumerate(nodes.runs) if k not in tied]
 
 
+def deskewed_nodes(nodes: MapNodes, odometry: list[Edge], config: AlignConfig) -> MapNodes | None:
+    """``nodes`` whose scans give their points de-skewed (:mod:`.deskew`) by the motion
+    that ``odometry`` (each run's steps, in order) measured, the recorded step where it
+    failed; runs whose scans are not :attr:`~.nodes.RunNodes.skewed` as they are. ``None``
+    when no run is to be de-skewed (``sweep_hz`` 0, or no run skewed)."""
+    if config.sweep_hz <= 0 or not any(r.skewed for r in nodes.runs):
+        return None
+    runs = []
+    at = 0
+    for run in nodes.runs:
+        steps = odometry[at : at + len(run) - 1]
+        at += len(run) - 1
+        if not run.skewed:
+            runs.append(run)
+            continue
+        rel = [e.transform if e.accepted else None for e in steps]
+        motion = run_motion(run.stamps, rel, run.poses)
+        runs.append(replace(run, motion=motion, sweep_hz=config.sweep_hz))
+    return MapNodes(runs)
+
+
 def measure_edges(
     nodes: MapNodes,
     config: AlignConfig,
@@ -135,6 +163,11 @@ def measure_edges(
     groups, counts = timer.run("candidates", candidates)
     clouds = Clouds(nodes, config.edges)
     odometry = timer.run("odometry", lambda: odometry_edges(nodes, clouds, config.edges))
+    moving = deskewed_nodes(nodes, odometry, config)
+    if moving is not None:
+        nodes = moving
+        clouds = Clouds(nodes, config.edges)
+        odometry = timer.run("odometry", lambda: odometry_edges(nodes, clouds, config.edges))
     closures = timer.run("closures", lambda: closure_edges(nodes, clouds, groups, config.edges))
     return odometry + closures, counts
 

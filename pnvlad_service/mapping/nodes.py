@@ -35,7 +35,11 @@ class RunNodes:
     ``name``: ``dataset/run``; ``stamps`` int64 [N] microseconds; ``poses`` float64 [N, 4, 4]
     the recorded (laid) poses; ``truth`` float64 [N, 4, 4] the simulator's true poses of the
     same frames, or ``None``; ``frames`` the sidecar rows; ``paths`` the ``.bin`` files (or
-    ``None`` for nodes made in memory, whose ``clouds`` hold the metres)."""
+    ``None`` for nodes made in memory, whose ``clouds`` hold the metres); ``motion`` float64
+    [N, 3] each node's heading, speed and yaw rate through its sweep
+    (:func:`~.deskew.run_motion`), or ``None``: with it, :meth:`metres` gives the scans
+    de-skewed at ``sweep_hz``; ``skewed``: whether each node is one scan given as its sensor
+    fired it through a moving sweep (what :func:`~.deskew.run_motion` then corrects)."""
 
     name: str
     stamps: np.ndarray
@@ -44,6 +48,9 @@ class RunNodes:
     frames: list[SubmapFrame] = field(default_factory=list)
     paths: list[Path] | None = None
     clouds: list[np.ndarray] | None = None
+    motion: np.ndarray | None = None
+    sweep_hz: float = 10.0
+    skewed: bool = False
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -51,9 +58,16 @@ class RunNodes:
     def metres(self, k: int) -> np.ndarray:
         """Node ``k``'s points in metres in its local frame: float64 [M, 3]."""
         if self.clouds is not None:
-            return np.asarray(self.clouds[k], dtype=np.float64)
-        assert self.paths is not None
-        return self.frames[k].local_m(read_submap(self.paths[k]))
+            points = np.asarray(self.clouds[k], dtype=np.float64)
+        else:
+            assert self.paths is not None
+            points = self.frames[k].local_m(read_submap(self.paths[k]))
+        if self.motion is None:
+            return points
+        from pnvlad_service.mapping.deskew import deskew_points
+
+        heading, speed, rate = self.motion[k]
+        return deskew_points(points, heading, speed, rate, self.sweep_hz)
 
     def normalised(self, k: int) -> np.ndarray:
         """Node ``k``'s cloud as the encoder sees it: float32 [4096, 3] (tree nodes only)."""
@@ -129,8 +143,14 @@ def read_tree_nodes(
     """The nodes of every run of the tree at ``root``: its ``kind`` entries (default the
     keyframes), laid by their frame sidecars. ``InputError`` naming the run that lacks them,
     has no sidecar, or whose poses jump (:func:`check_run`; ``max_step_m`` default: 4 of the
-    kind's strides, measured as the run's median step)."""
+    kind's strides, measured as the run's median step).
+
+    Keyframes are single scans: :attr:`RunNodes.skewed` unless the tree says its sensor
+    de-skews (``synth.json``; a recording's scans are as the driver gave them)."""
+    from pnvlad_service.mapping.deskew import skewed_sensors
+
     tree = BenchmarkTree(root)
+    sensors = skewed_sensors(root) or {}
     runs: list[RunNodes] = []
     for dataset in tree.datasets:
         for run in tree.runs(dataset):
@@ -152,6 +172,7 @@ def read_tree_nodes(
                     truth,
                     frames,
                     [tree.root / s.path for s in subs],
+                    skewed=kind == "keyframe" and sensors.get(name, True),
                 )
             )
     if not runs:
