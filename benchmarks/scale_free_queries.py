@@ -2,17 +2,19 @@
 with their known scale: how often each verifies, and how often a verified answer is right.
 
     python benchmarks/scale_free_queries.py TREE --index MAP [--model MODEL] [--dataset D]
-        [--run RUN] [--count N] [--json out.json]
+        [--run RUN ...] [--splits SPLITS] [--count N] [--json out.json]
 
 TREE: a ``pnvlad synth`` tree (its frame sidecars give each query's scale and true pose);
 MAP: a bundle with geometry built from the runs of TREE but the query run. The queries are
 the query run's test submaps (``pointcloud_20m``; default: the last run of the first area,
-as scripts/demo.sh holds it out). Each is localised twice in this process by
-:meth:`Localizer.localize`: with the scale of its frame sidecar (``known``) and as the
-benchmark publishes it, without (``free``: the scale is estimated from the candidates by
-registration, localization/verify/scale.py). ``--median`` adds a third pass, ``median``: no
-scale given and the candidates' median scale taken as it is (the rigid registration only, as
-verification did before the scale was free).
+as scripts/demo.sh holds it out; ``--run`` again for more runs, each left out of MAP);
+with ``--splits`` only those that are queries of the area's evaluation set there (the
+``oxford`` preset's: the test submaps inside the published test squares). Each is localised
+twice in this process by :meth:`Localizer.localize`: with the scale of its frame sidecar
+(``known``) and as the benchmark publishes it, without (``free``: the scale is estimated from
+the candidates by registration, localization/verify/scale.py). ``--median`` adds a third
+pass, ``median``: no scale given and the candidates' median scale taken as it is (the rigid
+registration only, as verification did before the scale was free).
 
 ``--off-map`` verifies each query once more as if the map did not hold its place (its
 candidates the nearest by descriptor among those over 50 m away, as the threshold's
@@ -56,6 +58,28 @@ def _centroid_frame(frame) -> np.ndarray:
     pose = frame.true_pose.copy()
     pose[:3, 3] += pose[:3, :3] @ frame.centre
     return pose
+
+
+def select_queries(
+    tree: BenchmarkTree, dataset: str, runs: list[str], splits: Path | None
+) -> list[tuple]:
+    """(submap, frame) of each test submap of ``runs``; with ``splits``, only those listed as
+    queries of ``dataset``'s evaluation set there."""
+    listed = None
+    if splits is not None:
+        sets = json.loads(splits.read_text()).get("evaluation", {})
+        if dataset not in sets:
+            raise SystemExit(f"{splits}: no evaluation set {dataset!r}")
+        listed = {f for q in sets[dataset]["queries"] for f in q["files"]}
+    out = []
+    for run_name in runs:
+        subs = tree.submaps(dataset, run_name, "test")
+        frames = tree.frames(dataset, run_name, "test")
+        if frames is None:
+            raise SystemExit(f"{tree.root}: run {run_name} has no frame sidecar (no truth)")
+        pairs = zip(subs, frames, strict=True)
+        out += [(s, f) for s, f in pairs if listed is None or s.path in listed]
+    return out
 
 
 def localise_all(loc: Localizer, tree: BenchmarkTree, queries, known: bool) -> list[dict]:
@@ -160,7 +184,12 @@ def main() -> int:
     ap.add_argument("--index", required=True, type=Path, help="a bundle with geometry")
     ap.add_argument("--model", type=Path, help="the model (default: the bundle's)")
     ap.add_argument("--dataset", help="the area (default: the tree's first)")
-    ap.add_argument("--run", help="the query run (default: the area's last)")
+    ap.add_argument(
+        "--run", action="append", help="a query run (repeatable; default: the area's last)"
+    )
+    ap.add_argument(
+        "--splits", type=Path, help="only the queries of the area's evaluation set in this file"
+    )
     ap.add_argument("--count", type=int, help="at most this many queries (default: all)")
     ap.add_argument("--json", type=Path, help="write the figures and every record here")
     ap.add_argument(
@@ -174,14 +203,10 @@ def main() -> int:
     args = ap.parse_args()
     tree = BenchmarkTree(args.root)
     dataset = args.dataset or tree.datasets[0]
-    query_run = args.run or tree.runs(dataset)[-1]
-    subs = tree.submaps(dataset, query_run, "test")
-    frames = tree.frames(dataset, query_run, "test")
-    if frames is None:
-        raise SystemExit(f"{args.root}: run {query_run} has no frame sidecar (no truth)")
-    queries = list(zip(subs, frames, strict=True))[: args.count]
-    print(f"{len(queries)} test submaps of {dataset}/{query_run} against {args.index}")
-    report: dict = {"dataset": dataset, "run": query_run, "index": str(args.index)}
+    query_runs = args.run or [tree.runs(dataset)[-1]]
+    queries = select_queries(tree, dataset, query_runs, args.splits)[: args.count]
+    print(f"{len(queries)} test submaps of {dataset}/{'+'.join(query_runs)} against {args.index}")
+    report: dict = {"dataset": dataset, "run": query_runs, "index": str(args.index)}
     modes = [("known", True), ("free", False)] + [("median", False)] * args.median
     with Localizer.load(args.index, args.model, LocalizerConfig()) as loc:
         free = loc.verify_config

@@ -5,7 +5,9 @@ coordinates, written in the published Oxford layout, with partial runs; ``pnvlad
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,7 @@ from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
 from pnvlad_service.data.splits import load_splits
+from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import read_submap
 from pnvlad_service.synth.generate import generate, part_of_route
@@ -94,3 +97,29 @@ def test_data_splits_scores_each_run_against_every_other(tree: Path, tmp_path: P
     # The full run's queries find their place in each partial run that passes it.
     assert all(any(len(t) for t in es.truth[0][i]) for i in range(1, len(names)))
     assert json.loads((tree / "oxford" / "test_regions.json").read_text())["half_size"] == 150.0
+
+
+def test_scale_free_queries_takes_the_evaluation_sets_queries(tree: Path) -> None:
+    """benchmarks/scale_free_queries.py --splits: of each run asked, exactly the test submaps
+    the splits list as its queries (those inside the published squares), each with its frame."""
+    bench = Path(__file__).resolve().parents[2] / "benchmarks"
+    sys.path.insert(0, str(bench))
+    try:
+        spec = importlib.util.spec_from_file_location("sfq", bench / "scale_free_queries.py")
+        assert spec is not None and spec.loader is not None
+        sfq = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sfq)
+    finally:
+        sys.path.remove(str(bench))
+    bt = BenchmarkTree(tree)
+    runs = bt.runs("oxford")
+    listed = json.loads((tree / "splits.json").read_text())["evaluation"]["oxford"]["queries"]
+    by_run = {q["run"]: q["files"] for q in listed}
+    every = sfq.select_queries(bt, "oxford", runs[1:], None)
+    chosen = sfq.select_queries(bt, "oxford", runs[1:], tree / "splits.json")
+    assert len(every) == sum(len(bt.submaps("oxford", r, "test")) for r in runs[1:])
+    assert [s.path for s, _ in chosen] == [f for r in runs[1:] for f in by_run.get(r, [])]
+    assert 0 < len(chosen) < len(every)
+    assert all(f.timestamp == s.timestamp for s, f in chosen)
+    with pytest.raises(SystemExit, match="no evaluation set"):
+        sfq.select_queries(bt, "elsewhere", runs[1:], tree / "splits.json")
