@@ -186,12 +186,14 @@ def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: 
     kidnap = getattr(opts, "kidnap", None)
     bag, origin, drive = bag_of(root, out, area, name, every, off_map, kidnap)
     protocol = "loo" if getattr(opts, "leave_one_out", False) else "shared"
+    protocol += "-any-run" if getattr(opts, "aligned_map", False) else ""
     dest = (out / "replays" / f"{protocol}-{model_tag(model)}" / area
             / f"{name}-{drive_name(every, off_map, kidnap)}")  # fmt: skip
     dest.parent.mkdir(parents=True, exist_ok=True)
     args = ["localize", "--rosbag", str(bag), "--cloud-topic", "/points", "--pose-topic", "/odom",
             "--truth-topic", "/ground_truth", "--origin", origin, "--index", str(bundle),
             "-m", str(model), "--out", str(dest), "--no-progress",
+            *(["--aligned-map"] if getattr(opts, "aligned_map", False) else []),
             *(getattr(opts, "extra", None) or [])]  # fmt: skip
     t0 = time.perf_counter()
     res = invoke(args, f"following {area}/{name}")
@@ -274,6 +276,12 @@ def main() -> int:
         action="store_true",
         help="--root is the recorded tree: each run is followed on a map aligned by 'pnvlad "
         "map align' from its area's other runs only (kept under --aligned)",
+    )
+    ap.add_argument(
+        "--aligned-map",
+        action="store_true",
+        help="follow with 'pnvlad localize --aligned-map' (scans registered to the entries of "
+        "any of the map's drives; for an aligned tree and --leave-one-out)",
     )
     ap.add_argument(
         "--aligned", type=Path, default=None, help="where the aligned trees go (default: --out)"

@@ -171,6 +171,7 @@ def localize(
     radius: float = replay_options.RADIUS,
     confirm: int = replay_options.CONFIRM,
     failures: int = replay_options.FAILURES,
+    aligned_map: bool = replay_options.ALIGNED_MAP,
     every: int = replay_options.EVERY,
     out: Path = replay_options.OUT,
     map_bundle: Path = replay_options.MAP,
@@ -239,7 +240,7 @@ def localize(
                         "truth_topic": truth_topic, "max_pose_gap": max_pose_gap,
                         "origin_ne": replay_options.parse_origin(origin), "yaw_deg": yaw},
                 service={"url": url, "index": index, "model": model, "api_key": api_key,
-                         "top_n": top_n},
+                         "top_n": top_n, "aligned_map": aligned_map},
                 output={"out": out, "map_bundle": map_bundle, "plot": plot, "progress": progress,
                         **replay_options.view_outputs(foxglove, mcap, ros2_bag, trajectories,
                                                       utm_zone)},
@@ -253,6 +254,7 @@ def localize(
             None, cloud_topic=cloud_topic, pose_topic=pose_topic, tf_frame=tf_frame,
             max_pose_gap=max_pose_gap, origin=origin, every=every, out=out, map=map_bundle,
             truth_topic=truth_topic, radius=radius, confirm=confirm, failures=failures,
+            aligned_map=aligned_map,
         )  # fmt: skip
         if yaw != 0.0:
             raise InputError("applies to --rosbag only", "--yaw")
