@@ -257,7 +257,8 @@ def row_line(f: dict) -> str:
     )
 
 
-def main() -> int:
+def parser() -> argparse.ArgumentParser:
+    """The command's options."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--root", type=Path, required=True, help="a pnvlad synth tree")
     ap.add_argument("--model", type=Path, required=True, help="a single-scan model")
@@ -315,7 +316,11 @@ def main() -> int:
         help="one more option for 'pnvlad localize' (repeatable: --localize=--radius "
         "--localize=30)",
     )
-    args = ap.parse_args()
+    return ap
+
+
+def main() -> int:
+    args = parser().parse_args()
     require("rosbags", "rosbags", "rosbag", "Replaying bags")
 
     from pnvlad_service.data.tree import BenchmarkTree

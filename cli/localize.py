@@ -249,15 +249,12 @@ def localize(
             return
         if window is not None:
             raise InputError("applies to --rosbag --per-scan only", "--window")
-        _check_no_views(foxglove, mcap, ros2_bag, trajectories, utm_zone)
+        _check_no_views(foxglove, mcap, ros2_bag, trajectories, utm_zone, aligned_map, yaw or None)
         bag_options.check_unused(
             None, cloud_topic=cloud_topic, pose_topic=pose_topic, tf_frame=tf_frame,
             max_pose_gap=max_pose_gap, origin=origin, every=every, out=out, map=map_bundle,
             truth_topic=truth_topic, radius=radius, confirm=confirm, failures=failures,
-            aligned_map=aligned_map,
         )  # fmt: skip
-        if yaw != 0.0:
-            raise InputError("applies to --rosbag only", "--yaw")
         check = {"verify": verify, "scale": scale, "rerank": rerank}
         answer = _localize_scan(scan, reader, url, index, model, api_key, preprocess, top_n, check)
     if as_json:
@@ -268,12 +265,14 @@ def localize(
 
 
 def _check_no_views(*values: object) -> None:
-    """InputError naming the first robotics output given without a drive."""
+    """InputError naming the first drive-only option (a robotics output, --aligned-map, --yaw)
+    given without a drive."""
     from pnvlad_service.errors import InputError
 
-    flags = ("--foxglove", "--mcap", "--ros2-bag", "--trajectories", "--utm-zone")
+    flags = ("--foxglove", "--mcap", "--ros2-bag", "--trajectories", "--utm-zone",
+             "--aligned-map", "--yaw")  # fmt: skip
     for flag, value in zip(flags, values, strict=True):
-        if value is not None:
+        if value not in (None, False):
             raise InputError("applies to a drive (--rosbag or --kitti)", flag)
 
 
