@@ -72,12 +72,14 @@ class MemoEncoder:
 _ENCODERS: dict[Path, MemoEncoder] = {}
 
 
-def map_of(root: Path, model: Path, out: Path, area: str, name: str) -> Path:
-    """The keyframe bundle of the area's runs but ``name`` (built once)."""
+def map_of(root: Path, model: Path, out: Path, area: str, name: str,
+           tag: str = "maps") -> Path:  # fmt: skip
+    """The keyframe bundle of the area's runs of ``root`` but ``name`` (built once, under
+    ``out/TAG``)."""
     from pnvlad_service.data.tree import BenchmarkTree
     from pnvlad_service.index.build import build_bundle
 
-    bundle = out / "maps" / area / f"{name}.index"
+    bundle = out / tag / area / f"{name}.index"
     if not (bundle / "manifest.json").is_file():
         others = [r for r in BenchmarkTree(root).runs(area) if r != name]
         if model not in _ENCODERS:
@@ -88,20 +90,62 @@ def map_of(root: Path, model: Path, out: Path, area: str, name: str) -> Path:
     return bundle
 
 
-def bag_of(root: Path, out: Path, area: str, name: str, every: int) -> tuple[Path, str, object]:
-    """The run as a ROS 2 bag (written once), the --origin of its pose frame, the drive."""
-    from pnvlad_service.data.sources.rosbag_write import write_drive_bag
+def model_tag(model: Path) -> str:
+    """A folder name for a model: its run's name (``runs/a/model`` -> ``a``) or its own."""
+    model = Path(model)
+    return model.parent.name if model.name == "model" and model.parent.name else model.name
+
+
+def drive_name(every: int, off_map: tuple[float, float] | None, kidnap: str | None) -> str:
+    """The bag's folder name: the scans taken and the excursion."""
+    name = f"every{every}"
+    if off_map:
+        name += f"-offmap{off_map[0]:g}-back{off_map[1]:g}"
+    if kidnap:
+        name += f"-kidnap{kidnap.replace(':', '-')}"
+    return name
+
+
+def drive_of(root: Path, area: str, name: str, off_map: tuple[float, float] | None = None,
+             kidnap: str | None = None):  # fmt: skip
+    """The run cast again from the tree's ``synth.json`` (its recorded GNSS/INS poses and the
+    simulator's truth), driven ``off_map`` (metres out, metres back) beyond its route and back,
+    and ``kidnap`` (``AT_S:GAP_S``) as ``benchmarks/make_rosbag.py`` drives it."""
     from pnvlad_service.synth.generate import simulated_drive
     from pnvlad_service.synth.windows import drives_of
 
-    drive = simulated_drive(*drives_of(root)[(area, name)])
-    east, north = (float(v) for v in drive.world.origin)
-    bag = out / "bags" / area / f"{name}-every{every}"
+    spec, a, k, seed = drives_of(root)[(area, name)]
+    if off_map:
+        from pnvlad_service.synth.excursions import off_map_drive
+
+        drive = off_map_drive(spec, a, k, seed, *off_map)
+    else:
+        drive = simulated_drive(spec, a, k, seed)
+    if kidnap:
+        from pnvlad_service.synth.excursions import Kidnapped
+
+        at_s, gap_s = (float(v) for v in kidnap.split(":"))
+        drive = Kidnapped(drive, at_s, gap_s)
+    return drive
+
+
+def bag_of(root: Path, out: Path, area: str, name: str, every: int,
+           off_map: tuple[float, float] | None = None,
+           kidnap: str | None = None) -> tuple[Path, str, object]:  # fmt: skip
+    """The run as a ROS 2 bag (written once), the --origin of its pose frame, the drive."""
+    from pnvlad_service.data.sources.rosbag_write import write_drive_bag
+
+    drive = drive_of(root, area, name, off_map, kidnap)
+    inner = drive
+    while not hasattr(inner, "world"):
+        inner = inner.drive
+    east, north = (float(v) for v in inner.world.origin)
+    bag = out / "bags" / area / f"{name}-{drive_name(every, off_map, kidnap)}"
     if not (bag / "metadata.yaml").is_file():
         bag.parent.mkdir(parents=True, exist_ok=True)
         sub = EveryNth(drive, every)
         write_drive_bag(sub, bag, origin_ne=(north, east), truth=sub.true, progress=False)
-    return bag, f"{north!r},{east!r}", drive
+    return bag, f"{north!r},{east!r}", inner
 
 
 def invoke(args: list[str], what: str):
@@ -120,24 +164,43 @@ def invoke(args: list[str], what: str):
     return res
 
 
-def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
-    """Map, bag and the followed drive of one run; its figures."""
+def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: int,
+               opts: argparse.Namespace | None = None) -> dict:  # fmt: skip
+    """Map, bag and the followed drive of one run; its figures. ``opts``: the command's
+    ``leave_one_out`` (the map aligned from the area's other recorded runs, the bag from the
+    recorded run), ``off_map``, ``back``, ``kidnap``, ``extra`` (more ``pnvlad localize``
+    options)."""
     from pnvlad_service.localization.drive.report import summarise
     from pnvlad_service.localization.drive.rows import read_rows
 
-    bundle = map_of(root, model, out, area, name)
-    bag, origin, drive = bag_of(root, out, area, name, every)
-    dest = out / "replays" / area / name
+    opts = opts or argparse.Namespace()
+    align_s = None
+    if getattr(opts, "leave_one_out", False):
+        from leave_one_out import aligned_without
+
+        tree, align_s = aligned_without(root, opts.aligned or out, area, name, invoke)
+        bundle = map_of(tree, model, out, area, name, tag=f"maps-loo/{model_tag(model)}")
+    else:
+        bundle = map_of(root, model, out, area, name, tag=f"maps/{model_tag(model)}")
+    off_map = (opts.off_map, opts.back) if getattr(opts, "off_map", 0.0) else None
+    kidnap = getattr(opts, "kidnap", None)
+    bag, origin, drive = bag_of(root, out, area, name, every, off_map, kidnap)
+    protocol = "loo" if getattr(opts, "leave_one_out", False) else "shared"
+    protocol += "-any-run" if getattr(opts, "aligned_map", False) else ""
+    dest = (out / "replays" / f"{protocol}-{model_tag(model)}" / area
+            / f"{name}-{drive_name(every, off_map, kidnap)}")  # fmt: skip
     dest.parent.mkdir(parents=True, exist_ok=True)
     args = ["localize", "--rosbag", str(bag), "--cloud-topic", "/points", "--pose-topic", "/odom",
             "--truth-topic", "/ground_truth", "--origin", origin, "--index", str(bundle),
-            "-m", str(model), "--out", str(dest), "--no-progress"]  # fmt: skip
+            "-m", str(model), "--out", str(dest), "--no-progress",
+            *(["--aligned-map"] if getattr(opts, "aligned_map", False) else []),
+            *(getattr(opts, "extra", None) or [])]  # fmt: skip
     t0 = time.perf_counter()
     res = invoke(args, f"following {area}/{name}")
     wall = time.perf_counter() - t0
     s = summarise(read_rows(f"{dest}.csv"), "tracked", wall)
     return {"area": area, "run": name, "reverse": bool(drive.reverse), "summary": s,
-            "line": res.stdout.strip().splitlines()[-1]}  # fmt: skip
+            "align_s": align_s, "line": res.stdout.strip().splitlines()[-1]}  # fmt: skip
 
 
 def per_scan_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
@@ -194,7 +257,8 @@ def row_line(f: dict) -> str:
     )
 
 
-def main() -> int:
+def parser() -> argparse.ArgumentParser:
+    """The command's options."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--root", type=Path, required=True, help="a pnvlad synth tree")
     ap.add_argument("--model", type=Path, required=True, help="a single-scan model")
@@ -208,7 +272,55 @@ def main() -> int:
     ap.add_argument("--per-scan", action="store_true", help="ask with each scan alone (#34)")
     ap.add_argument("--area", action="append", help="only this area (repeatable)")
     ap.add_argument("--run", action="append", help="only this run (repeatable)")
-    args = ap.parse_args()
+    ap.add_argument(
+        "--leave-one-out",
+        action="store_true",
+        help="--root is the recorded tree: each run is followed on a map aligned by 'pnvlad "
+        "map align' from its area's other runs only (kept under --aligned)",
+    )
+    ap.add_argument(
+        "--aligned-map",
+        action="store_true",
+        help="follow with 'pnvlad localize --aligned-map' (scans registered to the entries of "
+        "any of the map's drives; for an aligned tree and --leave-one-out)",
+    )
+    ap.add_argument(
+        "--aligned", type=Path, default=None, help="where the aligned trees go (default: --out)"
+    )
+    ap.add_argument(
+        "--off-map",
+        type=float,
+        default=0.0,
+        metavar="METRES",
+        help="drive this far beyond each run's route (off the map) and back",
+    )
+    ap.add_argument(
+        "--back",
+        type=float,
+        default=200.0,
+        metavar="METRES",
+        help="with --off-map: metres driven back along the route",
+    )
+    ap.add_argument(
+        "--kidnap",
+        default=None,
+        metavar="AT_S:GAP_S",
+        help="drop GAP_S seconds of scans from AT_S on (a kidnapped robot)",
+    )
+    ap.add_argument(
+        "--localize",
+        dest="extra",
+        action="append",
+        default=[],
+        metavar="OPTION",
+        help="one more option for 'pnvlad localize' (repeatable: --localize=--radius "
+        "--localize=30)",
+    )
+    return ap
+
+
+def main() -> int:
+    args = parser().parse_args()
     require("rosbags", "rosbags", "rosbag", "Replaying bags")
 
     from pnvlad_service.data.tree import BenchmarkTree
@@ -222,7 +334,7 @@ def main() -> int:
     print(HEADER, flush=True)
     figures = []
     for area, name in names:
-        f = follow_run(args.root, args.model, args.out, area, name, every)
+        f = follow_run(args.root, args.model, args.out, area, name, every, args)
         figures.append(f)
         print(row_line(f), flush=True)
     runs = [f["summary"] for f in figures]

@@ -171,6 +171,7 @@ def localize(
     radius: float = replay_options.RADIUS,
     confirm: int = replay_options.CONFIRM,
     failures: int = replay_options.FAILURES,
+    aligned_map: bool = replay_options.ALIGNED_MAP,
     every: int = replay_options.EVERY,
     out: Path = replay_options.OUT,
     map_bundle: Path = replay_options.MAP,
@@ -239,7 +240,7 @@ def localize(
                         "truth_topic": truth_topic, "max_pose_gap": max_pose_gap,
                         "origin_ne": replay_options.parse_origin(origin), "yaw_deg": yaw},
                 service={"url": url, "index": index, "model": model, "api_key": api_key,
-                         "top_n": top_n},
+                         "top_n": top_n, "aligned_map": aligned_map},
                 output={"out": out, "map_bundle": map_bundle, "plot": plot, "progress": progress,
                         **replay_options.view_outputs(foxglove, mcap, ros2_bag, trajectories,
                                                       utm_zone)},
@@ -248,14 +249,12 @@ def localize(
             return
         if window is not None:
             raise InputError("applies to --rosbag --per-scan only", "--window")
-        _check_no_views(foxglove, mcap, ros2_bag, trajectories, utm_zone)
+        _check_no_views(foxglove, mcap, ros2_bag, trajectories, utm_zone, aligned_map, yaw or None)
         bag_options.check_unused(
             None, cloud_topic=cloud_topic, pose_topic=pose_topic, tf_frame=tf_frame,
             max_pose_gap=max_pose_gap, origin=origin, every=every, out=out, map=map_bundle,
             truth_topic=truth_topic, radius=radius, confirm=confirm, failures=failures,
         )  # fmt: skip
-        if yaw != 0.0:
-            raise InputError("applies to --rosbag only", "--yaw")
         check = {"verify": verify, "scale": scale, "rerank": rerank}
         answer = _localize_scan(scan, reader, url, index, model, api_key, preprocess, top_n, check)
     if as_json:
@@ -266,12 +265,14 @@ def localize(
 
 
 def _check_no_views(*values: object) -> None:
-    """InputError naming the first robotics output given without a drive."""
+    """InputError naming the first drive-only option (a robotics output, --aligned-map, --yaw)
+    given without a drive."""
     from pnvlad_service.errors import InputError
 
-    flags = ("--foxglove", "--mcap", "--ros2-bag", "--trajectories", "--utm-zone")
+    flags = ("--foxglove", "--mcap", "--ros2-bag", "--trajectories", "--utm-zone",
+             "--aligned-map", "--yaw")  # fmt: skip
     for flag, value in zip(flags, values, strict=True):
-        if value is not None:
+        if value not in (None, False):
             raise InputError("applies to a drive (--rosbag or --kitti)", flag)
 
 

@@ -99,6 +99,13 @@ FAILURES = typer.Option(
     help="Following: failed registrations in a row that make the localiser lost (default 3).",
     rich_help_panel=PANEL,
 )
+ALIGNED_MAP = typer.Option(
+    False,
+    "--aligned-map",
+    help="Following with --index a map made by pnvlad map align: register each scan to the 8 "
+    "nearest entries of any of the map's drives (they agree), not to 4 of one.",
+    rich_help_panel=PANEL,
+)
 OUT = typer.Option(
     None,
     "--out",
@@ -294,7 +301,7 @@ def open_service(config: ServiceConfig) -> Iterator[Any]:
     from pnvlad_service.localization.query.localizer import Localizer
 
     assert config.index is not None
-    with Localizer.load(config.index, config.model) as loc:
+    with Localizer.load(config.index, config.model, config.localizer_config()) as loc:
         yield service.local_service(loc, config.index, config.top_n)
 
 

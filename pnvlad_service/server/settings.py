@@ -131,6 +131,7 @@ class ServerSettings(BaseSettings):
     prior_min_fitness: float = section_field(PriorSection, "min_fitness")
     prior_max_sigma: float = section_field(PriorSection, "max_sigma")
     prior_max_submaps: int = section_field(PriorSection, "max_submaps")
+    prior_same_run: bool = section_field(PriorSection, "same_run")
 
     def localizer_config(self) -> LocalizerConfig:
         """How the localiser is loaded: these settings' sections (``index`` and the model
@@ -154,6 +155,7 @@ class ServerSettings(BaseSettings):
                 min_fitness=self.prior_min_fitness,
                 max_sigma=self.prior_max_sigma,
                 max_submaps=self.prior_max_submaps,
+                same_run=self.prior_same_run,
             ),
             batching=BatchSection(
                 max_size=self.batch_max_size, wait_ms=self.batch_wait_ms, lanes=self.batch_lanes

@@ -11,6 +11,7 @@ type is pydantic's ``ValidationError``; :func:`config_error` turns it into an
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -41,15 +42,34 @@ class SourceConfig(_Section):
     yaw_deg: float = 0.0
 
 
+#: Entries a prior registers to on an aligned map (of any of its drives): measured on the
+#: benchmark's aligned map, docs/TRACKING.md "On an aligned map".
+ALIGNED_ENTRIES = 8
+
+
 class ServiceConfig(_Section):
     """What is asked: a server at ``url`` (``api_key``: its bearer token) or the bundle at
-    ``index`` in this process (``model``: default the bundle's); ``top_n`` matches an answer."""
+    ``index`` in this process (``model``: default the bundle's); ``top_n`` matches an answer;
+    ``aligned_map``: the map's drives agree (``pnvlad map align``), so a scan is registered to
+    the :data:`ALIGNED_ENTRIES` nearest entries of any of them, not to 4 of one (with ``index``;
+    a server is told by its own settings, ``PNVLAD_PRIOR_SAME_RUN`` and
+    ``PNVLAD_PRIOR_MAX_SUBMAPS``)."""
 
     url: str | None = None
     index: Path | None = None
     model: Path | None = None
     api_key: str | None = Field(default=None, repr=False)
     top_n: int = 5
+    aligned_map: bool = False
+
+    def localizer_config(self) -> Any:
+        """The :class:`~..query.config.LocalizerConfig` a bundle in this process is loaded
+        with (``None``: the defaults)."""
+        if not self.aligned_map:
+            return None
+        from pnvlad_service.localization.query.config import LocalizerConfig, PriorSection
+
+        return LocalizerConfig(prior=PriorSection(same_run=False, max_submaps=ALIGNED_ENTRIES))
 
 
 class OutputConfig(_Section):
@@ -100,6 +120,12 @@ class DriveConfig(_Section):
         1, a window that is not a positive length or not posed by poses or KISS-ICP."""
         if self.scan_every < 1:
             raise InputError(f"must be >= 1, got {self.scan_every}", "every")
+        if self.service.aligned_map and self.service.url is not None:
+            raise InputError(
+                "applies to --index (a server registers as its own settings say: "
+                "PNVLAD_PRIOR_SAME_RUN=false PNVLAD_PRIOR_MAX_SUBMAPS=8)",
+                "--aligned-map",
+            )
         if self.window_m is not None:
             if not self.window_m > 0:
                 raise InputError(

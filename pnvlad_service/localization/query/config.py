@@ -146,11 +146,17 @@ class PriorSection(BaseModel):
         le=64,
         description="Map entries near a prior (of one drive) laid together and registered to.",
     )
+    same_run: bool = Field(
+        PriorConfig.same_run,
+        description="Register to the entries of one drive of the map only (false: of any "
+        "drive, for a map whose drives agree: pnvlad map align; docs/TRACKING.md).",
+    )
 
     def config(self) -> PriorConfig:
         """The registration's :class:`PriorConfig`."""
         return PriorConfig(
             max_submaps=self.max_submaps,
+            same_run=self.same_run,
             min_fitness=self.min_fitness,
             max_sigma_m=self.max_sigma or None,
         )
