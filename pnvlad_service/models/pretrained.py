@@ -41,6 +41,8 @@ PREFIX = "pretrained:"
 #: Environment variable naming another catalogue file.
 CATALOGUE_ENV = "PNVLAD_PRETRAINED"
 CATALOGUE_FILE = "catalogue.json"
+#: The catalogue of the models that ship in the package.
+PACKAGE_CATALOGUE = Path(__file__).resolve().parents[1] / "pretrained" / CATALOGUE_FILE
 FORMAT = "pnvlad-pretrained"
 VERSION = 1
 #: The kinds of query a model is trained for.
@@ -59,6 +61,7 @@ __all__ = [
     "CATALOGUE_ENV",
     "MAX_MODEL_BYTES",
     "MAX_TOTAL_BYTES",
+    "PACKAGE_CATALOGUE",
     "PREFIX",
     "Catalogue",
     "Entry",
@@ -75,7 +78,7 @@ def default_catalogue() -> Path:
     env = os.environ.get(CATALOGUE_ENV)
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[1] / "pretrained" / CATALOGUE_FILE
+    return PACKAGE_CATALOGUE
 
 
 def is_pretrained(ref: str | Path) -> bool:

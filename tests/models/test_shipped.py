@@ -16,8 +16,7 @@ from typer.testing import CliRunner
 from pnvlad_cli.main import app
 from pnvlad_service.models import pretrained
 
-PACKAGE_CATALOGUE = Path(pretrained.__file__).resolve().parents[1] / "pretrained" / "catalogue.json"
-SHIPPED = pretrained.Catalogue.read(PACKAGE_CATALOGUE).entries
+SHIPPED = pretrained.Catalogue.read(pretrained.PACKAGE_CATALOGUE).entries
 # The tiny city has 42 queries: one query's share of recall@1 (a tie decided another way on
 # another CPU) is what the recorded figure may move by.
 ONE_QUERY = 100.0 / 42 + 0.01
@@ -58,7 +57,9 @@ def test_a_shipped_model_is_far_above_its_network_with_random_weights(
     from pnvlad_service.models.factory import build_model
     from pnvlad_service.models.store import read_model_json, save_model
 
-    cfg, _ = read_model_json(pretrained.resolve(f"pretrained:{entry.name}", PACKAGE_CATALOGUE))
+    cfg, _ = read_model_json(
+        pretrained.resolve(f"pretrained:{entry.name}", pretrained.PACKAGE_CATALOGUE)
+    )
     torch.manual_seed(0)
     random_dir = save_model(tmp_path / "random", build_model(cfg), cfg)
     chance = _eval(str(random_dir), tiny, entry.kind, tmp_path / "random.json")

@@ -16,11 +16,10 @@ from tests.index.helpers import free_port, read_cloud
 from tests.server.test_app import start_server, stop_server
 
 NAME = "bev-benchmark"
-PACKAGE_CATALOGUE = Path(pretrained.__file__).resolve().parents[1] / "pretrained" / "catalogue.json"
 
 
 @pytest.mark.skipif(
-    NAME not in {e.name for e in pretrained.Catalogue.read(PACKAGE_CATALOGUE).entries},
+    NAME not in {e.name for e in pretrained.Catalogue.read(pretrained.PACKAGE_CATALOGUE).entries},
     reason=f"pretrained:{NAME} does not ship",
 )
 def test_serve_takes_a_shipped_model_by_name(
@@ -40,7 +39,9 @@ def test_serve_takes_a_shipped_model_by_name(
     try:
         with LocalizeClient(f"http://127.0.0.1:{port}") as client:
             info = client.info()
-            shipped = model_identity(pretrained.resolve(f"pretrained:{NAME}", PACKAGE_CATALOGUE))
+            shipped = model_identity(
+                pretrained.resolve(f"pretrained:{NAME}", pretrained.PACKAGE_CATALOGUE)
+            )
             assert info["model"]["weights_sha256"] == shipped.weights_sha256
             near = 0
             for item in held[:8]:
