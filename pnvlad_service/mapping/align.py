@@ -161,13 +161,14 @@ def measure_edges(
         return groups, counts
 
     groups, counts = timer.run("candidates", candidates)
-    clouds = Clouds(nodes, config.edges)
-    odometry = timer.run("odometry", lambda: odometry_edges(nodes, clouds, config.edges))
+    steps = Clouds.for_odometry(nodes, config.edges)
+    odometry = timer.run("odometry", lambda: odometry_edges(nodes, steps, config.edges))
     moving = deskewed_nodes(nodes, odometry, config)
     if moving is not None:
         nodes = moving
-        clouds = Clouds(nodes, config.edges)
-        odometry = timer.run("odometry", lambda: odometry_edges(nodes, clouds, config.edges))
+        steps = Clouds.for_odometry(nodes, config.edges)
+        odometry = timer.run("odometry", lambda: odometry_edges(nodes, steps, config.edges))
+    clouds = Clouds(nodes, config.edges)
     closures = timer.run("closures", lambda: closure_edges(nodes, clouds, groups, config.edges))
     return odometry + closures, counts
 
