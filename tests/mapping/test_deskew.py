@@ -188,7 +188,7 @@ def test_the_alignment_recovers_the_still_scans_of_a_turning_drive() -> None:
     stamps = (np.arange(6) * dt * 1e6).astype(np.int64)
     nodes = MapNodes([RunNodes("d/r", stamps, np.stack(poses), clouds=moving, skewed=True)])
     edges = EdgeConfig()
-    odometry = odometry_edges(nodes, Clouds(nodes, edges), edges)
+    odometry = odometry_edges(nodes, Clouds.for_odometry(nodes, edges), edges)
     assert all(e.accepted for e in odometry)
     fixed = deskewed_nodes(nodes, odometry, AlignConfig(sweep_hz=SWEEP_HZ))
     assert fixed is not None

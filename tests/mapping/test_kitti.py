@@ -86,7 +86,7 @@ def test_consecutive_frames_make_an_odometry_step(real_scans: Path) -> None:
 
     nodes = MapNodes([kitti_run(real_scans, "a", [94, 95])])
     edges = EdgeConfig()
-    (step,) = odometry_edges(nodes, Clouds(nodes, edges), edges)
+    (step,) = odometry_edges(nodes, Clouds.for_odometry(nodes, edges), edges)
     assert step.accepted, step.reason
     truth = nodes.truth
     metres, degrees = _off(step.transform, np.linalg.inv(truth[0]) @ truth[1])
