@@ -127,27 +127,30 @@ class Clouds:
     """Prepared clouds of nodes (registration's :func:`~.registration.prepare`, role both, with
     each fine point's normal for the covariance), made once and kept in a bounded cache; by
     ``registration`` (default: the verification's, which the closures use;
-    :meth:`for_odometry`: the odometry's)."""
+    :meth:`for_odometry`: the odometry's), with the yaw search's spectra unless ``search`` is
+    False (the odometry starts every step from the recorded one)."""
 
     def __init__(
         self,
         nodes: MapNodes,
         config: EdgeConfig,
         registration: reg.RegistrationConfig | None = None,
+        search: bool = True,
     ) -> None:
         self.nodes = nodes
         self.config = registration or config.verify.registration
+        self.search = search
         self.cache = PreparedCache(config.cache_entries)
 
     @classmethod
     def for_odometry(cls, nodes: MapNodes, config: EdgeConfig) -> Clouds:
         """The clouds :func:`odometry_edges` registers: prepared by ``config.odometry``."""
-        return cls(nodes, config, config.odometry)
+        return cls(nodes, config, config.odometry, search=False)
 
     def get(self, g: int) -> NearTarget:
         made = self.cache.get(g)
         if made is None:
-            prepared = reg.prepare(self.nodes.metres(g), self.config, "both")
+            prepared = reg.prepare(self.nodes.metres(g), self.config, "both", self.search)
             normals = np.empty((0, 3))
             if prepared.reason is None:
                 covs = np.asarray(prepared.fine.covs())[:, :3, :3]

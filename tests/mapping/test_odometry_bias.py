@@ -24,8 +24,6 @@ from pnvlad_service.preprocess.filter_g import apply_g, scan_config
 from pnvlad_service.synth.generate import simulated_drive
 from pnvlad_service.synth.presets import get_preset
 
-pytestmark = pytest.mark.slow
-
 #: The demo city's first run: its first 25 steps of 5 m (a business street of glazed
 #: facades; every other scan of the run is a keyframe).
 STEPS = 25
@@ -71,6 +69,7 @@ def scans() -> dict[bool, tuple[list[np.ndarray], list[np.ndarray]]]:
     return {glass: _keyframes(glass) for glass in (True, False)}
 
 
+@pytest.mark.slow
 def test_glass_does_not_lengthen_the_odometry(scans) -> None:
     glazed = _along_errors(*scans[True], ODOMETRY_REGISTRATION)
     clear = _along_errors(*scans[False], ODOMETRY_REGISTRATION)
@@ -80,6 +79,7 @@ def test_glass_does_not_lengthen_the_odometry(scans) -> None:
     assert np.median(np.abs(glazed)) < 1.5 * np.median(np.abs(clear)) + 0.005
 
 
+@pytest.mark.slow
 def test_the_verifications_grid_would_be_lengthened(scans) -> None:
     """The same check fails on the registration the odometry used before (the verification's
     1 m voxels): this test can tell the bias."""
@@ -87,3 +87,33 @@ def test_the_verifications_grid_would_be_lengthened(scans) -> None:
     glazed = _along_errors(*scans[True], config)
     clear = _along_errors(*scans[False], config)
     assert float(np.median(glazed - clear)) > 0.006
+
+
+def test_the_odometrys_clouds_skip_the_yaw_search() -> None:
+    """Prepared without the yaw search's spectra (the odometry starts every step from the
+    recorded one), a cloud registers from a given start exactly as with them, and refuses to
+    register without one."""
+    rng = np.random.default_rng(0)
+    walls = [
+        np.c_[rng.uniform(-30, 30, 3000), np.full(3000, 8.0), rng.uniform(0, 10, 3000)],
+        np.c_[rng.uniform(-30, 30, 3000), np.full(3000, -8.0), rng.uniform(0, 10, 3000)],
+        np.c_[np.full(1500, 30.0), rng.uniform(-8, 8, 1500), rng.uniform(0, 10, 1500)],
+        np.c_[
+            rng.uniform(-0.2, 0.2, 300) + 5, rng.uniform(-0.2, 0.2, 300) + 6, rng.uniform(0, 5, 300)
+        ],
+    ]
+    world = np.concatenate(walls)
+    a, b = world, world - [1.0, 0.0, 0.0]
+    start = np.eye(4)
+    start[:2, 3] = [0.7, 0.2]
+    config = ODOMETRY_REGISTRATION
+    plain = [reg.prepare(c, config, "both", search=False) for c in (b, a)]
+    full = [reg.prepare(c, config, "both") for c in (b, a)]
+    assert plain[0].spectrum is None and plain[0].polar is None
+    assert full[0].spectrum is not None
+    r_plain = reg.register(*plain, config, init=start)
+    r_full = reg.register(*full, config, init=start)
+    np.testing.assert_array_equal(r_plain.transform, r_full.transform)
+    np.testing.assert_allclose(r_plain.transform[:3, 3], [1.0, 0.0, 0.0], atol=0.02)
+    with pytest.raises(ValueError, match="needs an init"):
+        reg.register(*plain, config)

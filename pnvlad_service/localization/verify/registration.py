@@ -165,13 +165,16 @@ def prepare(
     points_m: np.ndarray,
     config: RegistrationConfig = DEFAULT,
     role: Literal["both", "source", "target"] = "both",
+    search: bool = True,
 ) -> Prepared:
     """Downsample ``points_m`` [N, 3] (metres), estimate covariances, build the kd-tree (and
     voxel map for VGICP) and the yaw search's spectra: everything of one cloud that
     :func:`register` needs, done once. A degenerate cloud gives a Prepared with ``reason``.
 
     ``role``: what the cloud will be. A ``source`` (the query) needs no kd-tree, voxel map or
-    image spectrum; a ``target`` (a candidate) no coarse cloud: each skips the other's work."""
+    image spectrum; a ``target`` (a candidate) no coarse cloud: each skips the other's work.
+    ``search`` False: no yaw search's spectra (a cloud only ever registered from a given
+    ``init``, as the map's odometry registers its steps)."""
     pts = np.asarray(points_m, dtype=np.float64)
     bad_shape = pts.ndim != 2 or pts.shape[-1] != 3 or len(pts) < config.min_points
     if bad_shape or not np.isfinite(pts).all():  # degenerate() names what is wrong
@@ -198,7 +201,7 @@ def prepare(
     if config.method == "VGICP" and role != "source":
         voxels = sg.GaussianVoxelMap(config.vgicp_leaf_m)
         voxels.insert(fine)
-    spectrum = np.fft.rfft2(bev_image(pts, config))
+    spectrum = np.fft.rfft2(bev_image(pts, config)) if search else None
     return Prepared(
         points=fine.points()[:, :3].copy(),
         reason=None,
@@ -207,7 +210,7 @@ def prepare(
         tree=tree if role != "source" else None,
         voxels=voxels,
         spectrum=spectrum if role != "source" else None,
-        polar=polar_magnitude(spectrum, config),
+        polar=polar_magnitude(spectrum, config) if spectrum is not None else None,
     )
 
 
@@ -456,6 +459,8 @@ def register(
     reason = src.reason or tgt.reason
     if reason is not None:
         return _failed(init, reason)
+    if init is None and (src.polar is None or tgt.spectrum is None):
+        raise ValueError("a cloud prepared without the yaw search needs an init")
     try:
         if init is None:
             start, yaws, how = *_best_start(src, tgt, config), "yaw search"
