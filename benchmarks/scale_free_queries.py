@@ -200,6 +200,10 @@ def main() -> int:
     ap.add_argument(
         "--median", action="store_true", help="also: the candidates' median scale, not refined"
     )
+    ap.add_argument(
+        "--starts",
+        help="the free scale's starting factors, comma-separated (default: the shipped 1.0)",
+    )
     args = ap.parse_args()
     tree = BenchmarkTree(args.root)
     dataset = args.dataset or tree.datasets[0]
@@ -210,6 +214,9 @@ def main() -> int:
     modes = [("known", True), ("free", False)] + [("median", False)] * args.median
     with Localizer.load(args.index, args.model, LocalizerConfig()) as loc:
         free = loc.verify_config
+        if args.starts:
+            starts = tuple(float(f) for f in args.starts.split(","))
+            free = replace(free, scale=replace(free.scale, starts=starts))
         for mode, known in modes:
             fixed = replace(free, scale=ScaleConfig(bounds=(1.0, 1.0)))
             loc.verify_config = fixed if mode == "median" else free
