@@ -204,6 +204,10 @@ def main() -> int:
         "--starts",
         help="the free scale's starting factors, comma-separated (default: the shipped 1.0)",
     )
+    ap.add_argument(
+        "--bounds",
+        help="the free scale's factor bounds LO,HI (default: the shipped 0.7,1.4)",
+    )
     args = ap.parse_args()
     tree = BenchmarkTree(args.root)
     dataset = args.dataset or tree.datasets[0]
@@ -214,9 +218,14 @@ def main() -> int:
     modes = [("known", True), ("free", False)] + [("median", False)] * args.median
     with Localizer.load(args.index, args.model, LocalizerConfig()) as loc:
         free = loc.verify_config
-        if args.starts:
-            starts = tuple(float(f) for f in args.starts.split(","))
-            free = replace(free, scale=replace(free.scale, starts=starts))
+        if args.starts or args.bounds:
+            scale = free.scale
+            if args.bounds:
+                lo, hi = (float(f) for f in args.bounds.split(","))
+                scale = replace(scale, bounds=(lo, hi))
+            if args.starts:
+                scale = replace(scale, starts=tuple(float(f) for f in args.starts.split(",")))
+            free = replace(free, scale=scale)
         for mode, known in modes:
             fixed = replace(free, scale=ScaleConfig(bounds=(1.0, 1.0)))
             loc.verify_config = fixed if mode == "median" else free
