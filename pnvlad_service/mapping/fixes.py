@@ -14,8 +14,9 @@ ties one entry to the next is the odometry. So, for such a run:
   the GNSS chain of every run does (:mod:`.graph`: a Gauss-Markov walk of ``--position-std``
   over ``--correlation`` metres), the laid heading as its heading.
 - **Steps**: each node's registration onto the one before it (:mod:`.edges`), started from the
-  laid relative pose, which is KISS-ICP's. Where that registration fails or is gated out, the
-  KISS-ICP step itself is the edge (:func:`odometry_fallback`), with a covariance of
+  laid relative pose, which is KISS-ICP's. Where that registration fails (not where it is
+  gated out against KISS-ICP's step), the KISS-ICP step itself is the edge
+  (:func:`odometry_fallback`), with a covariance of
   :attr:`FixConfig.step_sigma_m` plus :attr:`FixConfig.step_sigma_per_m` of the step (each
   axis) and :attr:`FixConfig.step_sigma_deg`: looser than a registration's, since KISS-ICP's
   errors between keyframes 5 m apart are a few centimetres at the median with a tail of
@@ -43,6 +44,9 @@ from pnvlad_service.mapping.edges import Edge
 from pnvlad_service.mapping.nodes import MapNodes
 
 log = logging.getLogger(__name__)
+
+#: How :func:`~.edges.odometry_edges` words a registration gated out against the laid step.
+GATED = "moved the step"
 
 
 @dataclass(frozen=True)
@@ -101,15 +105,20 @@ def measured_nodes(nodes: MapNodes, fix_runs: list[FixRun]) -> MapNodes:
 def odometry_fallback(
     nodes: MapNodes, edges: list[Edge], fix_runs: list[FixRun], config: FixConfig
 ) -> list[Edge]:
-    """``edges`` with each rejected odometry step of a fix-only run replaced by the laid
-    (KISS-ICP) relative pose, accepted with :class:`FixConfig`'s covariance; the registration's
-    reason is kept in the report through the new edge's ``kind`` (``odometry-kiss-icp``)."""
+    """``edges`` with each odometry step of a fix-only run whose registration failed (too
+    low a fitness, no convergence, too little overlap) replaced by the laid (KISS-ICP) relative
+    pose, accepted with :class:`FixConfig`'s covariance, as kind ``odometry-kiss-icp``. A
+    registration gated out for moving the step far from KISS-ICP's is not replaced: one of the
+    two lost its way, most often KISS-ICP in a sharp turn, and the fixes and the closures
+    span that step."""
     fixed = {f.run for f in fix_runs}
     poses = nodes.poses
     out = []
     swapped = 0
     for e in edges:
-        if e.kind == "odometry" and not e.accepted and int(nodes.run_of[e.source]) in fixed:
+        gated = (e.reason or "").startswith(GATED)
+        failed = e.kind == "odometry" and not e.accepted and not gated
+        if failed and int(nodes.run_of[e.source]) in fixed:
             rel = np.linalg.inv(poses[e.target]) @ poses[e.source]
             step = float(np.linalg.norm(rel[:3, 3]))
             sm = config.step_sigma_m + config.step_sigma_per_m * step

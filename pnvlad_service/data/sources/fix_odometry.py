@@ -136,13 +136,16 @@ def fit_to_fixes(
             "say which way it faced",
             name,
         )
+    o_ref, f_ref = pos[0].copy(), inside.enu[0].copy()  # about the first: sums stay exact
+    pos = pos - o_ref
     at_fix = _at(stamps, np.c_[pos, along], inside.stamps)  # odometry at each fix: x, y, z, d
+    enu = inside.enu - f_ref
     std = np.where(np.isfinite(inside.std_m), inside.std_m, 1.0)
     w = np.exp(-0.5 * ((at_fix[None, :, 3] - along[:, None]) / window_m) ** 2) / std**2
     w /= w.sum(axis=1, keepdims=True)  # [T, F]
-    mo, mf = w @ at_fix[:, :2], w @ inside.enu[:, :2]  # weighted means [T, 2]
+    mo, mf = w @ at_fix[:, :2], w @ enu[:, :2]  # weighted means [T, 2]
     # cross terms sum_j w (o - mo)(f - mf)^T, expanded: sum w o f^T - mo mf^T
-    s = np.einsum("tf,fa,fb->tab", w, at_fix[:, :2], inside.enu[:, :2])
+    s = np.einsum("tf,fa,fb->tab", w, at_fix[:, :2], enu[:, :2])
     s -= mo[:, :, None] * mf[:, None, :]
     theta = np.arctan2(s[:, 0, 1] - s[:, 1, 0], s[:, 0, 0] + s[:, 1, 1])
     c, si = np.cos(theta), np.sin(theta)
@@ -151,7 +154,8 @@ def fit_to_fixes(
     lay[:, 2, 2] = lay[:, 3, 3] = 1.0
     lay[:, 0, 3] = mf[:, 0] - (c * mo[:, 0] - si * mo[:, 1])
     lay[:, 1, 3] = mf[:, 1] - (si * mo[:, 0] + c * mo[:, 1])
-    lay[:, 2, 3] = w @ (inside.enu[:, 2] - at_fix[:, 2])
+    lay[:, 2, 3] = w @ (enu[:, 2] - at_fix[:, 2])
+    lay[:, :3, 3] += f_ref - lay[:, :3, :3] @ o_ref  # back from about the first fix
     out = lay @ odometry
     out[:, :3, 3] = snap_m(out[:, :3, 3])
     return out
