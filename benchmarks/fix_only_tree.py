@@ -4,6 +4,7 @@ fixes, prepared into a tree that `pnvlad map align` holds to the fixes.
     python benchmarks/fix_only_tree.py --preset demo --scan-spacing 1.0 --out fixdemo/
     pnvlad map align fixdemo/tree -o fixdemo/aligned
     python benchmarks/align_accuracy.py --recorded fixdemo/tree --aligned fixdemo/aligned
+    python benchmarks/fix_only_tree.py --accuracy fixdemo/tree fixdemo/aligned
 
 Each run of the preset is driven as `pnvlad synth` drives it (``--scan-spacing`` metres
 between scans instead of the preset's: KISS-ICP needs a sensor's rate, not the preset's
@@ -95,6 +96,31 @@ def prepare_stage(args: argparse.Namespace, area: int, k: int) -> str:
     )
 
 
+def accuracy(recorded: Path, aligned: Path) -> None:
+    """The keyframes' position error against the truth (m) in ``aligned``, for the runs that
+    hold fixes only in ``recorded`` and for the others, each run and each group."""
+    from pnvlad_service.data.tree import BenchmarkTree
+
+    tree = BenchmarkTree(aligned)
+    groups: dict[str, list[float]] = {"fixes only": [], "GNSS/INS": []}
+    for dataset in tree.datasets:
+        for name in tree.runs(dataset):
+            frames = tree.frames(dataset, name, "keyframe") or []
+            err = [float(np.linalg.norm(f.origin[:2] - f.true_position[:2])) for f in frames]
+            fixes = (recorded / dataset / name / "fixes.csv").is_file()
+            groups["fixes only" if fixes else "GNSS/INS"] += err
+            print(f"{dataset}/{name} ({'fixes only' if fixes else 'GNSS/INS'}): " + _q(err))
+    for group, err in groups.items():
+        if err:
+            print(f"all {group} runs: " + _q(err))
+
+
+def _q(err: list[float]) -> str:
+    p = np.percentile(err, [50, 90, 99])
+    q = f"median {p[0]:.2f} p90 {p[1]:.2f} p99 {p[2]:.2f} max {max(err):.2f} m"
+    return f"{len(err)} keyframes, {q}"
+
+
 def main() -> int:
     from pnvlad_service.synth.generate import get_preset
 
@@ -110,8 +136,15 @@ def main() -> int:
         "--gnss-too", action="store_true", help="also prepare the runs from their GNSS/INS poses"
     )
     ap.add_argument("--stage", choices=("odometry", "prepare", "both"), default="both")
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--out", type=Path, help="where the odometry and the trees go")
+    ap.add_argument(
+        "--accuracy", type=Path, nargs=2, metavar=("RECORDED", "ALIGNED"),
+        help="only print an aligned tree's keyframe error, fix-only runs apart",
+    )  # fmt: skip
     args = ap.parse_args()
+    if args.accuracy:
+        accuracy(*args.accuracy)
+        return 0
     spec = get_preset(args.preset)
     ks = range(spec.runs) if args.runs is None else [int(k) for k in args.runs.split(",")]
     args.runs = list(ks)
