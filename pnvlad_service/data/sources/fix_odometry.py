@@ -10,11 +10,11 @@ the fixes do not drift but are metres off. :func:`fit_to_fixes` lays the odometr
 fixes by a rigid motion in the plane (a turn about up and a shift, and a height offset)
 fitted anew at each scan to the fixes within about ``window_m`` of drive of it (Gaussian
 weights over the distance driven, each fix weighted by its ``1/std²``): the odometry's shape
-over tens of metres, the fixes' place and heading over hundreds, and the drift absorbed as
-the fit moves along.
+between the fixes, the fixes' place and heading over the window, and the drift absorbed as the
+fit moves along.
 
 :class:`FixOdometryDrive` is such a drive (the ``Drive`` protocol); ``pnvlad data prepare
---odometry kiss-icp --fix-topic TOPIC`` (or ``--fixes CSV``) prepares it and keeps the fixes
+--odometry kiss-icp --fix-topic TOPIC`` prepares a bag as one and keeps the fixes
 beside the run (:func:`.fixes.write_run_fixes`), which is how ``pnvlad map align`` knows the
 run has fixes only.
 """

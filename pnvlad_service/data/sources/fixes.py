@@ -14,10 +14,10 @@ the fix), ``std_m`` (its horizontal standard deviation, empty where the receiver
 ``laid_easting``, ``laid_northing``, ``laid_height`` (where the run's poses put the sensor at
 that time).
 
-A fixes CSV given to ``pnvlad data prepare --fixes`` has a header with ``timestamp`` (µs) and
-either ``easting``, ``northing`` (UTM metres) or ``latitude``, ``longitude`` (WGS 84 degrees,
-turned into UTM in ``--utm-zone``), optionally ``height`` / ``altitude`` (metres) and
-``std_m``.
+A fixes CSV (:func:`read_fixes_csv`, for a drive built in Python) has a header with
+``timestamp`` (µs) and either ``easting``, ``northing`` (UTM metres) or ``latitude``,
+``longitude`` (WGS 84 degrees, turned into UTM in the zone given), optionally ``height`` /
+``altitude`` (metres) and ``std_m``.
 """
 
 from __future__ import annotations
