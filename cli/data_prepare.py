@@ -239,6 +239,8 @@ def prepare(
     pose_topic: str = bag_options.POSE_TOPIC,
     tf_frame: str = bag_options.TF_FRAME,
     max_pose_gap: float = bag_options.MAX_POSE_GAP,
+    fix_topic: str = bag_options.FIX_TOPIC,
+    odometry: str = bag_options.ODOMETRY,
     list_topics: bool = bag_options.LIST,
     out: Path = _OUT,
     layout: str = _LAYOUT,
@@ -281,8 +283,8 @@ def prepare(
       pnvlad data prepare --rosbag drive.bag --cloud-topic /points --pose-topic /odom
       --origin 5735712.8,620084.4 --out bench/city/run1
 
-      pnvlad data prepare --kitti dataset/sequences/00 --kind all --raw-scans
-      --out bench/kitti/00   (a keyframe map and single-scan queries beside the submaps)
+      pnvlad data prepare --rosbag drive.bag --cloud-topic /points --fix-topic /fix
+      --odometry kiss-icp --utm-zone 32U --kind all --out bench/city/run2   (fixes only)
     """
     with user_errors():
         from pnvlad_service.data.prepare_request import PrepareRequest, report_lines
@@ -317,16 +319,11 @@ def prepare(
             utm_zone=utm_zone,
         )
         options = DriveOptions(
-            poses=poses,
-            reader=reader,
-            skip_missing=skip_missing,
-            origin_ne=None if origin is None else _parse_origin(origin),
-            yaw_deg=yaw,
-            cloud_topic=cloud_topic,
-            pose_topic=pose_topic,
-            tf_frame=tf_frame,
-            max_pose_gap=max_pose_gap,
-        )
+            poses=poses, reader=reader, skip_missing=skip_missing,
+            origin_ne=None if origin is None else _parse_origin(origin), yaw_deg=yaw,
+            cloud_topic=cloud_topic, pose_topic=pose_topic, tf_frame=tf_frame,
+            max_pose_gap=max_pose_gap, fix_topic=fix_topic, odometry=odometry, utm_zone=utm_zone,
+        )  # fmt: skip
         drive = source.open(path, options)
         for note in source.notes(options):
             typer.secho(f"note: {note}", err=True, fg=typer.colors.YELLOW)

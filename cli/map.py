@@ -108,7 +108,9 @@ def align(
     given std and correlation length; GTSAM solves the graph under robust kernels. The tree at
     ROOT is only read: OUT gets every run re-laid by the solved poses (same layout, so `pnvlad
     index build -r OUT` uses it), each run's aligned_poses.csv, align_report.json and
-    align.png.
+    align.png. A run prepared from position fixes only (`pnvlad data prepare --fix-topic ...
+    --odometry kiss-icp`, its fixes.csv beside it) is held to its fixes, with KISS-ICP's step
+    where a registration fails.
 
     Example: pnvlad map align city/ -o city-aligned/ -m runs/bev/model
     """

@@ -53,6 +53,22 @@ MAX_POSE_GAP = typer.Option(
     "apart (default 2; 0: interpolate across any gap).",
     rich_help_panel=PANEL,
 )
+FIX_TOPIC = typer.Option(
+    None,
+    "--fix-topic",
+    help="With --rosbag and --odometry kiss-icp, instead of --pose-topic or --tf: a "
+    "sensor_msgs/NavSatFix topic (positions only, e.g. /fix); the scans' KISS-ICP odometry is "
+    "laid onto the fixes (needs --utm-zone) and the fixes are kept beside the run for "
+    "`pnvlad map align`.",
+    rich_help_panel=PANEL,
+)
+ODOMETRY = typer.Option(
+    None,
+    "--odometry",
+    help="With --fix-topic: kiss-icp, the LiDAR odometry that poses the scans between and "
+    "beside the fixes (needs the 'odometry' extra).",
+    rich_help_panel=PANEL,
+)
 LIST = typer.Option(
     False,
     "--list",

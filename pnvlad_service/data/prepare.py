@@ -443,6 +443,20 @@ def _write_locations(
         )
 
 
+def keep_fixes(drive: Drive, out: Path) -> None:
+    """A drive laid onto position fixes (``fixes`` and ``laid_at_fixes``, as
+    :class:`~.sources.fix_odometry.FixOdometryDrive` has) keeps them beside the run
+    (``fixes.csv``: what marks the run as fix-only for ``pnvlad map align``); any other drive
+    removes one an earlier prepare left there."""
+    from pnvlad_service.data.sources.fixes import FIXES_CSV, write_run_fixes
+
+    fixes = getattr(drive, "fixes", None)
+    if fixes is None:
+        (out / FIXES_CSV).unlink(missing_ok=True)
+        return
+    write_run_fixes(out, fixes, drive.laid_at_fixes)  # type: ignore[attr-defined]
+
+
 def prepare_drive(
     drive: Drive,
     out_run_dir: str | Path,
@@ -543,9 +557,5 @@ def prepare_drive(
         desc=f"prepare {out.name}",
     )
     _write_locations(plans, recorded, made, out / RAW_CSV if raw_scans else None)
-    return PrepareResult(
-        out_run_dir=out,
-        layouts=[p.result for p in plans],
-        scans_read=cache.reads,
-        seconds=time.perf_counter() - started,
-    )
+    keep_fixes(drive, out)
+    return PrepareResult(out, [p.result for p in plans], cache.reads, time.perf_counter() - started)

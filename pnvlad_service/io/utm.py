@@ -141,3 +141,30 @@ def to_latlon(
                 field,
             )
     return lat, lon
+
+
+@lru_cache(maxsize=8)
+def _to_utm(epsg: int) -> Any:
+    pyproj = require("pyproj", "pyproj", "geo", "latitude/longitude to UTM")
+    return pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True)
+
+
+def from_latlon(
+    zone: UtmZone | str, latitude: Any, longitude: Any, field: str = "utm_zone"
+) -> tuple[np.ndarray, np.ndarray]:
+    """UTM ``(easting, northing)`` in metres (float64, the shape of ``latitude``) of WGS 84
+    ``latitude``, ``longitude`` (degrees) in ``zone``: the inverse of :func:`to_latlon`.
+    ``InputError`` naming ``field`` for a malformed zone or coordinates that are not finite or
+    not latitudes and longitudes; the result is checked by :func:`to_latlon`'s bounds (a zone
+    far from the coordinates gives eastings outside it)."""
+    z = parse_zone(zone, field) if isinstance(zone, str) else zone
+    lat = np.asarray(latitude, dtype=np.float64)
+    lon = np.asarray(longitude, dtype=np.float64)
+    if not (np.isfinite(lat).all() and np.isfinite(lon).all()):
+        raise InputError("latitude/longitude must be finite", field)
+    if lat.size and (np.abs(lat).max() > 90 or np.abs(lon).max() > 180):
+        raise InputError("latitude must lie in -90..90 and longitude in -180..180", field)
+    east, north = _to_utm(z.epsg).transform(lon, lat)
+    east, north = np.asarray(east, dtype=np.float64), np.asarray(north, dtype=np.float64)
+    to_latlon(z, east, north, field)  # the zone's checks: eastings in range, the band
+    return east, north

@@ -14,7 +14,9 @@ The stages, each timed:
 5. **closures**: each candidate group verified, the best match gated (:mod:`.edges`); a run
    that shares no accepted closure with any other run is refused, naming it (nothing ties it
    to the map: ``allow_alone`` keeps it on its own fixes);
-6. **solve**: the pose graph (:mod:`.graph`);
+6. **solve**: the pose graph (:mod:`.graph`); a run that holds position fixes only (its poses
+   KISS-ICP odometry laid onto them) is held to its fixes, and its odometry steps that failed
+   to register are KISS-ICP's own (:mod:`.fixes`);
 7. **write**: the tree re-laid into ``out`` (:mod:`.relay`), the report and the plot
    (:mod:`.report`).
 
@@ -44,6 +46,13 @@ from pnvlad_service.mapping.candidates import (
 )
 from pnvlad_service.mapping.deskew import run_motion
 from pnvlad_service.mapping.edges import Clouds, Edge, EdgeConfig, closure_edges, odometry_edges
+from pnvlad_service.mapping.fixes import (
+    FixConfig,
+    FixRun,
+    measured_nodes,
+    odometry_fallback,
+    read_fix_runs,
+)
 from pnvlad_service.mapping.graph import GraphConfig, Solution, solve
 from pnvlad_service.mapping.nodes import MapNodes, read_tree_nodes
 from pnvlad_service.mapping.relay import write_aligned_tree
@@ -76,6 +85,7 @@ class AlignConfig:
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     edges: EdgeConfig = field(default_factory=EdgeConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
+    fixes: FixConfig = field(default_factory=FixConfig)
 
 
 @dataclass
@@ -179,11 +189,15 @@ def align_nodes(
     descriptors: np.ndarray | None = None,
     timer: _Timer | None = None,
     extra_edges: list[Edge] | None = None,
+    fix_runs: list[FixRun] | None = None,
 ) -> Alignment:
     """Stages 3-6 on ``nodes`` in memory (``extra_edges`` are added as given: a test's
-    injected closures). ``InputError`` naming the runs no closure ties to the others."""
+    injected closures; ``fix_runs``: the runs with position fixes only, :mod:`.fixes`).
+    ``InputError`` naming the runs no closure ties to the others."""
     timer = timer or _Timer()
+    fix_runs = fix_runs or []
     edges, counts = measure_edges(nodes, config, timer, descriptors)
+    edges = odometry_fallback(nodes, edges, fix_runs, config.fixes)
     edges += extra_edges or []
     alone = check_overlap(nodes, edges)
     if alone and len(nodes.runs) > 1:
@@ -194,7 +208,8 @@ def align_nodes(
         if not config.allow_alone:
             raise InputError(message + "; allow_alone keeps them on their own fixes", alone[0])
         log.warning("%s: kept on their own fixes", message)
-    solution = timer.run("solve", lambda: solve(nodes, edges, config.graph))
+    measured = measured_nodes(nodes, fix_runs)
+    solution = timer.run("solve", lambda: solve(measured, edges, config.graph))
     for i in solution.dropped:
         reason = f"left over {config.graph.outlier_sigma:g} sigma off by the robust solve"
         edges[i] = replace(edges[i], reason=reason)
@@ -206,6 +221,10 @@ def align_nodes(
         "candidates": counts,
         **edge_report(nodes, edges, solution),
         "runs_alone": alone,
+        "fix_runs": {
+            "runs": [nodes.runs[f.run].name for f in fix_runs],
+            "kiss_icp_steps": sum(e.kind == "odometry-kiss-icp" for e in edges),
+        },
         "corrections": run_corrections(nodes, solution.poses),
         "settings": _settings(config),
     }
@@ -238,10 +257,11 @@ def align_map(
         raise InputError("the aligned tree must go beside the recorded one, not over it", "out")
     timer = _Timer()
     nodes = timer.run("nodes", lambda: read_tree_nodes(root, config.kind))
+    fix_runs = read_fix_runs(root, nodes, config.graph.gnss.position_std_m)
     desc = None
     if model is not None:
         desc = timer.run("embed", lambda: embed_nodes(nodes, model))
-    result = align_nodes(nodes, config, desc, timer)
+    result = align_nodes(nodes, config, desc, timer, fix_runs=fix_runs)
     counts = timer.run(
         "write", lambda: write_aligned_tree(root, out, nodes, result.solution.poses, overwrite)
     )

@@ -41,12 +41,25 @@ class LidarOdometry:
         self._icp = KissICP(config)
         self.frames = 0
 
-    def update(self, points: np.ndarray) -> np.ndarray:
-        """The pose of one scan float [N, 3+] (sensor frame, metres), given the ones before."""
+    def update(self, points: np.ndarray, step_m: float | None = None) -> np.ndarray:
+        """The pose of one scan float [N, 3+] (sensor frame, metres), given the ones before.
+
+        ``step_m``: how far the sensor moved since the last scan, from elsewhere (the speed
+        of position fixes): KISS-ICP's start for this scan moves that far, along its last
+        step's direction (forward, x, when that step was too short to have one), instead of
+        repeating its last step. A street whose walls run along it leaves the motion along
+        it unseen by the scans, where KISS-ICP alone keeps whatever it started from."""
         pts = np.asarray(points)[:, :3]
         pts = np.ascontiguousarray(pts[np.isfinite(pts).all(axis=1)], dtype=np.float64)
         if len(pts) < 100:
             raise InputError(f"a scan of {len(pts)} points is too few for odometry", "points")
+        if step_m is not None and self.frames > 0:
+            delta = np.array(self._icp.last_delta, dtype=np.float64)
+            move = delta[:3, 3]
+            norm = float(np.linalg.norm(move))
+            way = move / norm if norm > 0.2 * step_m and norm > 1e-6 else np.array([1.0, 0, 0])
+            delta[:3, 3] = way * step_m
+            self._icp.last_delta = delta
         self._icp.register_frame(pts, np.zeros(0))
         self.frames += 1
         return np.array(self._icp.last_pose, dtype=np.float64)

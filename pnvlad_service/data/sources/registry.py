@@ -59,6 +59,9 @@ class DriveOptions:
       where a ``kitti`` sequence's first scan, or a ``rosbag``'s pose frame, lies in UTM.
     - ``cloud_topic``, ``pose_topic`` / ``tf_frame``, ``max_pose_gap`` (seconds; ``None``: 2,
       ``0``: interpolate across any gap): a ``rosbag``'s clouds and poses.
+    - ``fix_topic`` with ``odometry`` ``"kiss-icp"`` (instead of a pose topic or /tf): a
+      ``rosbag`` with position fixes only (``sensor_msgs/NavSatFix``, turned into UTM in
+      ``utm_zone``), posed by KISS-ICP laid onto them (:mod:`.rosbag_fixes`).
     """
 
     poses: Path | None = field(default=None, metadata=_flag("--poses"))
@@ -70,6 +73,9 @@ class DriveOptions:
     pose_topic: str | None = field(default=None, metadata=_flag("--pose-topic"))
     tf_frame: str | None = field(default=None, metadata=_flag("--tf"))
     max_pose_gap: float | None = field(default=None, metadata=_flag("--max-pose-gap"))
+    fix_topic: str | None = field(default=None, metadata=_flag("--fix-topic"))
+    odometry: str | None = field(default=None, metadata=_flag("--odometry"))
+    utm_zone: str | None = field(default=None, metadata=_flag("--utm-zone"))
 
     def given(self, name: str) -> bool:
         """Whether the option ``name`` was given (differs from its default)."""
@@ -198,6 +204,26 @@ def _open_csv(path: Path, options: DriveOptions) -> Drive:
     return CsvDrive(path, options.poses, reader=options.reader, skip_missing=options.skip_missing)
 
 
+def _open_fix_bag(path: Path, options: DriveOptions) -> Drive:
+    """A bag posed by KISS-ICP laid onto its NavSatFix topic (``--fix-topic``)."""
+    from pnvlad_service.data.sources.rosbag_fixes import open_fix_drive
+
+    if options.odometry != "kiss-icp":
+        raise InputError(
+            "--fix-topic needs --odometry kiss-icp (the poses between and beside the fixes)",
+            "--odometry",
+        )
+    if options.fix_topic is None:
+        raise InputError(
+            "--odometry kiss-icp goes with --fix-topic (a NavSatFix topic)", "--fix-topic"
+        )
+    if options.pose_topic is not None or options.tf_frame is not None:
+        raise InputError("give --pose-topic/--tf or --fix-topic, not both", "--fix-topic")
+    if options.origin_ne is not None or options.yaw_deg != 0.0:
+        raise InputError("the fixes place the drive: --origin and --yaw do not apply", "--origin")
+    return open_fix_drive(path, options.cloud_topic, options.fix_topic, options.utm_zone or "")
+
+
 def _open_rosbag(path: Path, options: DriveOptions) -> Drive:
     from pnvlad_service.data.sources.rosbag import RosbagDrive
 
@@ -209,6 +235,8 @@ def _open_rosbag(path: Path, options: DriveOptions) -> Drive:
         raise InputError(
             "--rosbag needs --cloud-topic (see the bag's topics with --list)", "--cloud-topic"
         )
+    if options.fix_topic is not None or options.odometry is not None:
+        return _open_fix_bag(path, options)
     if options.pose_topic is not None and options.tf_frame is not None:
         raise InputError("give --pose-topic or --tf, not both", "--tf")
     if options.pose_topic is None and options.tf_frame is None:
@@ -277,8 +305,10 @@ for _source in (
     DriveSource(
         "rosbag", "--rosbag", "--rosbag BAG",
         "a ROS 1 or ROS 2 bag: a PointCloud2 topic posed by a pose topic or /tf",
-        ("origin_ne", "yaw_deg", "cloud_topic", "pose_topic", "tf_frame", "max_pose_gap"),
-        _open_rosbag, own=("cloud_topic", "pose_topic", "tf_frame", "max_pose_gap"),
+        ("origin_ne", "yaw_deg", "cloud_topic", "pose_topic", "tf_frame", "max_pose_gap",
+         "fix_topic", "odometry", "utm_zone"),
+        _open_rosbag,
+        own=("cloud_topic", "pose_topic", "tf_frame", "max_pose_gap", "fix_topic", "odometry"),
         report=rosbag_report,
     ),
     # A bag's clouds alone, in time order (``RosbagClouds``: timestamps and scans, no poses):

@@ -6,7 +6,8 @@ bags with ``rosbags``' own writers (extra ``rosbag``):
 
 - :class:`BagWriter`: a new ROS 1 ``.bag`` (``ros=1``) or ROS 2 bag folder (``ros=2``, sqlite3
   or mcap storage), messages built from the writer's typestore (``writer.types``).
-- :func:`pointcloud2` / :func:`odometry` / :func:`tf_message`: messages from numpy arrays.
+- :func:`pointcloud2` / :func:`odometry` / :func:`tf_message` / :func:`navsatfix`: messages
+  from numpy arrays.
 - :func:`write_drive_bag`: every scan of a drive with its pose, in a local ``odom`` frame whose
   origin is ``origin_ne`` in UTM (so ``--origin`` with the same numbers puts it back).
 """
@@ -181,6 +182,36 @@ def odometry(
         child_frame_id=child,
         pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose_msg, covariance=cov),
         twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=cov.copy()),
+    )
+
+
+def navsatfix(
+    types: Any,
+    latitude: float,
+    longitude: float,
+    altitude: float,
+    stamp_ns: int,
+    frame_id: str = "gps",
+    std_m: float | None = None,
+) -> Any:
+    """A sensor_msgs/NavSatFix (status: a fix) at WGS 84 ``latitude``, ``longitude`` (degrees)
+    and ``altitude`` (metres); ``std_m``: the horizontal standard deviation, written as a
+    diagonal ``position_covariance`` (type 2, diagonal known), else type 0 (unknown)."""
+    cov = np.zeros(9)
+    kind = 0
+    if std_m is not None:
+        cov[0] = cov[4] = std_m**2 / 2.0
+        cov[8] = std_m**2
+        kind = 2
+    status = types["sensor_msgs/msg/NavSatStatus"](status=0, service=1)
+    return types["sensor_msgs/msg/NavSatFix"](
+        header=_header(types, stamp_ns, frame_id),
+        status=status,
+        latitude=float(latitude),
+        longitude=float(longitude),
+        altitude=float(altitude),
+        position_covariance=cov,
+        position_covariance_type=kind,
     )
 
 
