@@ -49,6 +49,17 @@ NEAR_CACHE_ENTRIES = 16
 #: keyframes are 5 m apart and a scan keeps 50 m; 20 m holds the 4-8 nearest of one drive).
 DEFAULT_RADIUS_M = 20.0
 
+#: Entries a prior registers to on a map whose drives agree (``pnvlad map align``): the nearest
+#: of any of its drives, where one drive's would be 4 (docs/TRACKING.md, "On an aligned map").
+ALIGNED_ENTRIES = 8
+#: ... and the wider target a registration that fits under the threshold is tried once more
+#: against: 8 entries of four drives, 2.5 m apart, cover about 5 m of a street that the scan
+#: sees 50 m of, and fit some stretches under 0.4 where the pose is right (docs/TRACKING.md).
+ALIGNED_RETRY_ENTRIES = 24
+#: What the wider target's fit must exceed the threshold by: a wider stretch also fits a prior
+#: 5-15 m along the street more often (measured: docs/TRACKING.md).
+RETRY_MARGIN = 0.05
+
 
 @dataclass(frozen=True)
 class Prior:
@@ -130,11 +141,20 @@ class PriorConfig:
     max_sigma_m: float | None = 1.0
     sigma_scale: float = 18.0
     max_correction_m: float | None = None
+    retry_submaps: int = 0
+    retry_margin: float = RETRY_MARGIN
     registration: reg.RegistrationConfig = field(default_factory=reg.RegistrationConfig)
 
     def __post_init__(self) -> None:
         if not 1 <= self.max_submaps <= 64:
             raise ValueError(f"max_submaps must be 1..64, got {self.max_submaps}")
+        if self.retry_submaps and not self.max_submaps < self.retry_submaps <= 64:
+            raise ValueError(
+                f"retry_submaps must be 0 or more than max_submaps ({self.max_submaps}) and at "
+                f"most 64, got {self.retry_submaps}"
+            )
+        if not 0.0 <= self.retry_margin <= 1.0:
+            raise ValueError(f"retry_margin must be in [0, 1], got {self.retry_margin}")
         if not 0.0 <= self.min_fitness <= 1.0:
             raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
         if self.max_sigma_m is not None and not self.max_sigma_m > 0:
