@@ -86,3 +86,15 @@ def test_a_malformed_alignment_is_refused_naming_the_file(bad: object) -> None:
     assert "b/manifest.json" in str(exc.value)
     good = MapRecord.from_json({"kind": "keyframe", "alignment": "0" * 64})
     assert MapRecord.from_json(good.to_json()) == good
+
+
+def test_index_info_says_whether_the_map_is_aligned(tiny_aligned: dict, tiny_maps: dict) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    want = _sha256(tiny_aligned["tree"] / ALIGN_REPORT)[:16]
+    res = CliRunner().invoke(app, ["index", "info", str(tiny_aligned["keys"])])
+    assert res.exit_code == 0 and f"aligned (pnvlad map align, report sha256 {want}" in res.output
+    res = CliRunner().invoke(app, ["index", "info", str(tiny_maps["keys"])])
+    assert res.exit_code == 0 and "not aligned" in res.output
