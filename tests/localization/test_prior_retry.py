@@ -2,12 +2,14 @@
 stretch of the map (``PriorConfig.retry_submaps``): on an aligned map the nearest entries of its
 drives, a few metres apart, cover a short stretch of the street a scan sees far along, and the
 right pose can fit under the threshold there; the wider fit must clear the threshold by a
-margin (``RETRY_MARGIN``). Measured on the tiny city's aligned map: the fitness against a few
-entries and against more, and the threshold set between them."""
+margin (``RETRY_MARGIN``) and stay near the prior (``RETRY_MAX_CORRECTION_M``: a wider stretch
+of a street can slide a right prior along it). Measured on the tiny city's aligned map: the
+fitness against a few entries and against more, and the threshold set between them."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -77,6 +79,33 @@ def test_a_wider_fit_short_of_the_margin_leaves_the_first_answer(
     assert got.fitness == pytest.approx(c["narrow"].fitness, abs=1e-6)
 
 
+def test_a_wider_fit_that_slides_from_the_prior_leaves_the_first_answer(
+    tiny_aligned: dict, narrow_and_wide: dict
+) -> None:
+    """The same scan from a prior 1.5 m off its truth: the wider fit moves the sensor back by
+    more than the retry may, so the first answer (not verified) stands; with a looser limit the
+    retry verifies it near the truth."""
+    c = narrow_and_wide
+    between = round((c["narrow"].fitness + c["wide"].fitness - RETRY_MARGIN) / 2, 4)
+    p = c["prior"]
+    yaw = math.radians(p.yaw_deg)
+    off = Prior(p.northing + 1.5 * math.sin(yaw), p.easting + 1.5 * math.cos(yaw), p.yaw_deg)
+    rules = {"same_run": False, "max_submaps": 2, "min_fitness": between, "max_sigma": 0.0,
+             "retry_submaps": 8}  # fmt: skip
+    with _loaded(tiny_aligned["keys"], **rules) as loc:
+        got = loc.localize(c["scan"], kind="scan", prior=off).prior
+        assert loc.prior_config.retry_max_correction_m == 1.0
+        loose = replace(loc.prior_config, retry_max_correction_m=3.0)
+        loc.prior_config = loose
+        again = loc.localize(c["scan"], kind="scan", prior=off).prior
+    if again.verified and again.correction_m > 1.0:  # the wider fit found the truth, 1.5 m back
+        assert not got.verified and len(got.rows) == 2
+        true = c["true"]
+        assert math.hypot(again.pose.easting - true[0, 3], again.pose.northing - true[1, 3]) < 1.0
+    else:  # it did not move that far: the limit changes nothing
+        assert (got.verified, got.rows) == (again.verified, again.rows)
+
+
 def test_a_fit_over_the_threshold_is_not_tried_again(
     tiny_aligned: dict, narrow_and_wide: dict
 ) -> None:
@@ -91,4 +120,6 @@ def test_a_fit_over_the_threshold_is_not_tried_again(
 def test_a_retry_no_wider_than_the_target_is_refused(retry: int) -> None:
     with pytest.raises(ValueError, match="retry_submaps"):
         PriorConfig(max_submaps=2, retry_submaps=retry)
+    with pytest.raises(ValueError, match="retry_max_correction_m"):
+        PriorConfig(max_submaps=2, retry_submaps=8, retry_max_correction_m=0.0)
     assert np.isfinite(PriorConfig(max_submaps=2, retry_submaps=0).min_fitness)

@@ -433,7 +433,9 @@ class Localizer:
             at = min(1.0, config.min_fitness + config.retry_margin)
             again = replace(config, min_fitness=at)
             retried = self.verifier.register_near(query, wider, prior, again)
-            return retried if retried.verified else fit
+            moved = retried.correction_m
+            near = moved is not None and moved <= config.retry_max_correction_m
+            return retried if retried.verified and near else fit
 
     def answer_near(
         self,

@@ -59,6 +59,11 @@ ALIGNED_RETRY_ENTRIES = 24
 #: What the wider target's fit must exceed the threshold by: a wider stretch also fits a prior
 #: 5-15 m along the street more often (measured: docs/TRACKING.md).
 RETRY_MARGIN = 0.05
+#: ... and how far at most it may move the sensor from the prior, metres: along a street the
+#: wider stretch can also slide the right prior to a wrong place (a retry that moved a campus
+#: drive's prediction 1.7 m along its street started 30 poses 4-6 m off; the rescues that keep
+#: a drive tracked moved it 0.1-1.0 m: docs/TRACKING.md).
+RETRY_MAX_CORRECTION_M = 1.0
 
 
 @dataclass(frozen=True)
@@ -143,6 +148,7 @@ class PriorConfig:
     max_correction_m: float | None = None
     retry_submaps: int = 0
     retry_margin: float = RETRY_MARGIN
+    retry_max_correction_m: float = RETRY_MAX_CORRECTION_M
     registration: reg.RegistrationConfig = field(default_factory=reg.RegistrationConfig)
 
     def __post_init__(self) -> None:
@@ -155,6 +161,10 @@ class PriorConfig:
             )
         if not 0.0 <= self.retry_margin <= 1.0:
             raise ValueError(f"retry_margin must be in [0, 1], got {self.retry_margin}")
+        if not self.retry_max_correction_m > 0:
+            raise ValueError(
+                f"retry_max_correction_m must be > 0, got {self.retry_max_correction_m}"
+            )
         if not 0.0 <= self.min_fitness <= 1.0:
             raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
         if self.max_sigma_m is not None and not self.max_sigma_m > 0:
