@@ -1,4 +1,4 @@
-"""Every run of a `pnvlad synth` tree followed as a ROS bag against a map of the others (#34, #36).
+"""Every run of a `pnvlad synth` tree followed as a ROS bag against a map of the others.
 
 For each run of each area (or those named): a keyframe bundle of the area's other runs
 (``pnvlad index build --layout keyframe``, cached under OUT/maps), the run written as a ROS 2
@@ -10,7 +10,7 @@ row a run (its direction, the distance and time to the first fix, the share of t
 it with a verified pose, the share within 1 m and 2 degrees of the truth, median and p99 pose
 errors against the truth and against the map's own truth, verified poses more than 5 m off,
 relocalisations, losses, scans a second) and the totals; the CSVs and PNGs stay in
-OUT/replays. ``--per-scan`` asks with every ``--every``-th scan alone instead (the #34 replay).
+OUT/replays. ``--per-scan`` asks with every ``--every``-th scan alone instead (the per-scan replay).
 
     python benchmarks/replay_benchmark.py --root B --model runs/bev_scan/model --out out/follow
 """
@@ -204,7 +204,7 @@ def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: 
 
 
 def per_scan_run(root: Path, model: Path, out: Path, area: str, name: str, every: int) -> dict:
-    """The #34 replay of one run: every ``every``-th scan asked alone."""
+    """The per-scan replay of one run: every ``every``-th scan asked alone."""
     bundle = map_of(root, model, out, area, name)
     bag, origin, _ = bag_of(root, out, area, name, every)
     dest = out / "replays" / area / f"{name}.per-scan"
@@ -269,7 +269,7 @@ def parser() -> argparse.ArgumentParser:
         default=None,
         help="every Nth scan of a run (default: every scan; 10 with --per-scan)",
     )
-    ap.add_argument("--per-scan", action="store_true", help="ask with each scan alone (#34)")
+    ap.add_argument("--per-scan", action="store_true", help="ask with each scan alone")
     ap.add_argument("--area", action="append", help="only this area (repeatable)")
     ap.add_argument("--run", action="append", help="only this run (repeatable)")
     ap.add_argument(
@@ -282,7 +282,9 @@ def parser() -> argparse.ArgumentParser:
         "--aligned-map",
         action="store_true",
         help="follow with 'pnvlad localize --aligned-map' (scans registered to the entries of "
-        "any of the map's drives; for an aligned tree and --leave-one-out)",
+        "any of the map's drives). Without it the follow does as the map's bundle records: a "
+        "bundle built from an aligned tree (--leave-one-out, or a tree of pnvlad map align) "
+        "records it",
     )
     ap.add_argument(
         "--aligned", type=Path, default=None, help="where the aligned trees go (default: --out)"

@@ -291,6 +291,18 @@ def _zones(bundle: Path) -> str:
     return ", ".join(z or "unknown (index build --utm-zone gives one)" for z in zones)
 
 
+def _map_text(manifest: Manifest) -> str:
+    """What the map holds and whether its drives were aligned together (pnvlad map align)."""
+    record = manifest.map_record
+    aligned = (
+        f"aligned (pnvlad map align, report sha256 {record.alignment[:16]}…): a prior "
+        "registers to any drive's entries"
+        if record.alignment
+        else "not aligned: a prior registers to one drive's entries"
+    )
+    return f"{record.kind}s ({record.layout}), {aligned}"
+
+
 def _info_rows(bundle: Path, manifest: Manifest, checks: dict[str, bool]) -> list[tuple[str, str]]:
     """The (label, value) lines of ``pnvlad index info``."""
     m = manifest
@@ -305,6 +317,7 @@ def _info_rows(bundle: Path, manifest: Manifest, checks: dict[str, bool]) -> lis
         ("model config", m.model.config_sha256),
         ("checkpoint", f"{m.model.checkpoint} [{_checkpoint_state(m)}]"),
         ("geometry", _geometry_text(m)),
+        ("map", _map_text(m)),
         ("created", m.created),
         ("modified", m.modified),
     ]

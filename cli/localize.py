@@ -171,7 +171,7 @@ def localize(
     radius: float = replay_options.RADIUS,
     confirm: int = replay_options.CONFIRM,
     failures: int = replay_options.FAILURES,
-    aligned_map: bool = replay_options.ALIGNED_MAP,
+    aligned_map: bool | None = replay_options.ALIGNED_MAP,
     every: int = replay_options.EVERY,
     out: Path = replay_options.OUT,
     map_bundle: Path = replay_options.MAP,
@@ -249,7 +249,8 @@ def localize(
             return
         if window is not None:
             raise InputError("applies to --rosbag --per-scan only", "--window")
-        _check_no_views(foxglove, mcap, ros2_bag, trajectories, utm_zone, aligned_map, yaw or None)
+        _check_no_views(foxglove, mcap, ros2_bag, trajectories, utm_zone,
+                        aligned_map is not None, yaw or None)  # fmt: skip
         bag_options.check_unused(
             None, cloud_topic=cloud_topic, pose_topic=pose_topic, tf_frame=tf_frame,
             max_pose_gap=max_pose_gap, origin=origin, every=every, out=out, map=map_bundle,

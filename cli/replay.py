@@ -100,10 +100,13 @@ FAILURES = typer.Option(
     rich_help_panel=PANEL,
 )
 ALIGNED_MAP = typer.Option(
-    False,
-    "--aligned-map",
-    help="Following with --index a map made by pnvlad map align: register each scan to the 8 "
-    "nearest entries of any of the map's drives (they agree), not to 4 of one.",
+    None,
+    "--aligned-map/--no-aligned-map",
+    help="Following with --index: register each scan to the 8 nearest entries of any of the "
+    "map's drives (they agree), a fit under the threshold once more to 24, or (--no-aligned-map) "
+    "to 4 of one drive. Default: as the bundle records; index build of a tree made by pnvlad "
+    "map align records its map as aligned.",
+    show_default=False,
     rich_help_panel=PANEL,
 )
 OUT = typer.Option(

@@ -68,3 +68,20 @@ def tiny_maps(tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
         "plain": base / "plain.index",
         "keys": base / "keys.index",
     }
+
+
+@pytest.fixture(scope="session")
+def tiny_aligned(tiny: Path, tiny_maps: dict, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The tiny city through ``pnvlad map align`` (``tree``) and the keyframe bundle of its runs
+    but the first (``keys``, as ``tiny_maps``'s, built with its ``ckpt``)."""
+    pytest.importorskip("gtsam")
+    from pnvlad_service.index.build import build_bundle
+    from pnvlad_service.mapping.align import align_map
+
+    base = tmp_path_factory.mktemp("tiny_aligned")
+    align_map(tiny, base / "tiny-aligned")
+    runs = tiny_maps["tree"].runs("business")
+    keys = base / "keys.index"
+    build_bundle(keys, tiny_maps["ckpt"], base / "tiny-aligned", runs=runs[1:], progress=False,
+                 layout="keyframe")  # fmt: skip
+    return {"tree": base / "tiny-aligned", "keys": keys, "ckpt": tiny_maps["ckpt"]}

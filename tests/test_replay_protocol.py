@@ -117,3 +117,11 @@ def test_every_nth_keeps_the_truth_with_its_scans(rb) -> None:
     sub = rb.EveryNth(Drive(), 3)
     assert len(sub) == 4 and list(sub.true[:, 0, 3]) == [0, 3, 6, 9]
     assert sub.scan(2)[0, 0] == 6
+
+
+def test_the_help_names_no_issue_numbers(rb) -> None:
+    import re
+
+    text = rb.parser().format_help()
+    assert "--per-scan" in text and "--aligned-map" in text
+    assert not re.search(r"#\d", text), text

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.fileio import sha256_file
 from pnvlad_service.index.bundle import IndexBundle, Metadata, now, write_bundle
 from pnvlad_service.index.geometry import database_frames, geometry_writer
 from pnvlad_service.index.keys import (
@@ -203,6 +204,31 @@ def tree_utm_zone(root: Path, records: Sequence[Submap], given: str | None = Non
     return zone or found or ""
 
 
+#: What ``pnvlad map align`` writes into its tree (``mapping.align.REPORT`` and
+#: ``mapping.relay.ALIGNED_POSES``; this stage may not import that one).
+ALIGN_REPORT = "align_report.json"
+ALIGNED_POSES = "aligned_poses.csv"
+
+
+def tree_alignment(root: Path, records: Sequence[Submap]) -> str | None:
+    """The sha256 of ``root``'s ``align_report.json`` when ``pnvlad map align`` wrote the tree
+    and every run of ``records`` is of it (has its ``aligned_poses.csv``): the map's drives
+    agree. ``None`` otherwise (a warning naming a run the alignment lacks)."""
+    report = root / ALIGN_REPORT
+    if not report.is_file():
+        return None
+    for run in dict.fromkeys(r.path.rsplit("/", 2)[0] for r in records):
+        if not root.joinpath(*run.split("/"), ALIGNED_POSES).is_file():
+            log.warning(
+                "run %s has no %s: it was not aligned with the others, so the bundle is not "
+                "recorded as aligned (priors register to one drive at a time)",
+                run,
+                ALIGNED_POSES,
+            )
+            return None
+    return sha256_file(report)
+
+
 def with_zone(records: Sequence[Submap], zone: str) -> list[Submap]:
     """``records`` tagged with UTM zone ``zone``."""
     return [replace(r, utm_zone=zone) for r in records]
@@ -368,6 +394,7 @@ def build_bundle(
                 turns,
                 # windows go to submap maps only (a keyframe map refuses them)
                 tree_accumulation(root, records) if LAYOUT_KINDS[layout] == "submap" else None,
+                tree_alignment(root, records),
             ),
         )
     rate = len(records) / t_embed if t_embed > 0 else float("inf")
@@ -464,6 +491,18 @@ def _adopt_zone(metadata: Metadata, zone: str) -> Metadata:
     return replace(metadata, utm_zone=np.where(blank, zone, metadata.utm_zone))
 
 
+def _added_alignment(record: MapRecord | None, added: str | None) -> MapRecord | None:
+    """The map record of a bundle that gains runs of alignment ``added``: still aligned only
+    when they are of the same alignment (a warning when that ends it)."""
+    if record is None or record.alignment is None or record.alignment == added:
+        return record
+    log.warning(
+        "the runs added are not of the alignment the bundle's map was made of: the bundle is "
+        "no longer recorded as aligned (priors register to one drive at a time)"
+    )
+    return replace(record, alignment=None)
+
+
 def add_to_bundle(
     bundle_dir: str | Path,
     model: str | Path,
@@ -534,7 +573,7 @@ def add_to_bundle(
         build=m.build,
         extra=m.extra,
         geometry=None if frames is None else geometry_writer(root, records, frames, base),
-        map_record=m.map,
+        map_record=_added_alignment(m.map, tree_alignment(root, records)),
     )
     if base is not None:
         base.close()

@@ -193,12 +193,20 @@ class MapRecord:
     ``accumulation``: how the map's windows laid each scan (``data.run_folder.
     ACCUMULATION_KEYS``: the points kept a scan, its range), which an accumulated query must
     follow (:meth:`~pnvlad_service.data.accumulate.WindowAccumulator.for_map`); ``None`` where
-    the tree recorded none."""
+    the tree recorded none. ``alignment``: the sha256 of the ``align_report.json`` of the tree
+    that ``pnvlad map align`` wrote, when every run indexed is of it (the map's drives agree,
+    and a prior registers to any of them: docs/TRACKING.md); ``None`` otherwise."""
 
     kind: str = "submap"
     layout: str = "test"
     turns: int = 1
     accumulation: Mapping[str, Any] | None = None
+    alignment: str | None = None
+
+    @property
+    def aligned(self) -> bool:
+        """Whether the map's drives were aligned together (``pnvlad map align``)."""
+        return self.alignment is not None
 
     @classmethod
     def from_json(cls, doc: Any, source: str | Path | None = None) -> MapRecord:
@@ -216,17 +224,27 @@ class MapRecord:
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in acc.values())
         ):
             raise InputError("manifest's map accumulation must map names to numbers", source)
+        alignment = doc.get("alignment")
+        if alignment is not None and not (
+            isinstance(alignment, str)
+            and len(alignment) == 64
+            and all(c in "0123456789abcdef" for c in alignment)
+        ):
+            raise InputError("manifest's map alignment must be a sha256 (64 hex digits)", source)
         return cls(
             str(doc["kind"]),
             str(doc.get("layout", "test")),
             int(turns),
             None if acc is None else MappingProxyType(dict(acc)),
+            alignment,
         )
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"kind": self.kind, "layout": self.layout, "turns": self.turns}
         if self.accumulation is not None:
             out["accumulation"] = dict(self.accumulation)
+        if self.alignment is not None:
+            out["alignment"] = self.alignment
         return out
 
     def accepts(self, query_kind: str) -> bool:

@@ -176,13 +176,18 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
 
         state.query_view = open_query_view(settings.foxglove, settings.index or loc.bundle.path)
     age = process_age()
+    prior = loc.prior_config
     log.info(
-        "ready: bundle %s (%s, %d vectors), embedding with %s%s",
+        "ready: bundle %s (%s, %d vectors), embedding with %s%s; a prior registers to the %d "
+        "nearest entries of %s (the map %s)",
         loc.info.index.id,
         loc.info.index.key,
         loc.info.index.count,
         loc.runtime,
         "" if age is None else f" ({age:.2f} s after the process started)",
+        prior.max_submaps,
+        "one drive" if prior.same_run else "any drive",
+        "is aligned" if loc.aligned_map else "is not aligned",
     )
     try:
         with _sighup(app):

@@ -228,6 +228,22 @@ class ReloadResponse(BaseModel):
     runtime: str
 
 
+class PriorInfo(BaseModel):
+    """How a query with a prior pose is registered here (the settings, or the bundle's map)."""
+
+    aligned_map: bool = Field(
+        description="The bundle records its map as aligned (pnvlad map align: its drives "
+        "agree), so that by default a prior registers to the nearest entries of any drive."
+    )
+    same_run: bool = Field(description="Registered to the entries of one drive at a time.")
+    max_submaps: int = Field(description="Nearest entries laid together and registered to.")
+    retry_submaps: int = Field(
+        description="Entries a fit under min_fitness is tried against once more (0: never)."
+    )
+    min_fitness: float
+    max_sigma_m: float | None
+
+
 class Info(BaseModel):
     manifest: dict[str, Any]
     utm_zone: str | None = Field(
@@ -240,3 +256,4 @@ class Info(BaseModel):
     model: dict[str, Any]
     runtime: str
     limits: dict[str, Any]
+    prior: PriorInfo

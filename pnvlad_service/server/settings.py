@@ -130,8 +130,9 @@ class ServerSettings(BaseSettings):
     )
     prior_min_fitness: float = section_field(PriorSection, "min_fitness")
     prior_max_sigma: float = section_field(PriorSection, "max_sigma")
-    prior_max_submaps: int = section_field(PriorSection, "max_submaps")
-    prior_same_run: bool = section_field(PriorSection, "same_run")
+    prior_max_submaps: int | None = section_field(PriorSection, "max_submaps")
+    prior_same_run: bool | None = section_field(PriorSection, "same_run")
+    prior_retry_submaps: int | None = section_field(PriorSection, "retry_submaps")
 
     def localizer_config(self) -> LocalizerConfig:
         """How the localiser is loaded: these settings' sections (``index`` and the model
@@ -156,6 +157,7 @@ class ServerSettings(BaseSettings):
                 max_sigma=self.prior_max_sigma,
                 max_submaps=self.prior_max_submaps,
                 same_run=self.prior_same_run,
+                retry_submaps=self.prior_retry_submaps,
             ),
             batching=BatchSection(
                 max_size=self.batch_max_size, wait_ms=self.batch_wait_ms, lanes=self.batch_lanes
@@ -163,9 +165,10 @@ class ServerSettings(BaseSettings):
             check_bundle=self.verify_bundle,
         )
 
-    def prior_config(self) -> PriorConfig:
-        """How a scan is registered near a prior pose."""
-        return self.localizer_config().prior.config()
+    def prior_config(self, aligned: bool = False) -> PriorConfig:
+        """How a scan is registered near a prior pose on a map whose bundle records it as
+        ``aligned`` or not (what the settings leave unset follows it)."""
+        return self.localizer_config().prior.config(aligned)
 
     def verify_config(self) -> VerifyConfig:
         """How candidates are verified, but for the threshold: ``Localizer.load`` takes

@@ -1,6 +1,8 @@
-"""Following on an aligned map (``pnvlad localize --aligned-map``): a scan registered near its
-prior takes the nearest entries of any of the map's drives, not of one; how the follow, the
-server's settings and the command say so, and what they refuse."""
+"""Following on an aligned map: a scan registered near its prior takes the nearest entries of
+any of the map's drives, not of one, and a fit under the threshold is tried once more against a
+wider stretch; a bundle that records its map as aligned (``pnvlad index build`` of a tree ``map
+align`` wrote) gets these rules by default, an explicit option or setting overrides them both
+ways; what the follow and the command refuse."""
 
 from __future__ import annotations
 
@@ -11,32 +13,68 @@ from typer.testing import CliRunner
 
 from pnvlad_cli.main import app
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.drive.config import ALIGNED_ENTRIES, DriveConfig, ServiceConfig
+from pnvlad_service.localization.drive.config import DriveConfig, ServiceConfig
+from pnvlad_service.localization.query.config import LocalizerConfig, PriorSection
 from pnvlad_service.localization.query.localizer import Localizer
-from pnvlad_service.localization.verify.prior import Prior
+from pnvlad_service.localization.verify.prior import (
+    ALIGNED_ENTRIES,
+    ALIGNED_RETRY_ENTRIES,
+    Prior,
+    PriorConfig,
+)
 from pnvlad_service.server.settings import ServerSettings
 
-
-def test_the_aligned_map_registers_to_any_drive_and_only_in_this_process(tmp_path) -> None:
-    assert ServiceConfig(index=tmp_path).localizer_config() is None  # the shipped rules
-    prior = ServiceConfig(index=tmp_path, aligned_map=True).localizer_config().prior.config()
-    assert (prior.same_run, prior.max_submaps) == (False, ALIGNED_ENTRIES)
-    config = DriveConfig(service={"url": "http://127.0.0.1:1", "aligned_map": True})
-    with pytest.raises(InputError, match="PNVLAD_PRIOR_SAME_RUN") as exc:
-        config.check()
-    assert "--aligned-map" in str(exc.value)
+ONE_DRIVE = (True, PriorConfig.max_submaps, 0)
+ANY_DRIVE = (False, ALIGNED_ENTRIES, ALIGNED_RETRY_ENTRIES)
 
 
-def test_a_server_is_told_by_its_settings(monkeypatch: pytest.MonkeyPatch) -> None:
-    assert ServerSettings().prior_config().same_run is True
+def rules(config: PriorConfig) -> tuple[bool, int, int]:
+    return config.same_run, config.max_submaps, config.retry_submaps
+
+
+def test_the_option_says_it_both_ways_and_only_in_this_process(tmp_path) -> None:
+    assert ServiceConfig(index=tmp_path).localizer_config() is None  # the bundle says
+    for given, want in ((True, ANY_DRIVE), (False, ONE_DRIVE)):
+        section = ServiceConfig(index=tmp_path, aligned_map=given).localizer_config().prior
+        assert rules(section.config(aligned=True)) == want == rules(section.config(False))
+    for given in (True, False):
+        config = DriveConfig(service={"url": "http://127.0.0.1:1", "aligned_map": given})
+        with pytest.raises(InputError, match="PNVLAD_PRIOR_SAME_RUN") as exc:
+            config.check()
+        assert "--aligned-map" in str(exc.value)
+
+
+def test_the_bundle_sets_the_default_and_an_explicit_config_wins(
+    tiny_maps: dict, tiny_aligned: dict
+) -> None:
+    one = LocalizerConfig(prior=PriorSection(same_run=True, max_submaps=4, retry_submaps=0))
+    anyrun = LocalizerConfig(prior=PriorSection(same_run=False, max_submaps=8, retry_submaps=24))
+    for bundle, aligned in ((tiny_aligned["keys"], True), (tiny_maps["keys"], False)):
+        with Localizer.load(bundle) as loc:
+            assert loc.aligned_map is aligned
+            assert rules(loc.prior_config) == (ANY_DRIVE if aligned else ONE_DRIVE)
+        for config, want in ((one, ONE_DRIVE), (anyrun, ANY_DRIVE)):
+            with Localizer.load(bundle, config=config) as loc:
+                assert rules(loc.prior_config) == want
+
+
+def test_a_server_follows_its_bundle_unless_its_settings_say(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    assert rules(ServerSettings().prior_config()) == ONE_DRIVE
+    assert rules(ServerSettings().prior_config(aligned=True)) == ANY_DRIVE
+    monkeypatch.setenv("PNVLAD_PRIOR_SAME_RUN", "true")
+    monkeypatch.setenv("PNVLAD_PRIOR_RETRY_SUBMAPS", "0")
+    assert rules(ServerSettings().prior_config(aligned=True)) == (True, ALIGNED_ENTRIES, 0)
     monkeypatch.setenv("PNVLAD_PRIOR_SAME_RUN", "false")
     monkeypatch.setenv("PNVLAD_PRIOR_MAX_SUBMAPS", "8")
-    got = ServerSettings().prior_config()
-    assert (got.same_run, got.max_submaps) == (False, 8)
+    monkeypatch.delenv("PNVLAD_PRIOR_RETRY_SUBMAPS")
+    assert rules(ServerSettings().prior_config()) == (False, 8, 0)
 
 
-def test_the_command_refuses_it_where_it_does_not_apply() -> None:
-    res = CliRunner().invoke(app, ["localize", "scan.bin", "--index", "map.index", "--aligned-map"])
+@pytest.mark.parametrize("flag", ["--aligned-map", "--no-aligned-map"])
+def test_the_command_refuses_it_where_it_does_not_apply(flag: str) -> None:
+    res = CliRunner().invoke(app, ["localize", "scan.bin", "--index", "map.index", flag])
     assert res.exit_code == 2 and "--aligned-map" in res.output
 
 
@@ -47,7 +85,7 @@ def test_a_prior_registers_to_several_drives_on_an_aligned_map(tiny_maps: dict) 
     from pnvlad_service.synth.generate import get_preset, simulated_drive
 
     drive = simulated_drive(get_preset("tiny"), 0, 0, 3)  # the held-out run of tiny_maps
-    aligned = ServiceConfig(index=tiny_maps["keys"], aligned_map=True).localizer_config()
+    aligned = LocalizerConfig(prior=PriorSection(same_run=False, max_submaps=8, retry_submaps=0))
     runs_one, runs_any, entries_any = set(), set(), []
     with (
         Localizer.load(tiny_maps["keys"]) as one,

@@ -18,6 +18,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.drive.rows import TRACKED, Policy
 from pnvlad_service.localization.drive.tracking import TrackerConfig
+from pnvlad_service.localization.verify.prior import (
+    ALIGNED_ENTRIES,
+    ALIGNED_RETRY_ENTRIES,
+    PriorConfig,
+)
 
 
 class _Section(BaseModel):
@@ -42,34 +47,39 @@ class SourceConfig(_Section):
     yaw_deg: float = 0.0
 
 
-#: Entries a prior registers to on an aligned map (of any of its drives): measured on the
-#: benchmark's aligned map, docs/TRACKING.md "On an aligned map".
-ALIGNED_ENTRIES = 8
-
-
 class ServiceConfig(_Section):
     """What is asked: a server at ``url`` (``api_key``: its bearer token) or the bundle at
     ``index`` in this process (``model``: default the bundle's); ``top_n`` matches an answer;
-    ``aligned_map``: the map's drives agree (``pnvlad map align``), so a scan is registered to
-    the :data:`ALIGNED_ENTRIES` nearest entries of any of them, not to 4 of one (with ``index``;
-    a server is told by its own settings, ``PNVLAD_PRIOR_SAME_RUN`` and
-    ``PNVLAD_PRIOR_MAX_SUBMAPS``)."""
+    ``aligned_map`` (with ``index``): whether the map's drives agree (``pnvlad map align``), so
+    that a scan is registered to the :data:`ALIGNED_ENTRIES` nearest entries of any of them, and
+    a fit under the threshold once more to :data:`ALIGNED_RETRY_ENTRIES`, not to 4 of one.
+    ``None`` (the default): as the bundle records (``pnvlad index build`` of a tree that ``map
+    align`` wrote records it); a server follows its own bundle and settings
+    (``PNVLAD_PRIOR_SAME_RUN``, ``PNVLAD_PRIOR_MAX_SUBMAPS``)."""
 
     url: str | None = None
     index: Path | None = None
     model: Path | None = None
     api_key: str | None = Field(default=None, repr=False)
     top_n: int = 5
-    aligned_map: bool = False
+    aligned_map: bool | None = None
 
     def localizer_config(self) -> Any:
         """The :class:`~..query.config.LocalizerConfig` a bundle in this process is loaded
-        with (``None``: the defaults)."""
-        if not self.aligned_map:
+        with (``None``: the defaults, which follow the bundle)."""
+        if self.aligned_map is None:
             return None
         from pnvlad_service.localization.query.config import LocalizerConfig, PriorSection
 
-        return LocalizerConfig(prior=PriorSection(same_run=False, max_submaps=ALIGNED_ENTRIES))
+        if self.aligned_map:
+            prior = PriorSection(
+                same_run=False, max_submaps=ALIGNED_ENTRIES, retry_submaps=ALIGNED_RETRY_ENTRIES
+            )
+        else:
+            prior = PriorSection(
+                same_run=True, max_submaps=PriorConfig.max_submaps, retry_submaps=0
+            )
+        return LocalizerConfig(prior=prior)
 
 
 class OutputConfig(_Section):
@@ -120,10 +130,10 @@ class DriveConfig(_Section):
         1, a window that is not a positive length or not posed by poses or KISS-ICP."""
         if self.scan_every < 1:
             raise InputError(f"must be >= 1, got {self.scan_every}", "every")
-        if self.service.aligned_map and self.service.url is not None:
+        if self.service.aligned_map is not None and self.service.url is not None:
             raise InputError(
-                "applies to --index (a server registers as its own settings say: "
-                "PNVLAD_PRIOR_SAME_RUN=false PNVLAD_PRIOR_MAX_SUBMAPS=8)",
+                "applies to --index (a server registers as its bundle and its own settings "
+                "say: PNVLAD_PRIOR_SAME_RUN, PNVLAD_PRIOR_MAX_SUBMAPS)",
                 "--aligned-map",
             )
         if self.window_m is not None:

@@ -17,7 +17,13 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from pnvlad_service.localization.query.batching import Batching
-from pnvlad_service.localization.verify.prior import PriorConfig
+from pnvlad_service.localization.verify.prior import (
+    ALIGNED_ENTRIES,
+    ALIGNED_RETRY_ENTRIES,
+    RETRY_MARGIN,
+    RETRY_MAX_CORRECTION_M,
+    PriorConfig,
+)
 from pnvlad_service.localization.verify.verify import DEFAULT_CANDIDATES, VerifyConfig
 
 _FROZEN = ConfigDict(frozen=True, extra="forbid")
@@ -140,25 +146,44 @@ class PriorSection(BaseModel):
         description="Largest horizontal standard deviation (metres) of a pose registered near "
         "a prior that is still verified (0: not checked).",
     )
-    max_submaps: int = Field(
-        PriorConfig.max_submaps,
+    max_submaps: int | None = Field(
+        None,
         ge=1,
         le=64,
-        description="Map entries near a prior (of one drive) laid together and registered to.",
+        description="Map entries near a prior laid together and registered to. Default: "
+        f"{ALIGNED_ENTRIES} of any drive on a map the bundle records as aligned (pnvlad map "
+        f"align), {PriorConfig.max_submaps} of one drive on another.",
     )
-    same_run: bool = Field(
-        PriorConfig.same_run,
+    same_run: bool | None = Field(
+        None,
         description="Register to the entries of one drive of the map only (false: of any "
-        "drive, for a map whose drives agree: pnvlad map align; docs/TRACKING.md).",
+        "drive, for a map whose drives agree). Default: false on a map the bundle records as "
+        "aligned (pnvlad map align), true on another (docs/TRACKING.md).",
+    )
+    retry_submaps: int | None = Field(
+        None,
+        ge=0,
+        le=64,
+        description="A registration near a prior that fits under min_fitness is tried once "
+        "more against this many nearest entries, a wider stretch of the map, and verified when "
+        f"it fits at min_fitness + {RETRY_MARGIN:g} within {RETRY_MAX_CORRECTION_M:g} m of the "
+        "prior (0: never). "
+        f"Default: {ALIGNED_RETRY_ENTRIES} on a map the bundle records as aligned, 0 on another.",
     )
 
-    def config(self) -> PriorConfig:
-        """The registration's :class:`PriorConfig`."""
+    def config(self, aligned: bool = False) -> PriorConfig:
+        """The registration's :class:`PriorConfig`; what the section leaves unset follows
+        ``aligned``, whether the map's drives agree (the bundle's ``map.alignment``)."""
+        max_submaps = self.max_submaps or (ALIGNED_ENTRIES if aligned else PriorConfig.max_submaps)
+        retry = self.retry_submaps
+        if retry is None:
+            retry = ALIGNED_RETRY_ENTRIES if aligned and max_submaps < ALIGNED_RETRY_ENTRIES else 0
         return PriorConfig(
-            max_submaps=self.max_submaps,
-            same_run=self.same_run,
+            max_submaps=max_submaps,
+            same_run=(not aligned) if self.same_run is None else self.same_run,
             min_fitness=self.min_fitness,
             max_sigma_m=self.max_sigma or None,
+            retry_submaps=retry,
         )
 
 

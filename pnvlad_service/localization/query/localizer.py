@@ -125,7 +125,10 @@ class Localizer:
         self._runtime = describe_runtime(encoder)
         self.identity = identity
         self.verify_config = config.verify.config(threshold)
-        self.prior_config = config.prior.config()
+        #: Whether the bundle records its map's drives as aligned (``pnvlad map align``): a
+        #: prior's rules the config leaves unset follow it (docs/TRACKING.md).
+        self.aligned_map = bundle.manifest.map_record.aligned
+        self.prior_config = config.prior.config(aligned=self.aligned_map)
         # The map's positions for a prior's range search, made on the first prior.
         self._positions = PositionsOnce(lambda: MapPositions.of_metadata(bundle.metadata))
         # Verifications in flight: with another one, or the encoder busy, small_gicp runs on
@@ -420,7 +423,19 @@ class Localizer:
                     config.registration, threads=self.verify_config.crowded_threads
                 )
                 config = replace(config, registration=reg_config)
-            return self.verifier.register_near(query, nearby, prior, config)
+            fit = self.verifier.register_near(query, nearby, prior, config)
+            if not config.retry_submaps or fit.pose is None or fit.fitness >= config.min_fitness:
+                return fit
+            # Under the threshold: once more against a wider stretch of the map.
+            wider = positions.near(prior, config.retry_submaps, config.same_run)
+            if wider is None or len(wider.rows) <= len(nearby.rows):
+                return fit
+            at = min(1.0, config.min_fitness + config.retry_margin)
+            again = replace(config, min_fitness=at)
+            retried = self.verifier.register_near(query, wider, prior, again)
+            moved = retried.correction_m
+            near = moved is not None and moved <= config.retry_max_correction_m
+            return retried if retried.verified and near else fit
 
     def answer_near(
         self,

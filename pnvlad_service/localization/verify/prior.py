@@ -49,6 +49,22 @@ NEAR_CACHE_ENTRIES = 16
 #: keyframes are 5 m apart and a scan keeps 50 m; 20 m holds the 4-8 nearest of one drive).
 DEFAULT_RADIUS_M = 20.0
 
+#: Entries a prior registers to on a map whose drives agree (``pnvlad map align``): the nearest
+#: of any of its drives, where one drive's would be 4 (docs/TRACKING.md, "On an aligned map").
+ALIGNED_ENTRIES = 8
+#: ... and the wider target a registration that fits under the threshold is tried once more
+#: against: 8 entries of four drives, 2.5 m apart, cover about 5 m of a street that the scan
+#: sees 50 m of, and fit some stretches under 0.4 where the pose is right (docs/TRACKING.md).
+ALIGNED_RETRY_ENTRIES = 24
+#: What the wider target's fit must exceed the threshold by: a wider stretch also fits a prior
+#: 5-15 m along the street more often (measured: docs/TRACKING.md).
+RETRY_MARGIN = 0.05
+#: ... and how far at most it may move the sensor from the prior, metres: along a street the
+#: wider stretch can also slide the right prior to a wrong place (a retry that moved a campus
+#: drive's prediction 1.7 m along its street started 30 poses 4-6 m off; the rescues that keep
+#: a drive tracked moved it 0.1-1.0 m: docs/TRACKING.md).
+RETRY_MAX_CORRECTION_M = 1.0
+
 
 @dataclass(frozen=True)
 class Prior:
@@ -130,11 +146,25 @@ class PriorConfig:
     max_sigma_m: float | None = 1.0
     sigma_scale: float = 18.0
     max_correction_m: float | None = None
+    retry_submaps: int = 0
+    retry_margin: float = RETRY_MARGIN
+    retry_max_correction_m: float = RETRY_MAX_CORRECTION_M
     registration: reg.RegistrationConfig = field(default_factory=reg.RegistrationConfig)
 
     def __post_init__(self) -> None:
         if not 1 <= self.max_submaps <= 64:
             raise ValueError(f"max_submaps must be 1..64, got {self.max_submaps}")
+        if self.retry_submaps and not self.max_submaps < self.retry_submaps <= 64:
+            raise ValueError(
+                f"retry_submaps must be 0 or more than max_submaps ({self.max_submaps}) and at "
+                f"most 64, got {self.retry_submaps}"
+            )
+        if not 0.0 <= self.retry_margin <= 1.0:
+            raise ValueError(f"retry_margin must be in [0, 1], got {self.retry_margin}")
+        if not self.retry_max_correction_m > 0:
+            raise ValueError(
+                f"retry_max_correction_m must be > 0, got {self.retry_max_correction_m}"
+            )
         if not 0.0 <= self.min_fitness <= 1.0:
             raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
         if self.max_sigma_m is not None and not self.max_sigma_m > 0:

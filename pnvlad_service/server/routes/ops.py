@@ -29,14 +29,23 @@ def readyz(loc: Localizer = Depends(get_localizer)) -> dict[str, Any]:
 def info(
     loc: Localizer = Depends(get_localizer), settings: ServerSettings = Depends(get_settings)
 ) -> dict[str, Any]:
-    """The bundle's manifest, the UTM zone of its map, the model, the runtime and the request
-    limits."""
+    """The bundle's manifest, the UTM zone of its map, the model, the runtime, the request
+    limits and how a prior pose is registered."""
+    prior = loc.prior_config
     return {
         "manifest": loc.manifest_json(),
         "utm_zone": loc.utm_zone,
         "model": loc.identity.to_json(),
         "runtime": loc.runtime,
         "limits": {"max_body_bytes": settings.max_body_bytes, **settings.limits().to_json()},
+        "prior": {
+            "aligned_map": loc.aligned_map,
+            "same_run": prior.same_run,
+            "max_submaps": prior.max_submaps,
+            "retry_submaps": prior.retry_submaps,
+            "min_fitness": prior.min_fitness,
+            "max_sigma_m": prior.max_sigma_m,
+        },
     }
 
 
