@@ -16,21 +16,14 @@ from pnvlad_service.mapping.deskew import SWEEP_HZ, deskew_points, run_motion, s
 from pnvlad_service.synth.lidar import cast_scan
 from pnvlad_service.synth.sensors import LidarConfig
 from pnvlad_service.synth.world import KIND_BUILDING, Boxes, Scene
-from tests.synth.scenes import CLEAN, FLAT, NO_CYL, NO_ELL
+from tests.synth.scenes import CLEAN, FLAT, NO_CYL, NO_ELL, four_walls
 
 
 def _room_scans(speed: float, rate: float) -> tuple[np.ndarray, np.ndarray]:
     """The same rays and draws of a room of four walls, cast standing still and cast through
     a sweep while moving ``speed`` m/s and turning ``rate`` rad/s (sensor frame)."""
-    walls = Boxes(
-        np.array([[12.0, 0.0], [-12.0, 0.0], [0.0, 12.0], [0.0, -12.0]]),
-        np.array([[0.5, 13.0], [0.5, 13.0], [13.0, 0.5], [13.0, 0.5]]),
-        np.tile([[-3.0, 10.0]], (4, 1)),
-        np.zeros(4),
-        np.full(4, KIND_BUILDING, np.int8),
-    )
     cfg = LidarConfig(beams=8, columns=720, deskewed=False, **CLEAN)
-    scene = Scene(walls, NO_CYL, NO_ELL)
+    scene = four_walls()
     o = np.array([0.0, 0.0, 1.5])
     still = cast_scan(scene, FLAT, o, 0.0, cfg, np.random.default_rng(3), motion=(0.0, 0.0))
     moved = cast_scan(scene, FLAT, o, 0.0, cfg, np.random.default_rng(3), motion=(speed, rate))

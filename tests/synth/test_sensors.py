@@ -19,7 +19,7 @@ from pnvlad_service.synth.lidar import (
 )
 from pnvlad_service.synth.sensors import SENSORS, LidarConfig, sensor
 from pnvlad_service.synth.world import KIND_BUILDING, KIND_CROWN, Boxes, Ellipsoids, Scene
-from tests.synth.scenes import CLEAN, FLAT, NO_BOX, NO_CYL, NO_ELL
+from tests.synth.scenes import CLEAN, FLAT, NO_BOX, NO_CYL, NO_ELL, four_walls
 
 
 def _wall(x0: float, half_y: float = 20.0) -> Boxes:
@@ -68,15 +68,8 @@ def test_rings_of_a_beam_table_are_the_beams() -> None:
 def test_motion_during_the_sweep_shifts_each_column_by_its_time() -> None:
     # A room of four walls; the same rays and draws with and without motion: each point moves
     # back by speed x its column's time from the sweep's middle, turned by the yaw rate x it.
-    walls = Boxes(
-        np.array([[12.0, 0.0], [-12.0, 0.0], [0.0, 12.0], [0.0, -12.0]]),
-        np.array([[0.5, 13.0], [0.5, 13.0], [13.0, 0.5], [13.0, 0.5]]),
-        np.tile([[-3.0, 10.0]], (4, 1)),
-        np.zeros(4),
-        np.full(4, KIND_BUILDING, np.int8),
-    )
     cfg = LidarConfig(beams=4, columns=360, deskewed=False, **CLEAN)
-    scene = Scene(walls, NO_CYL, NO_ELL)
+    scene = four_walls()
     o = np.array([0.0, 0.0, 1.5])
     still = cast_scan(scene, FLAT, o, 0.0, cfg, np.random.default_rng(1), motion=(0.0, 0.0))
     speed, rate = 10.0, 0.3
