@@ -15,22 +15,23 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 RUNS = ["2026-01-01-00-00-00", "2026-01-02-00-00-00", "2026-01-03-00-00-00"]
 
 
-@pytest.fixture(scope="module")
-def loo():
+def _benchmark(name: str):
+    """The script benchmarks/NAME.py imported as a module (its siblings importable meanwhile)."""
     sys.path.insert(0, str(BENCHMARKS))
     try:
-        return importlib.import_module("leave_one_out")
+        return importlib.import_module(name)
     finally:
         sys.path.remove(str(BENCHMARKS))
+
+
+@pytest.fixture(scope="module")
+def loo():
+    return _benchmark("leave_one_out")
 
 
 @pytest.fixture(scope="module")
 def rb():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        return importlib.import_module("replay_benchmark")
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    return _benchmark("replay_benchmark")
 
 
 def recorded_tree(root: Path) -> Path:
