@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.data.drive import snap_m
-from pnvlad_service.data.sources.fixes import Fixes, check_jumps
+from pnvlad_service.data.sources.fixes import Fixes, check_jumps, linear_at
 from pnvlad_service.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -102,14 +102,6 @@ def _along(points: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(steps)])
 
 
-def _at(stamps: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``values`` [T, K] linear in time at ``t`` [F]."""
-    s = stamps.astype(np.float64)
-    return np.stack(
-        [np.interp(t.astype(np.float64), s, values[:, k]) for k in range(values.shape[1])], 1
-    )
-
-
 def fit_to_fixes(
     stamps: np.ndarray,
     odometry: np.ndarray,
@@ -138,7 +130,7 @@ def fit_to_fixes(
         )
     o_ref, f_ref = pos[0].copy(), inside.enu[0].copy()  # about the first: sums stay exact
     pos = pos - o_ref
-    at_fix = _at(stamps, np.c_[pos, along], inside.stamps)  # odometry at each fix: x, y, z, d
+    at_fix = linear_at(stamps, np.c_[pos, along], inside.stamps)  # odometry at each fix: x, y, z, d
     enu = inside.enu - f_ref
     std = np.where(np.isfinite(inside.std_m), inside.std_m, 1.0)
     w = np.exp(-0.5 * ((at_fix[None, :, 3] - along[:, None]) / window_m) ** 2) / std**2
@@ -193,7 +185,7 @@ class FixOdometryDrive:
         self.odometry = odometry
         self.poses = fit_to_fixes(self.timestamps, self.odometry, fixes, window_m, self.name)
         self.fixes = fixes.within(int(self.timestamps[0]), int(self.timestamps[-1]))
-        self.laid_at_fixes = _at(self.timestamps, self.poses[:, :3, 3], self.fixes.stamps)
+        self.laid_at_fixes = linear_at(self.timestamps, self.poses[:, :3, 3], self.fixes.stamps)
         check_jumps(self.fixes, self.laid_at_fixes, self.name)
         if hasattr(scans, "true_poses"):
             self.true_poses = scans.true_poses

@@ -176,11 +176,15 @@ def check_jumps(
         )
 
 
+def linear_at(stamps: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """float64 [F, K]: ``values`` [T, K] at ``stamps`` [T], linear in time at ``t`` [F] (the
+    first or last row's outside them)."""
+    s = np.asarray(stamps).astype(np.float64)
+    at = np.asarray(t).astype(np.float64)
+    return np.stack([np.interp(at, s, values[:, k]) for k in range(values.shape[1])], axis=1)
+
+
 def fix_residuals_at(fixes: Fixes, laid: np.ndarray, stamps: np.ndarray) -> np.ndarray:
     """float64 [N, 3]: the fixes' error against the laid odometry (fix minus laid), linear in
     time at ``stamps`` int [N] (the first or last fix's outside them)."""
-    resid = fixes.enu - laid
-    t = fixes.stamps.astype(np.float64)
-    return np.stack(
-        [np.interp(np.asarray(stamps, np.float64), t, resid[:, i]) for i in range(3)], axis=1
-    )
+    return linear_at(fixes.stamps, fixes.enu - laid, stamps)
