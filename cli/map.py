@@ -68,13 +68,14 @@ _CORRELATION = typer.Option(
     rich_help_panel=_GNSS,
 )
 _SWEEP_HZ = typer.Option(
-    0.0,
+    None,
     "--sweep-hz",
     min=0.0,
-    help="Sweeps a second of the spinning sensors (e.g. 10): each keyframe's scan is "
-    "de-skewed by the motion its odometry measured and registered again (0: the scans are "
-    "taken as they are; a synthetic tree whose synth.json says its sensor de-skews is never "
-    "de-skewed).",
+    help="Sweeps a second of the spinning sensors whose drivers do not de-skew (e.g. 10): "
+    "each keyframe's scan is de-skewed by the motion its recording gave it (the sidecar's "
+    "heading, speed and yaw rate), or where it has none by the motion a first odometry pass "
+    "measures. 0: no scan is de-skewed. Default: a synthetic tree's runs at their sensor's "
+    "rate where it does not de-skew (synth.json), a recording's not at all.",
 )
 _ALONE = typer.Option(
     False,
@@ -97,7 +98,7 @@ def align(
     heading_std_deg: float = _HEADING_STD,
     correlation_m: float = _CORRELATION,
     allow_alone: bool = _ALONE,
-    sweep_hz: float = _SWEEP_HZ,
+    sweep_hz: float | None = _SWEEP_HZ,
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing OUT."),
 ) -> None:
     """Align the runs of a map into one consistent map and write it as a new tree.

@@ -49,9 +49,10 @@ def synth(
     refresh_truth: bool = typer.Option(
         False,
         "--refresh-truth",
-        help="Do not generate: recompute the true poses in the frame sidecars of the existing "
-        "tree OUT (made by an older pnvlad, whose truth was the centre scan's) from its "
-        "synth.json, in seconds. Give --trajectories if the tree was made with them.",
+        help="Do not generate: recompute the true poses and the keyframes' motion in the frame "
+        "sidecars of the existing tree OUT (made by an older pnvlad, whose truth was the centre "
+        "scan's and whose keyframes had no motion) from its synth.json, in seconds. Give "
+        "--trajectories if the tree was made with them.",
     ),
     progress: bool = progress_option(),
 ) -> None:
@@ -81,7 +82,7 @@ def synth(
     with user_errors():
         if refresh_truth:
             rows = refresh(out, trajectories=trajectories, progress=progress)
-            typer.echo(f"refreshed the true poses of {rows} submaps in {out}")
+            typer.echo(f"refreshed the true poses and keyframes' motion of {rows} submaps in {out}")
             return
         summary = generate(
             preset,

@@ -21,6 +21,12 @@ published layout keeps. Geometric verification needs the points back in metres, 
     the simulator's true pose of that local frame in UTM, before the simulated GNSS/INS
     error: a local point ``p`` truly lies at ``R(true_yaw) p + true_position``. Empty when
     unknown.
+``heading_deg, speed_mps, yaw_rate_dps`` (optional: keyframes)
+    the vehicle's motion at the scan as the recording's poses give it
+    (:func:`~.motion.drive_motion`): the sensor's forward axis in the local frame's axes
+    (degrees anticlockwise from east), its forward speed and its yaw rate (degrees a second,
+    anticlockwise positive). ``pnvlad map align --sweep-hz`` de-skews the scan by it. Empty
+    when unknown.
 
 Tools that read the published layout ignore the file; ``pnvlad data check`` validates it.
 """
@@ -52,7 +58,8 @@ _BASE = (
     "frame",
 )
 _TRUE = ("true_easting", "true_northing", "true_height", "true_yaw_deg")
-COLUMNS = _BASE + _TRUE
+_MOTION = ("heading_deg", "speed_mps", "yaw_rate_dps")
+COLUMNS = _BASE + _TRUE + _MOTION
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,7 @@ class SubmapFrame:
     frame: str = "enu"
     true_position: np.ndarray | None = None
     true_yaw_deg: float | None = None
+    motion: np.ndarray | None = None
 
     def local_m(self, normalised: np.ndarray) -> np.ndarray:
         """The submap's points in metres in its local frame: float64 [N, 3]."""
@@ -77,6 +85,15 @@ class SubmapFrame:
         if self.true_position is None or self.true_yaw_deg is None:
             return None
         return pose_matrix(self.true_position, self.true_yaw_deg)
+
+    @property
+    def sweep_motion(self) -> np.ndarray | None:
+        """float64 [3]: the recorded heading (radians), speed (m/s) and yaw rate (rad/s) as
+        :mod:`pnvlad_service.mapping.deskew` takes them, or ``None``."""
+        if self.motion is None:
+            return None
+        h, v, w = (float(x) for x in self.motion)
+        return np.array([math.radians(h), v, math.radians(w)])
 
     @property
     def map_pose(self) -> np.ndarray:
@@ -113,6 +130,8 @@ def write_frames_csv(path: str | Path, frames: list[SubmapFrame]) -> None:
         has_true = f.true_position is not None and f.true_yaw_deg is not None
         if has_true:
             nums += [*f.true_position, f.true_yaw_deg]
+        if f.motion is not None:
+            nums += [*f.motion]
         if not all(math.isfinite(float(v)) for v in nums):
             raise InputError(f"row {k}: non-finite value in the frame record", source=path)
         row = [str(int(f.timestamp)), *map(_fmt, [*f.origin, *f.centre, f.scale]), f.frame]
@@ -120,6 +139,7 @@ def write_frames_csv(path: str | Path, frames: list[SubmapFrame]) -> None:
             row += [*map(_fmt, f.true_position), _fmt(f.true_yaw_deg)]
         else:
             row += [""] * len(_TRUE)
+        row += [""] * len(_MOTION) if f.motion is None else [*map(_fmt, f.motion)]
         lines.append(",".join(row))
     atomic_write_text(path, "\n".join(lines) + "\n")
 
@@ -157,7 +177,13 @@ def _row(row: dict[str, str], line: int, path: Path) -> SubmapFrame:
     if all(given):
         t = _floats(row, _TRUE, where, path)
         true_pos, true_yaw = np.array(t[:3]), t[3]
-    return SubmapFrame(ts, np.array(v[:3]), np.array(v[3:6]), v[6], frame, true_pos, true_yaw)
+    given = [bool((row.get(n) or "").strip()) for n in _MOTION]
+    if any(given) and not all(given):
+        raise InputError(f"{where}: the motion needs all of {', '.join(_MOTION)}", path)
+    motion = np.array(_floats(row, _MOTION, where, path)) if all(given) else None
+    return SubmapFrame(
+        ts, np.array(v[:3]), np.array(v[3:6]), v[6], frame, true_pos, true_yaw, motion
+    )
 
 
 def read_frames_csv(path: str | Path) -> list[SubmapFrame]:
@@ -194,7 +220,9 @@ def journal_line(f: SubmapFrame) -> str:
     """One row as a JSON line (floats as JSON writes them: a round trip is exact)."""
     true = None if f.true_position is None else [*map(float, f.true_position), f.true_yaw_deg]
     row = {"t": f.timestamp, "o": [*map(float, f.origin)], "c": [*map(float, f.centre)]}
-    return json.dumps({**row, "s": f.scale, "f": f.frame, "true": true}) + "\n"
+    motion = None if f.motion is None else [*map(float, f.motion)]
+    row = {**row, "s": f.scale, "f": f.frame, "true": true}
+    return json.dumps({**row, **({"m": motion} if motion is not None else {})}) + "\n"
 
 
 def read_journal(path: str | Path) -> list[SubmapFrame]:
@@ -213,6 +241,7 @@ def read_journal(path: str | Path) -> list[SubmapFrame]:
                     str(d["f"]),
                     None if true is None else np.array(true[:3], dtype=np.float64),
                     None if true is None else float(true[3]),
+                    None if d.get("m") is None else np.array(d["m"], dtype=np.float64),
                 )
             )
         except (ValueError, KeyError, TypeError, IndexError):

@@ -38,7 +38,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -53,6 +53,7 @@ from pnvlad_service.data.cuts import (
 )
 from pnvlad_service.data.drive import Drive, check_drive, snap_m
 from pnvlad_service.data.frames import SubmapFrame, frames_path, journal_line, write_frames_csv
+from pnvlad_service.data.motion import drive_motion, motion_columns
 from pnvlad_service.data.run_folder import claim_folders, journal_path, recorded_frames
 from pnvlad_service.data.scans import RAW_CSV, RAW_FOLDER, write_raw_scans_csv, write_scan
 from pnvlad_service.data.tree import write_locations_csv
@@ -289,23 +290,31 @@ def _window_submap(
         return None
 
 
+class _Recorded(NamedTuple):
+    """What the drive recorded, scan by scan: ``poses`` float64 [T, 4, 4], ``stamps`` int64
+    [T], the simulator's ``true`` poses or ``None``, and the ``motion`` float64 [T, 3] its
+    poses give (:func:`~.motion.drive_motion`)."""
+
+    poses: np.ndarray
+    stamps: np.ndarray
+    true: np.ndarray | None
+    motion: np.ndarray
+
+
 def _frame(
-    cut: Cut,
-    g: GResult,
-    poses: np.ndarray,
-    stamps: np.ndarray,
-    true: np.ndarray | None,
-    use: np.ndarray | None = None,
+    cut: Cut, g: GResult, recorded: _Recorded, use: np.ndarray | None = None, single: bool = False
 ) -> SubmapFrame:
     """The sidecar row of the submap cut at ``cut`` (see :mod:`..frames`). The local frame has
     UTM axes at the snapped centre-scan position (what :func:`accumulate` used); its true pose
-    is :func:`..truth.frame_truth`'s."""
+    is :func:`..truth.frame_truth`'s; a ``single`` scan (a keyframe) carries its motion."""
+    poses, stamps, true, motion = recorded
     origin = snap_m(poses[cut.scan, :3, 3])
     true_pos = true_yaw = None
     if true is not None:
         true_pos, true_yaw = true_columns(poses, true, cut, origin, use)
     stamp = int(stamps[cut.scan])
-    return SubmapFrame(stamp, origin, g.centre, g.scale, "enu", true_pos, true_yaw)
+    moving = motion_columns(motion[cut.scan]) if single else None
+    return SubmapFrame(stamp, origin, g.centre, g.scale, "enu", true_pos, true_yaw, moving)
 
 
 def _known_frames(plans: list[_KindPlan]) -> dict[tuple[str, int], SubmapFrame]:
@@ -330,7 +339,7 @@ class _Made:
 def _make_submaps(
     windows: list[_Window],
     cache: ScanCache,
-    drive: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+    drive: _Recorded,
     use: np.ndarray,
     opts: _Options,
     *,
@@ -340,7 +349,7 @@ def _make_submaps(
 ) -> _Made:
     """Make and write every window's submap and its frame row.
 
-    ``drive``: (poses, timestamps, true poses or None). A target in ``known`` (resume) already
+    ``drive``: what the drive recorded. A target in ``known`` (resume) already
     on disk with the size of a whole submap is kept, with its recorded frame row.
     """
     from pnvlad_service.progress import tqdm
@@ -367,7 +376,7 @@ def _make_submaps(
 def _make_window(
     window: _Window,
     cache: ScanCache,
-    drive: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+    drive: _Recorded,
     use: np.ndarray,
     opts: _Options,
     known: dict[tuple[str, int], SubmapFrame],
@@ -376,7 +385,7 @@ def _make_window(
 ) -> None:
     """One window of :func:`_make_submaps`: its submap written to each target folder that
     lacks it, each frame row recorded in ``made`` and in the kind's journal."""
-    poses, stamps, true = drive
+    poses, stamps = drive.poses, drive.stamps
     whole = window.config.target_points * 3 * 8  # bytes of a finished .bin (float64 x, y, z)
     scan = window.cut.scan
     if window.raw is not None:
@@ -401,7 +410,7 @@ def _make_window(
             made.failed.add((res.kind, scan))
             continue
         write_submap(path, g.points)
-        row = _frame(window.cut, g, poses, stamps, true, use)
+        row = _frame(window.cut, g, drive, use, single=window.single)
         journals[res.kind].write(journal_line(row))
         journals[res.kind].flush()
         made.frames[(res.kind, scan)] = row
@@ -410,14 +419,14 @@ def _make_window(
 
 def _write_locations(
     plans: list[_KindPlan],
-    drive: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+    drive: _Recorded,
     made: _Made,
     raw_csv: Path | None = None,
 ) -> None:
     """Each kind's frame sidecar and locations CSV (its submaps that were made, in cut
     order), written last, the CSV after its sidecar; then ``raw_csv`` listing the raw scans
     kept (:mod:`.scans`)."""
-    poses, stamps, true = drive
+    poses, stamps, true, _ = drive
     if raw_csv is not None:
         rows = [(int(stamps[i]), poses[i], None if true is None else true[i]) for i in made.raw]
         write_raw_scans_csv(raw_csv, rows)
@@ -545,7 +554,9 @@ def prepare_drive(
     cache = ScanCache(
         drive, seed=seed, max_points_per_scan=max_points_per_scan, max_range_m=max_range_m
     )
-    recorded = (poses, stamps, drive_true_poses(drive, len(stamps)))
+    recorded = _Recorded(
+        poses, stamps, drive_true_poses(drive, len(stamps)), drive_motion(stamps, poses)
+    )
     made = _make_submaps(
         windows,
         cache,

@@ -20,6 +20,7 @@ from pnvlad_service.data.accumulate import travelled_distance, used_scans
 from pnvlad_service.data.cuts import Cut, Layout, resolve_geometry, submap_cuts
 from pnvlad_service.data.drive import Drive, snap_m
 from pnvlad_service.data.frames import frames_path, read_frames_csv, write_frames_csv
+from pnvlad_service.data.motion import drive_motion, motion_columns
 from pnvlad_service.errors import InputError
 
 
@@ -101,13 +102,15 @@ def refresh_truth(
 ) -> int:
     """Rewrite the true-pose columns of a prepared run's frame sidecars (every kind of ``layout``
     that has one) with :func:`frame_truth`, from the drive's recorded ``poses``, ``true`` poses and
-    ``stamps``, cut as :func:`~.prepare.prepare_drive` cut it (same ``layout`` and scan options);
-    the rest of each row is kept. Returns the rows rewritten. A row that the drive does not
+    ``stamps``, cut as :func:`~.prepare.prepare_drive` cut it (same ``layout`` and scan options),
+    and the keyframes' motion columns with :func:`~.motion.drive_motion`'s; the rest of each
+    row is kept. Returns the rows rewritten. A row that the drive does not
     reproduce (no cut at its timestamp, or another origin) is refused, naming the sidecar, and
     nothing is written."""
     run_dir = Path(run_dir)
     travelled = travelled_distance(poses)
     use = used_scans(travelled, min_scan_spacing_m, scan_step)
+    motion = drive_motion(stamps, poses)
     updates = []
     for kind in ("train", "test", "keyframe"):
         _, csv_name, window, _, stride = resolve_geometry(layout, kind, None, None, None)
@@ -126,7 +129,10 @@ def refresh_truth(
                     sidecar,
                 )
             pos, yaw = true_columns(poses, true, cut, origin, use)
-            rows.append(replace(f, true_position=pos, true_yaw_deg=yaw))
+            moving = f.motion
+            if kind == "keyframe":
+                moving = motion_columns(motion[cut.scan])
+            rows.append(replace(f, true_position=pos, true_yaw_deg=yaw, motion=moving))
         updates.append((sidecar, rows))
     for sidecar, rows in updates:  # only once every sidecar of the run checked out
         write_frames_csv(sidecar, rows)

@@ -7,10 +7,11 @@ The stages, each timed:
 2. **embed** (with a model): each node's descriptor, for retrieval;
 3. **candidates**: per query node and other run, the nodes that may show its place, by
    retrieval and by the recorded poses (:mod:`.candidates`);
-4. **odometry**: each node registered onto the one before it (:mod:`.edges`); then, with
-   ``sweep_hz``, for the runs whose scans are skewed by the sweep, each node's scan
-   de-skewed by the motion that odometry measured (:mod:`.deskew`) and the odometry
-   registered again on the de-skewed scans, which the closures use too;
+4. **odometry**: each node registered onto the one before it (:mod:`.edges`); for the runs
+   whose scans are skewed by the sweep and have a sweep rate (``sweep_hz``, or the synthetic
+   tree's sensor's), each node's scan first de-skewed (:mod:`.deskew`) by the motion its
+   recording gave it, or where it has none by the motion a first odometry pass measures
+   (then registered again); the closures use the de-skewed scans too;
 5. **closures**: each candidate group verified, the best match gated (:mod:`.edges`); a run
    that shares no accepted closure with any other run is refused, naming it (nothing ties it
    to the map: ``allow_alone`` keeps it on its own fixes);
@@ -54,7 +55,7 @@ from pnvlad_service.mapping.fixes import (
     read_fix_runs,
 )
 from pnvlad_service.mapping.graph import GraphConfig, Solution, solve
-from pnvlad_service.mapping.nodes import MapNodes, read_tree_nodes
+from pnvlad_service.mapping.nodes import MapNodes, RunNodes, read_tree_nodes
 from pnvlad_service.mapping.relay import write_aligned_tree
 from pnvlad_service.mapping.report import (
     edge_report,
@@ -75,13 +76,15 @@ PLOT = "align.png"
 class AlignConfig:
     """Every setting of an alignment: the ``kind`` of entries that are the graph's nodes,
     whether a run without a closure to another run is kept on its own fixes
-    (``allow_alone``), the sensors' sweeps a second (``sweep_hz``; 0, the default: no scan
-    is de-skewed here; else those of the runs whose nodes are single scans given as fired,
-    see :attr:`~.nodes.RunNodes.skewed`), and each stage's settings."""
+    (``allow_alone``), the sensors' sweeps a second (``sweep_hz``: the scans of the runs whose
+    nodes are single scans given as fired, :attr:`~.nodes.RunNodes.skewed`, are de-skewed at
+    that rate; 0: none; ``None``, the default: each at its sensor's rate where the tree
+    records it, :attr:`~.nodes.RunNodes.sensor_hz`, a synthetic tree's, and a recording's
+    not at all), and each stage's settings."""
 
     kind: Kind = "keyframe"
     allow_alone: bool = False
-    sweep_hz: float = 0.0
+    sweep_hz: float | None = None
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     edges: EdgeConfig = field(default_factory=EdgeConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
@@ -125,23 +128,42 @@ def check_overlap(nodes: MapNodes, edges: list[Edge]) -> list[str]:
 
 def deskewed_nodes(nodes: MapNodes, odometry: list[Edge], config: AlignConfig) -> MapNodes | None:
     """``nodes`` whose scans give their points de-skewed (:mod:`.deskew`) by the motion
-    that ``odometry`` (each run's steps, in order) measured, the recorded step where it
-    failed; runs whose scans are not :attr:`~.nodes.RunNodes.skewed` as they are. ``None``
-    when no run is to be de-skewed (``sweep_hz`` 0, or no run skewed)."""
-    if config.sweep_hz <= 0 or not any(r.skewed for r in nodes.runs):
+    their recording gave each node (:attr:`~.nodes.RunNodes.recorded_motion`), else by the
+    motion that ``odometry`` (each run's steps, in order) measured, the recorded step where it
+    failed, at :func:`sweep_rate`; runs whose scans are not :attr:`~.nodes.RunNodes.skewed`
+    or have no rate as they are. ``None`` when no run is to be de-skewed.
+
+    The recording's motion is preferred: its poses come at every scan, while the odometry's
+    steps join keyframes a few metres apart and cannot follow a corner turned in a second."""
+    if not any(sweep_rate(r, config) > 0 for r in nodes.runs):
         return None
     runs = []
     at = 0
     for run in nodes.runs:
         steps = odometry[at : at + len(run) - 1]
         at += len(run) - 1
-        if not run.skewed:
+        hz = sweep_rate(run, config)
+        if hz <= 0:
             runs.append(run)
             continue
-        rel = [e.transform if e.accepted else None for e in steps]
-        motion = run_motion(run.stamps, rel, run.poses)
-        runs.append(replace(run, motion=motion, sweep_hz=config.sweep_hz))
+        if run.recorded_motion is not None:
+            motion = run.recorded_motion
+        else:
+            rel = [e.transform if e.accepted else None for e in steps]
+            motion = run_motion(run.stamps, rel, run.poses)
+        runs.append(replace(run, motion=motion, sweep_hz=hz))
     return MapNodes(runs)
+
+
+def sweep_rate(run: RunNodes, config: AlignConfig) -> float:
+    """The sweeps a second ``run``'s scans are de-skewed at: 0 unless they are skewed;
+    ``config.sweep_hz`` where given, else the run's :attr:`~.nodes.RunNodes.sensor_hz` (0
+    where the tree does not record it)."""
+    if not run.skewed:
+        return 0.0
+    if config.sweep_hz is not None:
+        return config.sweep_hz
+    return run.sensor_hz or 0.0
 
 
 def measure_edges(
@@ -171,13 +193,19 @@ def measure_edges(
         return groups, counts
 
     groups, counts = timer.run("candidates", candidates)
-    steps = Clouds.for_odometry(nodes, config.edges)
-    odometry = timer.run("odometry", lambda: odometry_edges(nodes, steps, config.edges))
-    moving = deskewed_nodes(nodes, odometry, config)
-    if moving is not None:
-        nodes = moving
+    if all(r.recorded_motion is not None for r in nodes.runs if sweep_rate(r, config) > 0):
+        # every sweep's motion is recorded: de-skew first, one odometry pass
+        nodes = deskewed_nodes(nodes, [], config) or nodes
         steps = Clouds.for_odometry(nodes, config.edges)
         odometry = timer.run("odometry", lambda: odometry_edges(nodes, steps, config.edges))
+    else:  # a first odometry pass measures the motion, a second registers the de-skewed scans
+        steps = Clouds.for_odometry(nodes, config.edges)
+        odometry = timer.run("odometry", lambda: odometry_edges(nodes, steps, config.edges))
+        moving = deskewed_nodes(nodes, odometry, config)
+        if moving is not None:
+            nodes = moving
+            steps = Clouds.for_odometry(nodes, config.edges)
+            odometry = timer.run("odometry", lambda: odometry_edges(nodes, steps, config.edges))
     clouds = Clouds(nodes, config.edges)
     closures = timer.run("closures", lambda: closure_edges(nodes, clouds, groups, config.edges))
     return odometry + closures, counts

@@ -115,10 +115,11 @@ def run_motion(
     return out
 
 
-def skewed_sensors(root: str | Path) -> dict[str, bool] | None:
-    """For a tree made by ``pnvlad synth``: ``dataset/run`` -> whether its sensor's scans are
-    skewed by the sweep (its ``synth.json`` says which sensor recorded each run and whether it
-    de-skews); ``None`` for any other tree."""
+def skewed_sensors(root: str | Path) -> dict[str, float] | None:
+    """For a tree made by ``pnvlad synth``: ``dataset/run`` -> the sweeps a second of the
+    sensor that recorded it when its scans are skewed by the sweep, 0.0 when it de-skews (its
+    ``synth.json`` says which sensor recorded each run, whether it de-skews and how fast it
+    turns); ``None`` for any other tree."""
     import json
 
     path = Path(root) / "synth.json"
@@ -129,10 +130,13 @@ def skewed_sensors(root: str | Path) -> dict[str, bool] | None:
     default = preset.get("lidar") or {}
     sensors = [*(preset.get("lidars") or []), default]
 
-    def skewed(name: str) -> bool:
+    def sweeps(cfg: dict) -> float:
+        return 0.0 if cfg.get("deskewed", True) else float(cfg.get("rotation_hz", SWEEP_HZ))
+
+    def rate(name: str) -> float:
         for cfg in sensors:
             if (cfg.get("name") or f"{cfg.get('beams')} beams") == name:
-                return not cfg.get("deskewed", True)
-        return not default.get("deskewed", True)
+                return sweeps(cfg)
+        return sweeps(default)
 
-    return {f"{r['area']}/{r['run']}": skewed(r.get("sensor", "")) for r in meta.get("runs", [])}
+    return {f"{r['area']}/{r['run']}": rate(r.get("sensor", "")) for r in meta.get("runs", [])}

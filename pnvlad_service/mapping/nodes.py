@@ -39,7 +39,11 @@ class RunNodes:
     [N, 3] each node's heading, speed and yaw rate through its sweep
     (:func:`~.deskew.run_motion`), or ``None``: with it, :meth:`metres` gives the scans
     de-skewed at ``sweep_hz``; ``skewed``: whether each node is one scan given as its sensor
-    fired it through a moving sweep (what :func:`~.deskew.run_motion` then corrects)."""
+    fired it through a moving sweep (what :func:`~.deskew.run_motion` then corrects);
+    ``recorded_motion`` float64 [N, 3]: the same three as the recording's poses gave them at
+    each node (:attr:`~pnvlad_service.data.frames.SubmapFrame.sweep_motion`), or ``None``;
+    ``sensor_hz``: the sweeps a second of the run's sensor where the tree records it (a
+    synthetic tree's ``synth.json``), ``None`` where it does not."""
 
     name: str
     stamps: np.ndarray
@@ -51,6 +55,8 @@ class RunNodes:
     motion: np.ndarray | None = None
     sweep_hz: float = 10.0
     skewed: bool = False
+    recorded_motion: np.ndarray | None = None
+    sensor_hz: float | None = None
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -146,7 +152,8 @@ def read_tree_nodes(
     kind's strides, measured as the run's median step).
 
     Keyframes are single scans: :attr:`RunNodes.skewed` unless the tree says its sensor
-    de-skews (``synth.json``; a recording's scans are as the driver gave them)."""
+    de-skews (``synth.json``, which also gives the sensor's sweeps a second; a recording's
+    scans are as the driver gave them)."""
     from pnvlad_service.mapping.deskew import skewed_sensors
 
     tree = BenchmarkTree(root)
@@ -164,6 +171,9 @@ def read_tree_nodes(
             truth = None
             if all(f.true_pose is not None for f in frames):
                 truth = np.stack([f.true_pose for f in frames])  # type: ignore[misc]
+            motion = None
+            if frames and all(f.motion is not None for f in frames):
+                motion = np.stack([f.sweep_motion for f in frames])  # type: ignore[misc]
             runs.append(
                 RunNodes(
                     name,
@@ -172,7 +182,9 @@ def read_tree_nodes(
                     truth,
                     frames,
                     [tree.root / s.path for s in subs],
-                    skewed=kind == "keyframe" and sensors.get(name, True),
+                    skewed=kind == "keyframe" and sensors.get(name, 1.0) > 0,
+                    recorded_motion=motion,
+                    sensor_hz=sensors.get(name),
                 )
             )
     if not runs:

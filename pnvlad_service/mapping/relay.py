@@ -92,9 +92,13 @@ def relaid_frame(
     turned = np.asarray(points, dtype=np.float64) @ R.T
     m = max(1.0, float(np.abs(turned).max()) / SUBMAP_BOUND)
     origin = snap_m(frame.origin + d[:3, 3])
+    turn = math.degrees(math.atan2(R[1, 0], R[0, 0]))
     true_yaw = None
     if frame.true_yaw_deg is not None:
-        true_yaw = frame.true_yaw_deg - math.degrees(math.atan2(R[1, 0], R[0, 0]))
+        true_yaw = frame.true_yaw_deg - turn
+    motion = None
+    if frame.motion is not None:  # the sensor's heading turns with the points
+        motion = frame.motion + np.array([turn, 0.0, 0.0])
     row = SubmapFrame(
         frame.timestamp,
         origin,
@@ -103,6 +107,7 @@ def relaid_frame(
         frame.frame,
         frame.true_position,
         true_yaw,
+        motion,
     )
     return row, turned / m
 

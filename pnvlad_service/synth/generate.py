@@ -448,11 +448,12 @@ def preset_of_tree(root: Path, missing: str) -> tuple[SynthPreset, int]:
 def refresh_truth(
     out: str | Path, *, trajectories: str | Path | None = None, progress: bool = True
 ) -> int:
-    """Recompute the true poses in every frame sidecar of a ``pnvlad synth`` tree from its
-    ``synth.json`` (preset and seed; ``trajectories`` as given to :func:`generate`), by
-    re-simulating each run's poses (no scan is cast: seconds, not the generation's minutes).
-    For trees made before the truth became the window's (``data.truth.frame_truth``); the
-    submaps, CSVs and splits are left as they are. Returns the rows rewritten."""
+    """Recompute the true poses in every frame sidecar of a ``pnvlad synth`` tree, and the
+    keyframes' motion, from its ``synth.json`` (preset and seed; ``trajectories`` as given to
+    :func:`generate`), by re-simulating each run's poses (no scan is cast: seconds, not the
+    generation's minutes). For trees made before the truth became the window's
+    (``data.truth.frame_truth``) or before keyframes carried their motion (``data.motion``);
+    the submaps, CSVs and splits are left as they are. Returns the rows rewritten."""
     from pnvlad_service.data.truth import refresh_truth as refresh_run
     from pnvlad_service.progress import tqdm
 
@@ -471,5 +472,5 @@ def refresh_truth(
             raise InputError("run folder missing (is this the tree synth.json describes?)", run_dir)
         drive = _job_drive(job)
         rows += refresh_run(run_dir, drive.poses, drive.true_poses, drive.timestamps)
-    log.info("refreshed the true poses of %d submaps in %s", rows, out)
+    log.info("refreshed the true poses and keyframes' motion of %d submaps in %s", rows, out)
     return rows

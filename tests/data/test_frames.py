@@ -3,6 +3,7 @@ refused naming the file and the line."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,7 @@ def _frames() -> list[SubmapFrame]:
             "enu",
             None if k == 1 else rng.normal(size=3) * 1e5,
             None if k == 1 else float(rng.uniform(-180, 180)),
+            None if k == 3 else np.array([rng.uniform(-180, 180), 7.5, rng.normal() * 30]),
         )
         for k in range(4)
     ]
@@ -50,6 +52,13 @@ def test_round_trip_is_exact(tmp_path: Path) -> None:
         else:
             assert np.array_equal(a.true_position, b.true_position)
             assert a.true_yaw_deg == b.true_yaw_deg
+        if a.motion is None:
+            assert b.motion is None and b.sweep_motion is None
+        else:
+            assert np.array_equal(a.motion, b.motion)
+            np.testing.assert_allclose(
+                b.sweep_motion, [math.radians(a.motion[0]), 7.5, math.radians(a.motion[2])]
+            )
 
 
 def test_local_metres_and_poses_by_hand() -> None:
@@ -68,7 +77,7 @@ def test_local_metres_and_poses_by_hand() -> None:
 
 HEADER = (
     "timestamp,origin_easting,origin_northing,origin_height,centre_x,centre_y,centre_z,scale,"
-    "frame,true_easting,true_northing,true_height,true_yaw_deg"
+    "frame,true_easting,true_northing,true_height,true_yaw_deg,heading_deg,speed_mps,yaw_rate_dps"
 )
 
 
@@ -81,6 +90,9 @@ HEADER = (
         ("x,0,0,0,0,0,0,1,enu,,,,", "line 2: timestamp 'x' is not an integer"),
         ("1,0,0,0,0,0,0,1,sensor,,,,", "line 2: frame 'sensor' is not one of"),
         ("1,0,0,0,0,0,0,1,enu,1,2,,", "line 2: the true pose needs all of"),
+        ("1,0,0,0,0,0,0,1,enu,,,,,10,,", "line 2: the motion needs all of heading_deg"),
+        ("1,0,0,0,0,0,0,1,enu,,,,,10,x,3", "line 2: speed_mps 'x' is not a number"),
+        ("1,0,0,0,0,0,0,1,enu,,,,,10,5,inf", "line 2: yaw_rate_dps is not finite"),
     ],
 )
 def test_bad_rows_name_the_file_and_line(tmp_path: Path, row: str, message: str) -> None:
@@ -117,3 +129,4 @@ def test_journal_round_trip_stops_at_a_line_cut_short(tmp_path: Path) -> None:
     for a, b in zip(frames, back, strict=True):
         assert np.array_equal(a.origin, b.origin) and a.scale == b.scale
         assert (a.true_position is None) == (b.true_position is None)
+        assert (a.motion is None and b.motion is None) or np.array_equal(a.motion, b.motion)

@@ -96,6 +96,12 @@ def test_a_keyframe_is_its_recorded_metres_moved_by_its_aligned_pose(
         expected = (rec - origin) @ rot.T + moved
         assert np.abs(new - expected)[:, :2].max() < 0.02
         assert np.linalg.norm(moved - origin) > 0.0
+        # the sensor's recorded heading turns with the points; speed and yaw rate stay
+        before = BenchmarkTree(tiny).frames("business", run, "keyframe")[k].motion
+        after = BenchmarkTree(out).frames("business", run, "keyframe")[k].motion
+        turn = math.degrees(math.atan2(rot[1, 0], rot[0, 0]))
+        assert abs((after[0] - before[0] - turn + 180) % 360 - 180) < 0.05
+        assert np.array_equal(after[1:], before[1:])
 
 
 def test_alignment_brings_the_map_nearer_the_truth_and_the_runs_together(

@@ -89,15 +89,19 @@ def test_a_synthetic_tree_says_which_sensors_skew(tmp_path: Path) -> None:
     meta = {
         "preset": {
             "lidar": {"name": "", "beams": 32, "deskewed": True},
-            "lidars": [{"name": "VLP-16", "beams": 16, "deskewed": False}],
+            "lidars": [
+                {"name": "VLP-16", "beams": 16, "deskewed": False},
+                {"name": "fast", "beams": 16, "deskewed": False, "rotation_hz": 20.0},
+            ],
         },
         "runs": [
             {"area": "a", "run": "r1", "sensor": "VLP-16"},
             {"area": "a", "run": "r2", "sensor": "32 beams"},
+            {"area": "a", "run": "r3", "sensor": "fast"},
         ],
     }
     (tmp_path / "synth.json").write_text(json.dumps(meta))
-    assert skewed_sensors(tmp_path) == {"a/r1": True, "a/r2": False}
+    assert skewed_sensors(tmp_path) == {"a/r1": 10.0, "a/r2": 0.0, "a/r3": 20.0}
     assert skewed_sensors(tmp_path / "nothing") is None
 
 
@@ -117,8 +121,21 @@ def test_the_alignment_deskews_only_skewed_runs(tiny: Path) -> None:
         for g in range(s, s + len(r) - 1)
     ]
     assert deskewed_nodes(nodes, odometry, AlignConfig(sweep_hz=SWEEP_HZ)) is None
+    # the prepared keyframes carry the motion the recording's poses give (without it, below)
+    recorded = nodes.runs[0].recorded_motion
+    assert recorded is not None
     one = MapNodes([replace(nodes.runs[0], skewed=True), *nodes.runs[1:]])
-    assert deskewed_nodes(one, odometry, AlignConfig()) is None  # off unless asked for
+    by_record = deskewed_nodes(one, odometry, AlignConfig(sweep_hz=SWEEP_HZ))
+    assert by_record is not None
+    np.testing.assert_array_equal(by_record.runs[0].motion, recorded)
+    # by default a run is de-skewed at its sensor's rate where the tree records one
+    assert nodes.runs[0].sensor_hz == 0.0  # the tiny preset's sensor de-skews
+    rated = MapNodes([replace(nodes.runs[0], skewed=True, sensor_hz=20.0), *nodes.runs[1:]])
+    auto = deskewed_nodes(rated, odometry, AlignConfig())
+    assert auto is not None and auto.runs[0].sweep_hz == 20.0
+    assert deskewed_nodes(rated, odometry, AlignConfig(sweep_hz=0.0)) is None
+    one = MapNodes([replace(nodes.runs[0], skewed=True, recorded_motion=None), *nodes.runs[1:]])
+    assert deskewed_nodes(one, odometry, AlignConfig()) is None  # no rate: off unless asked
     out = deskewed_nodes(one, odometry, AlignConfig(sweep_hz=SWEEP_HZ))
     assert out is not None and out.runs[0].motion is not None
     assert all(r.motion is None for r in out.runs[1:])
@@ -194,3 +211,65 @@ def test_the_alignment_recovers_the_still_scans_of_a_turning_drive() -> None:
         after = np.linalg.norm(fixed.runs[0].metres(k) - still[k], axis=1)[keep]
         assert np.median(before) > 0.2
         assert np.median(after) < 0.02 and np.percentile(after, 99) < 0.06, k
+
+
+def test_a_corner_turned_in_a_second_is_deskewed_by_the_recorded_motion() -> None:
+    # A 90-degree corner turned in about a second at 8 m/s (the yaw rate peaks at 120 degrees
+    # a second), keyframes 0.5 s apart, the recording's poses at 10 Hz. The odometry's steps
+    # between keyframes cannot follow the turn (run_motion even from the true steps); the
+    # motion the recording gives each keyframe (drive_motion, as prepare writes it) takes
+    # the sweep out to a few centimetres.
+    from pnvlad_service.data.motion import drive_motion
+    from pnvlad_service.mapping.align import AlignConfig, deskewed_nodes
+    from pnvlad_service.mapping.edges import Edge
+    from pnvlad_service.mapping.nodes import MapNodes, RunNodes
+
+    scene = _street()
+    cfg = LidarConfig(beams=16, columns=900, deskewed=False, **CLEAN)
+    speed, dt = 8.0, 0.1
+    t = np.arange(31) * dt
+    # heading: a smooth step of 90 degrees centred at 1.5 s, over about a second
+    heading = -0.4 + (math.pi / 2) * 0.5 * (1 + np.tanh((t - 1.5) / 0.3))
+    rate = np.gradient(heading, t)
+    xy = np.cumsum(speed * dt * np.stack([np.cos(heading), np.sin(heading)], 1), 0)
+    xy += np.array([0.0, 5.0])
+    poses = np.tile(np.eye(4), (len(t), 1, 1))
+    poses[:, :2, :2] = [[[math.cos(h), -math.sin(h)], [math.sin(h), math.cos(h)]] for h in heading]
+    poses[:, :2, 3] = xy
+    poses[:, 2, 3] = 1.5
+    stamps = (t * 1e6).round().astype(np.int64)
+    recorded = drive_motion(stamps, poses)
+    keys = np.arange(0, len(t), 5)  # keyframes 0.5 s apart
+    moving, still, laid = [], [], []
+    for i in keys:
+        pos = np.array([xy[i, 0], xy[i, 1], 1.5])
+        for out, motion in ((moving, (speed, float(rate[i]))), (still, (0.0, 0.0))):
+            pts = cast_scan(scene, FLAT, pos, float(heading[i]), cfg, np.random.default_rng(i),
+                            motion=motion)  # fmt: skip
+            out.append(_turned(pts.astype(np.float64), heading[i]))
+        pose = np.eye(4)
+        pose[:3, 3] = pos
+        laid.append(pose)
+    run = RunNodes("d/r", stamps[keys], np.stack(laid), clouds=moving, skewed=True)
+    true_steps = [np.linalg.inv(laid[k]) @ laid[k + 1] for k in range(len(keys) - 1)]
+    odometry = [Edge("odometry", k, k + 1, s, None, 1, 1) for k, s in enumerate(true_steps)]
+    by_steps = deskewed_nodes(MapNodes([run]), odometry, AlignConfig(sweep_hz=SWEEP_HZ))
+    assert by_steps is not None
+    np.testing.assert_array_equal(by_steps.runs[0].motion, run_motion(run.stamps, true_steps,
+                                                                      run.poses))  # fmt: skip
+    run.recorded_motion = recorded[keys]
+    fixed = deskewed_nodes(MapNodes([run]), odometry, AlignConfig(sweep_hz=SWEEP_HZ))
+    assert fixed is not None
+    np.testing.assert_array_equal(fixed.runs[0].motion, recorded[keys])
+    turning = int(np.argmax(np.abs(rate[keys])))
+    assert abs(np.degrees(rate[keys][turning])) > 100
+    for k in range(len(keys)):
+        az = np.degrees(np.arctan2(*_turned(still[k], -heading[keys[k]])[:, 1::-1].T))
+        keep = np.abs(az) < 165.0  # away from the seam behind, which the turn moves 6 degrees
+        after = np.linalg.norm(fixed.runs[0].metres(k) - still[k], axis=1)[keep]
+        assert np.median(after) < 0.03 and np.percentile(after, 99) < 0.15, k
+    # the steps' motion (108 degrees a second at the turn, the truth 145) leaves it smeared
+    worse = np.linalg.norm(by_steps.runs[0].metres(turning) - still[turning], axis=1)
+    better = np.linalg.norm(fixed.runs[0].metres(turning) - still[turning], axis=1)
+    assert np.percentile(worse, 90) > 0.2
+    assert np.percentile(worse, 90) > 5 * np.percentile(better, 90)

@@ -88,9 +88,11 @@ def test_the_true_pose_best_lays_the_windows_scans_where_they_were_cast(tiny: Pa
 
 
 def test_refresh_truth_restores_the_sidecars(tiny: Path, tmp_path: Path) -> None:
-    """A tree whose true columns hold another truth (an older pnvlad's) gets back exactly what
-    generation writes; a sidecar the drive does not reproduce is refused, nothing written."""
+    """A tree whose true columns hold another truth and whose keyframes lack their motion (an
+    older pnvlad's) gets back exactly what generation writes; a sidecar the drive does not
+    reproduce is refused, nothing written."""
     import shutil
+    from dataclasses import replace
 
     from pnvlad_service.data.frames import read_frames_csv, write_frames_csv
     from pnvlad_service.errors import InputError
@@ -105,18 +107,16 @@ def test_refresh_truth_restores_the_sidecars(tiny: Path, tmp_path: Path) -> None
         for kind in ("train", "test", "keyframe")
     ]
     before = {p: p.read_text() for p in sides}
-    for p in sides:  # another truth: every true position 1 m east
+    for p in sides:  # another truth: every true position 1 m east; the keyframes unmoving
         rows = read_frames_csv(p)
         for f in rows:
             f.true_position[0] += 1.0  # the array itself is mutable
-        write_frames_csv(p, rows)
+        write_frames_csv(p, [replace(f, motion=None) for f in rows])
     assert all(p.read_text() != before[p] for p in sides)
     n = refresh_truth(copy, progress=False)
     assert n == sum(len(read_frames_csv(p)) for p in sides)
     assert all(p.read_text() == before[p] for p in sides)
     # A row at a timestamp the drive has no submap at: refused, the sidecars untouched.
-    from dataclasses import replace
-
     rows = read_frames_csv(sides[0])
     rows[0] = replace(rows[0], timestamp=rows[0].timestamp + 1)
     write_frames_csv(sides[0], rows)
@@ -176,3 +176,25 @@ def test_check_tree_flags_a_bad_sidecar(tiny: Path, tmp_path: Path) -> None:
     assert not report.ok
     assert any(side.name in p.path and "rows where the locations CSV has" in p.message
                for p in report.problems)  # fmt: skip
+
+
+def test_keyframes_carry_the_motion_the_recorded_poses_give(tiny: Path) -> None:
+    # Each keyframe's heading, speed and yaw rate: the recording's poses differentiated
+    # (data.motion), close to the simulator's own drive (its heading with the GNSS/INS error,
+    # its speed, the yaw rate it swept the scans with); accumulated submaps carry none.
+    import math
+
+    tree = BenchmarkTree(tiny)
+    run = tree.runs("business")[0]
+    drive = simulated_drive(get_preset("tiny"), 0, 0, seed=3)
+    frames = tree.frames("business", run, "keyframe")
+    assert frames and all(f.motion is not None for f in frames)
+    assert all(f.motion is None for f in tree.frames("business", run, "train"))
+    at = np.searchsorted(drive.timestamps, [f.timestamp for f in frames])
+    got = np.stack([f.sweep_motion for f in frames])
+    recorded_yaw = np.arctan2(drive.poses[at, 1, 0], drive.poses[at, 0, 0])
+    np.testing.assert_allclose(np.angle(np.exp(1j * (got[:, 0] - recorded_yaw))), 0, atol=1e-9)
+    assert np.median(np.abs(got[:, 1] - drive.speed)) < 0.05 * drive.speed
+    rate_error = np.abs(got[:, 2] - drive._yaw_rate[at])
+    assert np.median(rate_error) < math.radians(1.0)
+    assert np.abs(drive._yaw_rate[at]).max() > math.radians(10)  # the drive does turn

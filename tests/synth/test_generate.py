@@ -112,7 +112,7 @@ def test_cli_refresh_truth_leaves_a_current_tree_as_it_is_and_names_a_bad_one(
     before = [p.read_bytes() for p in sides]
     res = CliRunner().invoke(app, ["synth", "--refresh-truth", "--out", str(copy), "--no-progress"])
     assert res.exit_code == 0, res.output
-    assert "refreshed the true poses of" in res.output
+    assert "refreshed the true poses and keyframes' motion of" in res.output
     assert [p.read_bytes() for p in sides] == before  # made by this version: nothing changes
     (tmp_path / "plain").mkdir()
     res = CliRunner().invoke(app, ["synth", "--refresh-truth", "--out", str(tmp_path / "plain")])
