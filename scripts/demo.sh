@@ -2,8 +2,9 @@
 # The main job end to end on the built-in synthetic city, from a fresh checkout:
 #   1. set up a virtual environment (.venv) with pnvlad and its plot extra;
 #   2. generate the `demo` synthetic benchmark (several runs through one city, splits included);
-#   3. the submap encoder: the shipped pretrained:bev-benchmark (bev-netvlad trained on the
-#      `benchmark` preset; no training run). PNVLAD_DEMO_TRAIN=1 trains `-c bev` on this city
+#   3. the submap encoder: the shipped pretrained:bev-mixed (bev-netvlad trained on the
+#      `benchmark` preset's spinning and the `oxford` preset's push-broom submaps; no training
+#      run). PNVLAD_DEMO_TRAIN=1 trains `-c bev` on this city
 #      instead (its 36 epochs take a few minutes; PNVLAD_DEMO_MINUTES caps them, default 5);
 #   4. build a FAISS index bundle of every run but one;
 #   5. start `pnvlad serve` on 127.0.0.1, localise query submaps of the held-out run over HTTP,
@@ -62,7 +63,7 @@ if [ "$TRAIN" = 1 ]; then
             --max-minutes "$MINUTES"
     fi
 else
-    MODEL="pretrained:bev-benchmark"
+    MODEL="pretrained:bev-mixed"
     step "3/7 the submap encoder: $MODEL (shipped; PNVLAD_DEMO_TRAIN=1 trains one here)"
     pnvlad model info "$MODEL" | grep -E "^  (trained_with|figures) "
 fi
