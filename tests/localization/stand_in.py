@@ -75,9 +75,7 @@ class Service:
         self.reach, self.refuse, self.truth = reach, set(refuse), scan_truth
         self.calls: list[tuple[int, Prior | None]] = []
 
-    def __call__(
-        self, points: np.ndarray, prior: Prior | None = None, kind: str = "scan"
-    ) -> Reply:
+    def __call__(self, points: np.ndarray, prior: Prior | None = None, kind: str = "scan") -> Reply:
         i = int(points[0, 0])
         self.calls.append((i, prior))
         if i in self.refuse:

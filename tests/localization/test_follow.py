@@ -77,7 +77,6 @@ def test_a_scan_without_truth_has_no_errors_and_the_distance_goes_on() -> None:
     assert len(driven) == N - 1 and all(np.isfinite(driven)) and driven == sorted(driven)
 
 
-
 def stand_in_service() -> Service:
     return Service(right={2, 3, 30, 31}, off_map=set(range(18, 27)))
 
