@@ -283,6 +283,20 @@ class RosbagClouds:
                 ) from None
             yield item
 
+    def topic_messages(
+        self, topic: str, types: Sequence[str], what: str
+    ) -> Generator[tuple[int, Any], None, None]:
+        """(stamp in nanoseconds, message) of every message on ``topic`` of the open bag, in
+        bag order: the header's stamp, the bag's time where the header has none. ``InputError``
+        naming the bag for a missing topic, one of a type not in ``types`` (``what`` names
+        them in the message), or a message that does not decode."""
+        assert self._reader is not None
+        conns, msgtype = _connections(self._reader, self.bag, topic, types, what)
+        for _, t, raw in self._messages(conns):
+            msg = self._deserialize(raw, msgtype, topic)
+            header = getattr(msg, "header", None)
+            yield (_stamp_ns(header.stamp) if header is not None else 0) or int(t), msg
+
     def _deserialize(self, raw: bytes, msgtype: str, topic: str) -> Any:
         assert self._reader is not None
         try:

@@ -18,7 +18,7 @@ import numpy as np
 
 from pnvlad_service.data.sources.fix_odometry import FixOdometryDrive
 from pnvlad_service.data.sources.fixes import Fixes
-from pnvlad_service.data.sources.rosbag import RosbagClouds, _connections, _stamp_ns
+from pnvlad_service.data.sources.rosbag import RosbagClouds
 from pnvlad_service.errors import InputError
 
 NAVSAT_TYPE = "sensor_msgs/msg/NavSatFix"
@@ -29,16 +29,12 @@ def read_navsat(clouds: RosbagClouds, topic: str, utm_zone: str) -> Fixes:
     ``InputError`` naming the bag for a missing topic, one of another type, or no fix."""
     from pnvlad_service.io.utm import from_latlon
 
-    assert clouds._reader is not None
-    conns, _ = _connections(clouds._reader, clouds.bag, topic, (NAVSAT_TYPE,), "NavSatFix")
     rows = []
-    for _, t, raw in clouds._messages(conns):
-        msg = clouds._deserialize(raw, NAVSAT_TYPE, topic)
+    for stamp, msg in clouds.topic_messages(topic, (NAVSAT_TYPE,), "NavSatFix"):
         if int(msg.status.status) < 0:
             continue
         cov = msg.position_covariance
         std = math.sqrt(cov[0] + cov[4]) if int(msg.position_covariance_type) else math.nan
-        stamp = _stamp_ns(msg.header.stamp) or int(t)
         rows.append((stamp, msg.latitude, msg.longitude, msg.altitude, std))
     if len(rows) < 3:
         raise InputError(f"topic {topic!r}: {len(rows)} fixes (status >= 0); need 3", clouds.bag)

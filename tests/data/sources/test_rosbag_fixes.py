@@ -86,4 +86,13 @@ def test_fixes_without_odometry_or_zone_are_refused_in_one_line(
         "--out", str(tmp_path / "c"),
     )  # fmt: skip
     assert code == 2 and "not both" in text
-    assert not any((tmp_path / k).exists() for k in "abc")
+    # a fix topic the bag lacks, or one of another type: named, with the NavSatFix topics there
+    wrong = {
+        "/gps": "'/gps' not found (NavSatFix topics in the bag: /fix)",
+        "/points": "'/points' holds sensor_msgs/msg/PointCloud2, not",
+    }
+    for topic, says in wrong.items():
+        args = [*base[:5], topic, "--odometry", "kiss-icp", "--utm-zone", ZONE]
+        code, text = _prepare(*args, "--out", str(tmp_path / "d"))
+        assert code == 2 and says in text, text
+    assert not any((tmp_path / k).exists() for k in "abcd")
