@@ -286,10 +286,9 @@ class RosbagClouds:
     def topic_messages(
         self, topic: str, types: Sequence[str], what: str
     ) -> Generator[tuple[int, Any], None, None]:
-        """(stamp in nanoseconds, message) of every message on ``topic`` of the open bag, in
-        bag order: the header's stamp, the bag's time where the header has none. ``InputError``
-        naming the bag for a missing topic, one of a type not in ``types`` (``what`` names
-        them in the message), or a message that does not decode."""
+        """(stamp ns: the header's, else the bag's time; message) of every message on ``topic``
+        in bag order. ``InputError`` naming the bag for a missing topic, one of a type not in
+        ``types`` (``what`` names them), or a message that does not decode."""
         assert self._reader is not None
         conns, msgtype = _connections(self._reader, self.bag, topic, types, what)
         for _, t, raw in self._messages(conns):
