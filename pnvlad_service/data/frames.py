@@ -157,6 +157,19 @@ def _floats(row: dict[str, str], names: tuple[str, ...], where: str, path: Path)
     return out
 
 
+def _all_or_none(
+    row: dict[str, str], names: tuple[str, ...], what: str, where: str, path: Path
+) -> list[float] | None:
+    """The optional columns ``names`` of ``row``: their numbers, or ``None`` when all are
+    empty; ``InputError`` naming ``what`` when only some are given."""
+    given = [bool((row.get(n) or "").strip()) for n in names]
+    if not any(given):
+        return None
+    if not all(given):
+        raise InputError(f"{where}: {what} needs all of {', '.join(names)}", path)
+    return _floats(row, names, where, path)
+
+
 def _row(row: dict[str, str], line: int, path: Path) -> SubmapFrame:
     where = f"line {line}"
     try:
@@ -170,17 +183,10 @@ def _row(row: dict[str, str], line: int, path: Path) -> SubmapFrame:
     frame = (row.get("frame") or "").strip()
     if frame not in FRAME_KINDS:
         raise InputError(f"{where}: frame {frame!r} is not one of {list(FRAME_KINDS)}", path)
-    given = [bool((row.get(n) or "").strip()) for n in _TRUE]
-    if any(given) and not all(given):
-        raise InputError(f"{where}: the true pose needs all of {', '.join(_TRUE)}", path)
-    true_pos = true_yaw = None
-    if all(given):
-        t = _floats(row, _TRUE, where, path)
-        true_pos, true_yaw = np.array(t[:3]), t[3]
-    given = [bool((row.get(n) or "").strip()) for n in _MOTION]
-    if any(given) and not all(given):
-        raise InputError(f"{where}: the motion needs all of {', '.join(_MOTION)}", path)
-    motion = np.array(_floats(row, _MOTION, where, path)) if all(given) else None
+    t = _all_or_none(row, _TRUE, "the true pose", where, path)
+    true_pos, true_yaw = (None, None) if t is None else (np.array(t[:3]), t[3])
+    m = _all_or_none(row, _MOTION, "the motion", where, path)
+    motion = None if m is None else np.array(m)
     return SubmapFrame(
         ts, np.array(v[:3]), np.array(v[3:6]), v[6], frame, true_pos, true_yaw, motion
     )
@@ -220,9 +226,10 @@ def journal_line(f: SubmapFrame) -> str:
     """One row as a JSON line (floats as JSON writes them: a round trip is exact)."""
     true = None if f.true_position is None else [*map(float, f.true_position), f.true_yaw_deg]
     row = {"t": f.timestamp, "o": [*map(float, f.origin)], "c": [*map(float, f.centre)]}
-    motion = None if f.motion is None else [*map(float, f.motion)]
     row = {**row, "s": f.scale, "f": f.frame, "true": true}
-    return json.dumps({**row, **({"m": motion} if motion is not None else {})}) + "\n"
+    if f.motion is not None:
+        row["m"] = [*map(float, f.motion)]
+    return json.dumps(row) + "\n"
 
 
 def read_journal(path: str | Path) -> list[SubmapFrame]:

@@ -193,19 +193,19 @@ def measure_edges(
         return groups, counts
 
     groups, counts = timer.run("candidates", candidates)
-    if all(r.recorded_motion is not None for r in nodes.runs if sweep_rate(r, config) > 0):
-        # every sweep's motion is recorded: de-skew first, one odometry pass
+
+    def register(on: MapNodes) -> list[Edge]:
+        steps = Clouds.for_odometry(on, config.edges)
+        return timer.run("odometry", lambda: odometry_edges(on, steps, config.edges))
+
+    recorded = all(r.recorded_motion is not None for r in nodes.runs if sweep_rate(r, config) > 0)
+    if recorded:  # every sweep's motion is recorded: de-skew before the one odometry pass
         nodes = deskewed_nodes(nodes, [], config) or nodes
-        steps = Clouds.for_odometry(nodes, config.edges)
-        odometry = timer.run("odometry", lambda: odometry_edges(nodes, steps, config.edges))
-    else:  # a first odometry pass measures the motion, a second registers the de-skewed scans
-        steps = Clouds.for_odometry(nodes, config.edges)
-        odometry = timer.run("odometry", lambda: odometry_edges(nodes, steps, config.edges))
-        moving = deskewed_nodes(nodes, odometry, config)
-        if moving is not None:
-            nodes = moving
-            steps = Clouds.for_odometry(nodes, config.edges)
-            odometry = timer.run("odometry", lambda: odometry_edges(nodes, steps, config.edges))
+    odometry = register(nodes)
+    moving = None if recorded else deskewed_nodes(nodes, odometry, config)
+    if moving is not None:  # the first pass measured the motion: register the de-skewed scans
+        nodes = moving
+        odometry = register(nodes)
     clouds = Clouds(nodes, config.edges)
     closures = timer.run("closures", lambda: closure_edges(nodes, clouds, groups, config.edges))
     return odometry + closures, counts
