@@ -110,7 +110,8 @@ def drive_of(root: Path, area: str, name: str, off_map: tuple[float, float] | No
              kidnap: str | None = None):  # fmt: skip
     """The run cast again from the tree's ``synth.json`` (its recorded GNSS/INS poses and the
     simulator's truth), driven ``off_map`` (metres out, metres back) beyond its route and back,
-    and ``kidnap`` (``AT_S:GAP_S``) as ``benchmarks/make_rosbag.py`` drives it."""
+    and ``kidnap`` (``AT_S:GAP_S``, ``AT_S:GAP_S:hidden`` with the clock's gap hidden too) as
+    ``benchmarks/make_rosbag.py`` drives it."""
     from pnvlad_service.synth.generate import simulated_drive
     from pnvlad_service.synth.windows import drives_of
 
@@ -124,8 +125,8 @@ def drive_of(root: Path, area: str, name: str, off_map: tuple[float, float] | No
     if kidnap:
         from pnvlad_service.synth.excursions import Kidnapped
 
-        at_s, gap_s = (float(v) for v in kidnap.split(":"))
-        drive = Kidnapped(drive, at_s, gap_s)
+        at_s, gap_s, *hidden = kidnap.split(":")
+        drive = Kidnapped(drive, float(at_s), float(gap_s), hide_gap=bool(hidden))
     return drive
 
 
@@ -184,6 +185,8 @@ def follow_run(root: Path, model: Path, out: Path, area: str, name: str, every: 
         bundle = map_of(root, model, out, area, name, tag=f"maps/{model_tag(model)}")
     off_map = (opts.off_map, opts.back) if getattr(opts, "off_map", 0.0) else None
     kidnap = getattr(opts, "kidnap", None)
+    if kidnap and getattr(opts, "hide_gap", False):
+        kidnap += ":hidden"
     bag, origin, drive = bag_of(root, out, area, name, every, off_map, kidnap)
     protocol = "loo" if getattr(opts, "leave_one_out", False) else "shared"
     protocol += "-any-run" if getattr(opts, "aligned_map", False) else ""
@@ -308,6 +311,11 @@ def parser() -> argparse.ArgumentParser:
         default=None,
         metavar="AT_S:GAP_S",
         help="drop GAP_S seconds of scans from AT_S on (a kidnapped robot)",
+    )
+    ap.add_argument(
+        "--hide-gap",
+        action="store_true",
+        help="with --kidnap: the clock does not jump over the gap either (only the scans tell)",
     )
     ap.add_argument(
         "--localize",

@@ -60,7 +60,9 @@ class Service:
     """Search answers: the truth on ``right`` scans, a place 300 m away (and a different one
     each time) on ``wrong`` scans, nothing verified else. Prior answers: the truth when the
     prior is within ``reach`` metres of it and the scan is not ``off_map``; else not verified.
-    Records every call."""
+    A look-alike place (``alias``, a rigid transform [4, 4] of the world): search answers there
+    (the truth moved by it, so they agree with the odometry) on ``alias_search`` scans, and
+    priors within ``reach`` of it verified there on ``alias_holds`` scans. Records every call."""
 
     def __init__(
         self,
@@ -70,9 +72,13 @@ class Service:
         reach: float = 4.0,
         refuse: set[int] = frozenset(),
         scan_truth: Any = truth,
+        alias: np.ndarray | None = None,
+        alias_search: set[int] = frozenset(),
+        alias_holds: set[int] = frozenset(),
     ) -> None:
         self.right, self.wrong, self.off_map = set(right), set(wrong), set(off_map)
         self.reach, self.refuse, self.truth = reach, set(refuse), scan_truth
+        self.alias, self.alias_search, self.alias_holds = alias, set(alias_search), set(alias_holds)
         self.calls: list[tuple[int, Prior | None]] = []
 
     def __call__(self, points: np.ndarray, prior: Prior | None = None, kind: str = "scan") -> Reply:
@@ -81,12 +87,18 @@ class Service:
         if i in self.refuse:
             raise InputError("filter G: too few points", "points")
         true = self.truth(i)
+        there = None if self.alias is None else self.alias @ true
         if prior is None:
+            if there is not None and i in self.alias_search:
+                return answer(there, "search")
             if i in self.right:
                 return answer(true, "search")
             if i in self.wrong:
                 return answer(pose(ORIGIN[0] + 300.0 + 37.0 * i, ORIGIN[1] - 90.0, 120.0), "search")
             return answer(None, "search", "confidence 0.02 < 0.09")
+        if there is not None and i in self.alias_holds:
+            if math.hypot(prior.easting - there[0, 3], prior.northing - there[1, 3]) <= self.reach:
+                return answer(there, "prior", fitness=0.6, sigma_m=0.1)
         off = math.hypot(prior.easting - true[0, 3], prior.northing - true[1, 3])
         if i in self.off_map:
             return answer(None, "prior", "no map within 20 m of the prior", fitness=0.0)

@@ -177,3 +177,111 @@ def test_config_is_checked() -> None:
         TrackerConfig(radius_m=0.0)
     loc = DriveLocalizer(Service())
     assert loc.state == SEARCHING
+
+
+# -- after a loss: where the odometry says the robot can be --------------------------------------
+
+#: A look-alike street 800 m away: the world moved east and turned 90 degrees about the origin.
+ALIAS = pose(ORIGIN[0] + 800.0, ORIGIN[1], 90.0) @ np.linalg.inv(pose(*ORIGIN[:2], 0.0))
+
+
+def _driven(a: int, b: int) -> float:
+    """Metres driven from scan ``a`` to scan ``b`` (the truth's steps, as the odometry's)."""
+    return sum(
+        float(np.linalg.norm(truth(k)[:2, 3] - truth(k - 1)[:2, 3])) for k in range(a + 1, b + 1)
+    )
+
+
+def _off_truth(steps: list, scan_truth=truth) -> list[float]:
+    return [
+        float(np.linalg.norm(s.pose[:2, 3] - scan_truth(s.scan)[:2, 3]))
+        for s in steps
+        if s.verified
+    ]
+
+
+def test_a_look_alike_street_far_from_the_odometry_is_checked_and_never_fixed() -> None:
+    # Fixed at scan 1, off the map from scan 10 (lost at 12); at 15 and 16 the search finds a
+    # street 800 m away that agrees with the odometry between the two answers, and it even
+    # registers there for three scans; then it does not. The robot comes back at 34-35.
+    svc = Service(right={0, 1, 34, 35}, off_map=set(range(10, 34)), alias=ALIAS,
+                  alias_search={15, 16}, alias_holds={16, 17, 18})  # fmt: skip
+    steps = follow(scans(40), svc)
+    assert steps[12].event == "lost"
+    assert steps[15].state == SEARCHING and steps[15].pose is None
+    off = np.linalg.norm((ALIAS @ truth(15))[:2, 3] - truth(15)[:2, 3])  # the reckoning: exact
+    assert steps[15].reason.startswith(f"a verified answer {off:.0f} m from where the odometry")
+    # Checked by registering near it moved by the odometry, never reported as a pose.
+    assert [i for i, p in svc.calls if p is not None and 16 <= i <= 21] == list(range(16, 22))
+    for i, p in svc.calls:
+        if p is not None and 16 <= i <= 21:
+            there = ALIAS @ truth(i)
+            assert (p.easting, p.northing) == pytest.approx((there[0, 3], there[1, 3]))
+    assert all(s.pose is None and not s.verified for s in steps[13:34])
+    driven = _driven(15, 17)
+    assert steps[17].reason == (
+        f"checking an answer {off:.0f} m from the odometry's reckoning: 2 registrations over "
+        f"{driven:.0f} of 50 m"
+    )
+    assert "did not hold: 3 failures in a row" in steps[21].reason
+    assert svc.calls[-1][0] == 39 and (22, None) in svc.calls  # searching again from 22
+    assert steps[35].event == "relocalised" and steps[35].how == "fix"
+    assert max(_off_truth(steps)) < 1e-6
+    # Without the reckoning (reach beyond the city) the same answers are a fix 800 m off.
+    svc = Service(right={0, 1, 34, 35}, off_map=set(range(10, 34)), alias=ALIAS,
+                  alias_search={15, 16}, alias_holds={16, 17, 18})  # fmt: skip
+    steps = follow(scans(40), svc, TrackerConfig(reach_m=1e6))
+    assert steps[16].how == "fix" and max(_off_truth(steps)) > 700
+
+
+def test_a_kidnapped_robot_is_fixed_where_it_is_once_that_holds_over_far_confirm_m() -> None:
+    # From scan 10 on the robot is 600 m away (carried there unseen: the clock and the odometry
+    # go on as if nothing happened). Lost at 12; the right answers from 13 on are far from the
+    # odometry's reckoning, and they hold: a fix once the robot has driven 50 m since 13.
+    jump = pose(ORIGIN[0] + 600.0, ORIGIN[1] + 200.0, -30.0) @ np.linalg.inv(pose(*ORIGIN[:2], 0.0))
+
+    def kidnapped(i: int) -> np.ndarray:
+        return truth(i) if i < 10 else jump @ truth(i)
+
+    svc = Service(right={0, 1} | set(range(13, 60)), scan_truth=kidnapped)
+    steps = follow(scans(60), svc)
+    assert steps[12].event == "lost"
+    assert "checked by tracking it over 50 m" in steps[13].reason
+    at = next(i for i in range(14, 60) if _driven(13, i) >= 50.0)
+    assert all(s.pose is None for s in steps[13:at])
+    fix = steps[at]
+    assert (fix.event, fix.how, fix.verified) == ("relocalised", "fix", True)
+    off = np.linalg.norm(kidnapped(13)[:2, 3] - truth(13)[:2, 3])
+    assert fix.reason == (
+        f"fix: an answer {off:.0f} m from where the odometry put the robot held {at - 13} "
+        f"registrations over {_driven(13, at):.0f} m"
+    )
+    np.testing.assert_allclose(fix.pose, kidnapped(at), atol=1e-9)
+    assert all(s.verified for s in steps[at:])
+    assert max(_off_truth(steps, kidnapped)) < 1e-6
+
+
+@pytest.mark.parametrize(("shift_m", "far"), [(32.0, False), (33.5, True)])
+def test_the_reach_grows_with_the_distance_driven_since_the_last_verified_pose(
+    shift_m: float, far: bool
+) -> None:
+    # Last verified at scan 9, lost at 12; at scan 20 the robot has driven 11 scans of 2.5 m
+    # since: reach 30 + 0.1 * 27.5 = 32.75 m.
+    moved = pose(0.0, shift_m, 0.0)
+    svc = Service(right={0, 1}, off_map=set(range(10, 30)), alias=moved, alias_search={20})
+    steps = follow(scans(22), svc)
+    if far:
+        assert steps[20].reason.startswith(f"a verified answer {shift_m:.0f} m from where")
+        assert "(more than 33 m)" in steps[20].reason
+    else:
+        assert steps[20].reason.startswith("a verified answer; waiting for 1 more")
+
+
+def test_a_reset_forgets_the_last_pose() -> None:
+    # A gap of 10 s before scan 15: the robot may be anywhere; answers 800 m away fix at once.
+    drive = scans(20)
+    drive[15:] = [DriveScan(s.index, s.timestamp + 10_000_000, s.points, s.odometry)
+                  for s in drive[15:]]  # fmt: skip
+    svc = Service(right={0, 1}, off_map=set(range(10, 20)), alias=ALIAS, alias_search={15, 16})
+    steps = follow(drive, svc)
+    assert steps[15].event == "reset" and steps[16].how == "fix"

@@ -25,6 +25,16 @@ typed :class:`~.service.Reply`. States:
   unverified, and the failure counted.
 - ``lost``: ``failures`` in a row; the scan that makes it says so, and the next one searches.
 
+After a loss the localiser still knows where it last was: the last verified pose, carried on by
+the odometry since. A search answer farther from that reckoning than ``reach_m`` plus
+``reach_share`` of the distance driven since cannot be where the robot is unless it was carried
+away (a street off the map can look like a mapped one 1 km away): it is not a candidate but is
+*checked* by tracking it as a hypothesis (registrations near it moved by the odometry, poses not
+reported), and it becomes the fix only once its registrations have held over ``far_confirm_m``
+metres driven without ``failures`` in a row, which a look-alike street does not and a kidnapped
+robot's true place does. A reset (a gap, jumping odometry, a scan out of order) forgets the
+last pose: there the reckoning cannot be trusted.
+
 A scan out of time order, a gap of more than ``max_gap_s`` between scans, or odometry that
 moves faster than a vehicle can (``max_speed_mps``, ``max_turn_dps``) sends the localiser back
 to searching with a line saying why; nothing raises. Every :class:`Step` says its state, its
@@ -63,7 +73,10 @@ class TrackerConfig(BaseModel):
     ``agree_deg``: they agree when the motion between them differs from the odometry's by at
     most ``agree_m`` plus ``agree_share`` of the distance driven, and ``agree_deg``;
     ``confirm_within_s``: candidates older than this are dropped; ``failures``: tracking
-    failures in a row that make the localiser lost; ``gate_m`` / ``gate_deg``: a registration
+    failures in a row that make the localiser lost; ``reach_m`` / ``reach_share``: after a
+    loss, a search answer farther than ``reach_m`` plus ``reach_share`` of the distance driven
+    from where the odometry carries the last verified pose is checked by tracking it over
+    ``far_confirm_m`` metres before it is a fix; ``gate_m`` / ``gate_deg``: a registration
     that moves the prediction by more is a failure; ``max_gap_s``: a longer gap between two
     scans starts a search; ``max_speed_mps`` / ``max_turn_dps``: odometry moving faster
     jumped (a search starts, and its motion is not used). A value out of range is a
@@ -79,6 +92,9 @@ class TrackerConfig(BaseModel):
     agree_deg: float = 5.0
     confirm_within_s: float = 30.0
     failures: int = 3
+    reach_m: float = 30.0
+    reach_share: float = 0.1
+    far_confirm_m: float = 50.0
     gate_m: float = 3.0
     gate_deg: float = 5.0
     max_gap_s: float = 2.0
@@ -93,11 +109,19 @@ class TrackerConfig(BaseModel):
         return value
 
     @field_validator("radius_m", "agree_m", "agree_deg", "gate_m", "gate_deg", "max_gap_s",
-                     "max_speed_mps", "max_turn_dps", "confirm_within_s")  # fmt: skip
+                     "max_speed_mps", "max_turn_dps", "confirm_within_s", "reach_m",
+                     "far_confirm_m")  # fmt: skip
     @classmethod
     def _positive(cls, value: float, info: Any) -> float:
         if not value > 0:
             raise ValueError(f"{info.field_name} must be > 0, got {value}")
+        return value
+
+    @field_validator("reach_share")
+    @classmethod
+    def _not_negative(cls, value: float) -> float:
+        if not value >= 0:
+            raise ValueError(f"reach_share must be >= 0, got {value}")
         return value
 
 
@@ -156,6 +180,33 @@ class _Candidate:
     anchor: str | None
 
 
+@dataclass
+class _Reckoning:
+    """Where the robot was last verified (``pose``, at ``odometry``) and how far it has driven
+    since by its odometry (``driven_m``): where it can be after a loss."""
+
+    pose: np.ndarray
+    odometry: np.ndarray
+    driven_m: float = 0.0
+
+    def now(self, odometry: np.ndarray) -> np.ndarray:
+        return self.pose @ np.linalg.inv(self.odometry) @ odometry
+
+
+@dataclass
+class _Hypothesis:
+    """A verified search answer far from the reckoning, tracked until it holds or fails: its
+    ``pose`` now, ``off_m`` from the reckoning when found, ``driven_m`` since, ``registered``
+    verified registrations, ``failures`` in a row, ``run`` of the map it registers to."""
+
+    pose: np.ndarray
+    off_m: float
+    run: str | None
+    driven_m: float = 0.0
+    registered: int = 0
+    failures: int = 0
+
+
 def yaw_of(pose: np.ndarray) -> float:
     """Heading of a pose's x axis, degrees counter-clockwise from east."""
     return math.degrees(math.atan2(pose[1, 0], pose[0, 0]))
@@ -200,6 +251,8 @@ class DriveLocalizer:
         self._failures = 0
         self._run: str | None = None  # the map's drive the last pose was registered to
         self._candidates: deque[_Candidate] = deque()
+        self._reckoning: _Reckoning | None = None  # the last verified pose, kept over a loss
+        self._hypothesis: _Hypothesis | None = None  # a far answer being checked
         self.fixes = 0  # fixes accepted (the first and each relocalisation)
         if initial_pose is not None:
             self.state = TRACKING
@@ -228,7 +281,7 @@ class DriveLocalizer:
                     f"scan {scan.index} is {-dt:.3f} s older than the one before: out of time "
                     "order, skipped; searching again"
                 )
-                self._reset()
+                self._reset(forget=True)
                 return Step(scan.index, scan.timestamp, SEARCHING, event="reset", reason=why)
             if dt > cfg.max_gap_s:
                 reset = f"a gap of {dt:.1f} s since the scan before (more than {cfg.max_gap_s:g} s)"
@@ -246,14 +299,23 @@ class DriveLocalizer:
         self._stamp = scan.timestamp
         self._odometry = odo
         if reset is not None:
-            self._reset()
-        step = self._track(scan, motion) if self.state == TRACKING else self._search(scan)
+            self._reset(forget=True)
+        self._drive(motion)
+        if self.state == TRACKING:
+            step = self._track(scan, motion)
+        elif self._hypothesis is not None and motion is not None:
+            step = self._check(scan, motion)
+        else:
+            self._hypothesis = None
+            step = self._search(scan)
         if reset is not None:
             step.event = step.event or "reset"
             step.reason = f"{reset}: searching again" + (f"; {step.reason}" if step.reason else "")
         return step
 
-    def _reset(self) -> None:
+    def _reset(self, forget: bool = False) -> None:
+        """Back to searching; ``forget``: the last verified pose too (the odometry since cannot
+        be trusted to say where the robot is)."""
         self.state = SEARCHING
         self._pose = None
         self._stamp_of_pose = None
@@ -261,12 +323,31 @@ class DriveLocalizer:
         self._failures = 0
         self._run = None
         self._candidates.clear()
+        self._hypothesis = None
+        if forget:
+            self._reckoning = None
+
+    def _drive(self, motion: np.ndarray | None) -> None:
+        """The odometry's motion since the scan before, added to the distances driven."""
+        if self._odometry is None:
+            self._reckoning = self._hypothesis = None  # nothing to reckon by
+            return
+        driven = 0.0 if motion is None else float(np.linalg.norm(motion[:2, 3]))
+        for held in (self._reckoning, self._hypothesis):
+            if held is not None:
+                held.driven_m += driven
 
     def _set_pose(self, stamp: int, pose: np.ndarray) -> None:
         if self._pose is not None and self._stamp_of_pose is not None:
             self._before = (self._stamp_of_pose, self._pose)
         self._pose = pose
         self._stamp_of_pose = stamp
+
+    def _verified(self, stamp: int, pose: np.ndarray) -> None:
+        """A verified pose: the pose, and where the robot is known to have been."""
+        self._set_pose(stamp, pose)
+        if self._odometry is not None:
+            self._reckoning = _Reckoning(pose, self._odometry.copy())
 
     # -- tracking ------------------------------------------------------------------------------
 
@@ -282,10 +363,13 @@ class DriveLocalizer:
                 return self._pose @ scaled_motion(delta, (stamp - self._stamp_of_pose) / 1e6 / span)
         return self._pose.copy()
 
-    def _track(self, scan: DriveScan, motion: np.ndarray | None) -> Step:
+    def _register(
+        self, scan: DriveScan, predicted: np.ndarray, run: str | None, state: str
+    ) -> tuple[Step, np.ndarray | None, str | None]:
+        """The scan registered near ``predicted``: its :class:`Step` (``state``), the verified
+        pose when the registration fits within the gates, else ``None`` and why."""
         cfg = self.config
-        predicted = self._predict(scan.timestamp, motion)
-        prior = Prior.of_matrix(predicted, cfg.radius_m, run=self._run)
+        prior = Prior.of_matrix(predicted, cfg.radius_m, run=run)
         reply: Reply | None
         try:
             reply = self.ask(scan.points, prior)
@@ -293,7 +377,7 @@ class DriveLocalizer:
             reply, why = None, f"refused: {getattr(exc, 'detail', None) or exc}"
         else:
             why = None
-        step = Step(scan.index, scan.timestamp, TRACKING, reply=reply)
+        step = Step(scan.index, scan.timestamp, state, reply=reply)
         if reply is not None:
             step.fitness, step.sigma_m = reply.fitness, reply.sigma_m
         pose = None if reply is None else reply.verified_pose
@@ -308,9 +392,16 @@ class DriveLocalizer:
                     f"(more than {cfg.gate_m:g} m or {cfg.gate_deg:g} deg)"
                 )
                 pose = None
+        return step, pose, why
+
+    def _track(self, scan: DriveScan, motion: np.ndarray | None) -> Step:
+        cfg = self.config
+        predicted = self._predict(scan.timestamp, motion)
+        step, pose, why = self._register(scan, predicted, self._run, TRACKING)
+        reply = step.reply
         if pose is not None:
             self._failures = 0
-            self._set_pose(scan.timestamp, pose)
+            self._verified(scan.timestamp, pose)
             step.verified, step.pose, step.how = True, pose, "registered"
             step.anchor = _anchor(reply)
             self._run = _group(step.anchor) or self._run
@@ -359,6 +450,16 @@ class DriveLocalizer:
                 else "the service does not verify (a bundle without geometry?)"
             )
             return step
+        far = self._beyond_reach(pose)
+        if far is not None:
+            off, reach = far
+            self._hypothesis = _Hypothesis(pose, off, _group(_anchor(reply)))
+            step.reason = (
+                f"a verified answer {off:.0f} m from where the odometry puts the robot since its "
+                f"last verified pose (more than {reach:.0f} m): checked by tracking it over "
+                f"{cfg.far_confirm_m:g} m"
+            )
+            return step
         odo = None if self._odometry is None else self._odometry.copy()
         cand = _Candidate(scan.timestamp, pose, odo, _anchor(reply))
         agree = [c for c in self._candidates if self._agree(c, cand)]
@@ -370,21 +471,80 @@ class DriveLocalizer:
                 f"{'s' if need == 1 else ''} with the odometry"
             )
             return step
-        self.state = TRACKING
-        self._failures = 0
-        self._candidates.clear()
-        self._before = None
-        self._set_pose(scan.timestamp, pose)
-        step.state, step.verified, step.pose, step.how = TRACKING, True, pose, "fix"
-        step.anchor = cand.anchor
-        self._run = _group(cand.anchor)
-        step.event = "fix" if self.fixes == 0 else "relocalised"
-        self.fixes += 1
-        step.reason = (
+        reason = (
             "fix: the first verified answer"
             if cfg.confirm == 1
             else f"fix: {len(agree) + 1} verified answers agree with the odometry between them"
         )
+        return self._fix(step, pose, cand.anchor, reason)
+
+    def _fix(self, step: Step, pose: np.ndarray, anchor: str | None, reason: str) -> Step:
+        """``step`` becomes a fix at ``pose``: tracking from there."""
+        self.state = TRACKING
+        self._failures = 0
+        self._candidates.clear()
+        self._hypothesis = None
+        self._before = None
+        self._verified(step.timestamp, pose)
+        step.state, step.verified, step.pose, step.how = TRACKING, True, pose, "fix"
+        step.anchor = anchor
+        self._run = _group(anchor)
+        step.event = "fix" if self.fixes == 0 else "relocalised"
+        self.fixes += 1
+        step.reason = reason
+        return step
+
+    def _beyond_reach(self, pose: np.ndarray) -> tuple[float, float] | None:
+        """(distance, reach) when ``pose`` is farther from where the odometry carries the last
+        verified pose than the robot can have drifted; ``None`` when within it or unknown."""
+        cfg = self.config
+        if self._reckoning is None or self._odometry is None:
+            return None
+        now = self._reckoning.now(self._odometry)
+        off = float(np.linalg.norm(pose[:2, 3] - now[:2, 3]))
+        reach = cfg.reach_m + cfg.reach_share * self._reckoning.driven_m
+        return (off, reach) if off > reach else None
+
+    def _check(self, scan: DriveScan, motion: np.ndarray) -> Step:
+        """A far answer tracked as a hypothesis: a fix once it has held over ``far_confirm_m``,
+        dropped after ``failures`` failures in a row (the next scan searches)."""
+        cfg = self.config
+        hyp = self._hypothesis
+        assert hyp is not None
+        predicted = hyp.pose @ motion
+        step, pose, why = self._register(scan, predicted, hyp.run, SEARCHING)
+        reply = step.reply
+        if pose is not None:
+            hyp.pose, hyp.failures = pose, 0
+            hyp.registered += 1
+            hyp.run = _group(_anchor(reply)) or hyp.run
+            if hyp.driven_m >= cfg.far_confirm_m:
+                return self._fix(step, pose, _anchor(reply), (
+                    f"fix: an answer {hyp.off_m:.0f} m from where the odometry put the robot "
+                    f"held {_registrations(hyp.registered)} over {hyp.driven_m:.0f} m"
+                ))  # fmt: skip
+            step.reason = (
+                f"checking an answer {hyp.off_m:.0f} m from the odometry's reckoning: "
+                f"{_registrations(hyp.registered)} over {hyp.driven_m:.0f} of "
+                f"{cfg.far_confirm_m:g} m"
+            )
+            return step
+        hyp.pose = predicted
+        if reply is not None and reply.uncertain:
+            step.reason = f"checking an answer far from the odometry's reckoning: uncertain ({why})"
+            return step
+        hyp.failures += 1
+        if hyp.failures >= cfg.failures:
+            self._hypothesis = None
+            step.reason = (
+                f"the answer {hyp.off_m:.0f} m from the odometry's reckoning did not hold: "
+                f"{hyp.failures} failures in a row ({why}); searching again"
+            )
+        else:
+            step.reason = (
+                f"checking an answer far from the odometry's reckoning: failure {hyp.failures} "
+                f"of {cfg.failures} ({why})"
+            )
         return step
 
     def _agree(self, a: _Candidate, b: _Candidate) -> bool:
@@ -401,6 +561,10 @@ class DriveLocalizer:
         turn = abs(wrap_deg(yaw_of(expected) - yaw_of(b.pose)))
         driven = float(np.linalg.norm(motion[:2, 3]))
         return off <= cfg.agree_m + cfg.agree_share * driven and turn <= cfg.agree_deg
+
+
+def _registrations(n: int) -> str:
+    return f"{n} registration{'' if n == 1 else 's'}"
 
 
 def _group(submap_id: str | None) -> str | None:
