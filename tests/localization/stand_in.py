@@ -96,9 +96,11 @@ class Service:
             if i in self.wrong:
                 return answer(pose(ORIGIN[0] + 300.0 + 37.0 * i, ORIGIN[1] - 90.0, 120.0), "search")
             return answer(None, "search", "confidence 0.02 < 0.09")
-        if there is not None and i in self.alias_holds:
-            if math.hypot(prior.easting - there[0, 3], prior.northing - there[1, 3]) <= self.reach:
-                return answer(there, "prior", fitness=0.6, sigma_m=0.1)
+        near_there = there is not None and (
+            math.hypot(prior.easting - there[0, 3], prior.northing - there[1, 3]) <= self.reach
+        )
+        if near_there and i in self.alias_holds:
+            return answer(there, "prior", fitness=0.6, sigma_m=0.1)
         off = math.hypot(prior.easting - true[0, 3], prior.northing - true[1, 3])
         if i in self.off_map:
             return answer(None, "prior", "no map within 20 m of the prior", fitness=0.0)
