@@ -1,10 +1,11 @@
 """A registration near a prior that fits under the threshold is tried once more against a wider
 stretch of the map (``PriorConfig.retry_submaps``): on an aligned map the nearest entries of its
 drives, a few metres apart, cover a short stretch of the street a scan sees far along, and the
-right pose can fit under the threshold there; the wider fit must clear the threshold by a
-margin (``RETRY_MARGIN``) and stay near the prior (``RETRY_MAX_CORRECTION_M``: a wider stretch
-of a street can slide a right prior along it). Measured on the tiny city's aligned map: the
-fitness against a few entries and against more, and the threshold set between them."""
+right pose can fit under the threshold there; the wider fit must clear the threshold (plus
+``RETRY_MARGIN``, none by default) and stay near the prior (``RETRY_MAX_CORRECTION_M``: a
+wider stretch of a street can slide a right prior along it). Measured on the tiny city's
+aligned map: the fitness against a few entries and against more, and the threshold set
+between them."""
 
 from __future__ import annotations
 

@@ -166,8 +166,8 @@ class PriorSection(BaseModel):
         le=64,
         description="A registration near a prior that fits under min_fitness is tried once "
         "more against this many nearest entries, a wider stretch of the map, and verified when "
-        f"it fits at min_fitness + {RETRY_MARGIN:g} within {RETRY_MAX_CORRECTION_M:g} m of the "
-        "prior (0: never). "
+        f"it fits at min_fitness{f' + {RETRY_MARGIN:g}' if RETRY_MARGIN else ''} within "
+        f"{RETRY_MAX_CORRECTION_M:g} m of the prior (0: never). "
         f"Default: {ALIGNED_RETRY_ENTRIES} on a map the bundle records as aligned, 0 on another.",
     )
 
