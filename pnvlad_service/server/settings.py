@@ -133,6 +133,7 @@ class ServerSettings(BaseSettings):
     prior_max_submaps: int | None = section_field(PriorSection, "max_submaps")
     prior_same_run: bool | None = section_field(PriorSection, "same_run")
     prior_retry_submaps: int | None = section_field(PriorSection, "retry_submaps")
+    prior_aligned_map: bool | None = section_field(PriorSection, "aligned_map")
 
     def localizer_config(self) -> LocalizerConfig:
         """How the localiser is loaded: these settings' sections (``index`` and the model
@@ -158,6 +159,7 @@ class ServerSettings(BaseSettings):
                 max_submaps=self.prior_max_submaps,
                 same_run=self.prior_same_run,
                 retry_submaps=self.prior_retry_submaps,
+                aligned_map=self.prior_aligned_map,
             ),
             batching=BatchSection(
                 max_size=self.batch_max_size, wait_ms=self.batch_wait_ms, lanes=self.batch_lanes

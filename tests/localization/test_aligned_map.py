@@ -39,7 +39,7 @@ def test_the_option_says_it_both_ways_and_only_in_this_process(tmp_path) -> None
         assert rules(section.config(aligned=True)) == want == rules(section.config(False))
     for given in (True, False):
         config = DriveConfig(service={"url": "http://127.0.0.1:1", "aligned_map": given})
-        with pytest.raises(InputError, match="PNVLAD_PRIOR_SAME_RUN") as exc:
+        with pytest.raises(InputError, match="PNVLAD_PRIOR_ALIGNED_MAP") as exc:
             config.check()
         assert "--aligned-map" in str(exc.value)
 
@@ -56,6 +56,11 @@ def test_the_bundle_sets_the_default_and_an_explicit_config_wins(
         for config, want in ((one, ONE_DRIVE), (anyrun, ANY_DRIVE)):
             with Localizer.load(bundle, config=config) as loc:
                 assert rules(loc.prior_config) == want
+        # Taken the other way round than the bundle records: every rule follows, and says so.
+        other = LocalizerConfig(prior=PriorSection(aligned_map=not aligned))
+        with Localizer.load(bundle, config=other) as loc:
+            assert loc.aligned_map is (not aligned)
+            assert rules(loc.prior_config) == (ONE_DRIVE if aligned else ANY_DRIVE)
 
 
 def test_a_server_follows_its_bundle_unless_its_settings_say(
@@ -70,6 +75,12 @@ def test_a_server_follows_its_bundle_unless_its_settings_say(
     monkeypatch.setenv("PNVLAD_PRIOR_MAX_SUBMAPS", "8")
     monkeypatch.delenv("PNVLAD_PRIOR_RETRY_SUBMAPS")
     assert rules(ServerSettings().prior_config()) == (False, 8, 0)
+    for name in ("PNVLAD_PRIOR_SAME_RUN", "PNVLAD_PRIOR_MAX_SUBMAPS"):
+        monkeypatch.delenv(name)
+    monkeypatch.setenv("PNVLAD_PRIOR_ALIGNED_MAP", "true")
+    assert rules(ServerSettings().prior_config(aligned=False)) == ANY_DRIVE
+    monkeypatch.setenv("PNVLAD_PRIOR_ALIGNED_MAP", "false")
+    assert rules(ServerSettings().prior_config(aligned=True)) == ONE_DRIVE
 
 
 @pytest.mark.parametrize("flag", ["--aligned-map", "--no-aligned-map"])

@@ -18,11 +18,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.drive.rows import TRACKED, Policy
 from pnvlad_service.localization.drive.tracking import TrackerConfig
-from pnvlad_service.localization.verify.prior import (
-    ALIGNED_ENTRIES,
-    ALIGNED_RETRY_ENTRIES,
-    PriorConfig,
-)
 
 
 class _Section(BaseModel):
@@ -51,11 +46,10 @@ class ServiceConfig(_Section):
     """What is asked: a server at ``url`` (``api_key``: its bearer token) or the bundle at
     ``index`` in this process (``model``: default the bundle's); ``top_n`` matches an answer;
     ``aligned_map`` (with ``index``): whether the map's drives agree (``pnvlad map align``), so
-    that a scan is registered to the :data:`ALIGNED_ENTRIES` nearest entries of any of them, and
-    a fit under the threshold once more to :data:`ALIGNED_RETRY_ENTRIES`, not to 4 of one.
-    ``None`` (the default): as the bundle records (``pnvlad index build`` of a tree that ``map
-    align`` wrote records it); a server follows its own bundle and settings
-    (``PNVLAD_PRIOR_SAME_RUN``, ``PNVLAD_PRIOR_MAX_SUBMAPS``)."""
+    that a scan is registered to the nearest entries of any of them (the rules of
+    ``PriorSection.config``), not to a few of one. ``None`` (the default): as the bundle records
+    (``pnvlad index build`` of a tree that ``map align`` wrote records it); a server follows its
+    own bundle and settings (``PNVLAD_PRIOR_ALIGNED_MAP`` and the other ``PNVLAD_PRIOR_*``)."""
 
     url: str | None = None
     index: Path | None = None
@@ -71,15 +65,7 @@ class ServiceConfig(_Section):
             return None
         from pnvlad_service.localization.query.config import LocalizerConfig, PriorSection
 
-        if self.aligned_map:
-            prior = PriorSection(
-                same_run=False, max_submaps=ALIGNED_ENTRIES, retry_submaps=ALIGNED_RETRY_ENTRIES
-            )
-        else:
-            prior = PriorSection(
-                same_run=True, max_submaps=PriorConfig.max_submaps, retry_submaps=0
-            )
-        return LocalizerConfig(prior=prior)
+        return LocalizerConfig(prior=PriorSection(aligned_map=self.aligned_map))
 
 
 class OutputConfig(_Section):
@@ -133,7 +119,7 @@ class DriveConfig(_Section):
         if self.service.aligned_map is not None and self.service.url is not None:
             raise InputError(
                 "applies to --index (a server registers as its bundle and its own settings "
-                "say: PNVLAD_PRIOR_SAME_RUN, PNVLAD_PRIOR_MAX_SUBMAPS)",
+                "say: PNVLAD_PRIOR_ALIGNED_MAP)",
                 "--aligned-map",
             )
         if self.window_m is not None:

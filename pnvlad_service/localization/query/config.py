@@ -160,6 +160,11 @@ class PriorSection(BaseModel):
         "drive, for a map whose drives agree). Default: false on a map the bundle records as "
         "aligned (pnvlad map align), true on another (docs/TRACKING.md).",
     )
+    aligned_map: bool | None = Field(
+        None,
+        description="Whether the map's drives agree (pnvlad map align), which sets what the "
+        "other prior fields leave unset. Default: as the bundle records.",
+    )
     retry_submaps: int | None = Field(
         None,
         ge=0,
@@ -171,9 +176,16 @@ class PriorSection(BaseModel):
         f"Default: {ALIGNED_RETRY_ENTRIES} on a map the bundle records as aligned, 0 on another.",
     )
 
+    def aligned(self, recorded: bool) -> bool:
+        """Whether the map is taken as aligned: ``aligned_map``, else what the bundle
+        ``recorded``."""
+        return recorded if self.aligned_map is None else self.aligned_map
+
     def config(self, aligned: bool = False) -> PriorConfig:
         """The registration's :class:`PriorConfig`; what the section leaves unset follows
-        ``aligned``, whether the map's drives agree (the bundle's ``map.alignment``)."""
+        ``aligned``, whether the bundle records its map's drives as agreeing (its
+        ``map.alignment``), or ``aligned_map`` when set."""
+        aligned = self.aligned(aligned)
         max_submaps = self.max_submaps or (ALIGNED_ENTRIES if aligned else PriorConfig.max_submaps)
         retry = self.retry_submaps
         if retry is None:

@@ -125,9 +125,10 @@ class Localizer:
         self._runtime = describe_runtime(encoder)
         self.identity = identity
         self.verify_config = config.verify.config(threshold)
-        #: Whether the bundle records its map's drives as aligned (``pnvlad map align``): a
-        #: prior's rules the config leaves unset follow it (docs/TRACKING.md).
-        self.aligned_map = bundle.manifest.map_record.aligned
+        #: Whether the map's drives are taken as aligned (``pnvlad map align``; as the bundle
+        #: records unless the config says): a prior's rules the config leaves unset follow it
+        #: (docs/TRACKING.md).
+        self.aligned_map = config.prior.aligned(bundle.manifest.map_record.aligned)
         self.prior_config = config.prior.config(aligned=self.aligned_map)
         # The map's positions for a prior's range search, made on the first prior.
         self._positions = PositionsOnce(lambda: MapPositions.of_metadata(bundle.metadata))
