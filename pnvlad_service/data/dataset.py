@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +37,7 @@ class TrainingSet:
     ``near[i]`` (optional): int64 indices within the negative radius of i (i included; the
     ``splits.TrainingTuples`` form): the negatives of i are all the others. Without it, a negative
     is any submap farther than ``negative_radius`` metres from i.
+    ``datasets`` (optional): (name, first, stop) of each pooled dataset's rows, in order.
     """
 
     paths: list[Path]
@@ -44,6 +45,7 @@ class TrainingSet:
     positives: list[np.ndarray]
     near: list[np.ndarray] | None = None
     negative_radius: float = 50.0
+    datasets: list[tuple[str, int, int]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         n = len(self.paths)
@@ -210,9 +212,11 @@ def training_set_from_tuples(tuples: Sequence[Any], root: Path | None) -> Traini
     pos: list[np.ndarray] = []
     near: list[np.ndarray] = []
     xy: list[np.ndarray] = []
+    datasets: list[tuple[str, int, int]] = []
     for t in tuples:
         off = len(paths)
         n = len(t)
+        datasets.append((str(t.dataset), off, off + n))
         paths.extend(_resolve(root, f) for f in t.files)
         pos.extend(np.asarray(p, dtype=np.int64) + off for p in t.positives)
         near.extend(np.asarray(p, dtype=np.int64) + off for p in t.near)
@@ -221,7 +225,7 @@ def training_set_from_tuples(tuples: Sequence[Any], root: Path | None) -> Traini
         else:
             xy.append(np.full((n, 2), np.nan))
     positions = np.concatenate(xy) if xy else np.zeros((0, 2))
-    return TrainingSet(paths, positions, pos, near)
+    return TrainingSet(paths, positions, pos, near, datasets=datasets)
 
 
 def eval_runs_from_set(es: Any, root: Path | None) -> list[EvalRun]:

@@ -118,6 +118,12 @@ class DataSection(BaseModel):
     splits: Path | None = Field(None, description="Splits JSON (pnvlad data splits).")
     pickles: Path | None = Field(None, description="Folder of the published pickles instead.")
     val_max_runs: int = Field(4, ge=2, description="Runs used by the periodic validation.")
+    dataset_weights: dict[str, float] = Field(
+        default_factory=dict,
+        description="How often an epoch visits each dataset's anchors, by dataset folder name "
+        "(1: once, the default; 3: three times; 0.5: a seeded half of them; 0: never, its "
+        "submaps still negatives): to keep a small dataset's share when trees are mixed.",
+    )
 
 
 class TrainConfig(BaseModel):

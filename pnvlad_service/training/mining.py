@@ -165,6 +165,43 @@ class TupleBatch:
         )
 
 
+def weighted_anchors(
+    ts: TrainingSet, anchors: np.ndarray, weights: dict[str, float], seed: int
+) -> np.ndarray:
+    """The anchors an epoch walks when datasets are weighted (``data.dataset_weights``): each
+    anchor of a dataset of weight w repeated int(w) times, and a seeded share w - int(w) of
+    them once more; datasets not named keep weight 1. Raises :class:`InputError` naming the
+    field for a name that is not one of the training set's datasets or a negative weight."""
+    if not weights:
+        return anchors
+    names = [name for name, _, _ in ts.datasets]
+    for name, w in weights.items():
+        if name not in names:
+            raise InputError(
+                f"no training dataset {name!r} (have: {', '.join(names) or 'none'})",
+                source="data.dataset_weights",
+            )
+        if not w >= 0:
+            raise InputError(f"{name}: weight {w} is not >= 0", source="data.dataset_weights")
+    rng = np.random.default_rng(seed)
+    out = []
+    for name, first, stop in ts.datasets:
+        mine = anchors[(anchors >= first) & (anchors < stop)]
+        w = float(weights.get(name, 1.0))
+        whole, share = int(w), w - int(w)
+        out += [mine] * whole
+        if share > 0 and len(mine):
+            out.append(np.sort(rng.choice(mine, round(share * len(mine)), replace=False)))
+        log.info(
+            "dataset %s: %d anchors, weight %g: %d a epoch",
+            name,
+            len(mine),
+            w,
+            whole * len(mine) + (round(share * len(mine)) if share > 0 else 0),
+        )
+    return np.concatenate(out).astype(np.int64) if out else anchors[:0]
+
+
 class AnchorSampler:
     """Walks the anchors in a fresh random order each epoch; its state is a small JSON dict, so a
     resumed run continues with exactly the same batches."""

@@ -94,7 +94,8 @@ def prepare_data(
         training_set, loaded_val = load_training_data(cfg.data)
         val_runs = val_runs if val_runs is not None else loaded_val
     min_pos = min(2, t.positives)
-    anchors = training_set.anchors(min_positives=min_pos)
+    unweighted = training_set.anchors(min_positives=min_pos)
+    anchors = mining.weighted_anchors(training_set, unweighted, cfg.data.dataset_weights, t.seed)
     if len(anchors) < t.batch_size:
         raise InputError(
             f"only {len(anchors)} anchors with at least {min_pos} positives, fewer than the "
@@ -115,10 +116,11 @@ def prepare_data(
         val_runs = []
     if d.main:
         log.info(
-            "training set: %d submaps, %d anchors (%d skipped with < 2 positives)",
+            "training set: %d submaps, %d anchors (%d skipped with < 2 positives), %d an epoch",
             len(training_set),
+            len(unweighted),
+            len(training_set) - len(unweighted),
             len(anchors),
-            len(training_set) - len(anchors),
         )
     # Resampling holds the submaps whole (at least num_points: fit_points repeats rows of a
     # smaller one) and draws the subset in the step (train._embed).

@@ -84,6 +84,7 @@ def test_training_sets_of_two_datasets_pool_with_offsets(tmp_path) -> None:
     assert len(ts) == 50
     assert ts.paths[25] == tmp_path / "b" / "r" / "p" / "5.bin"
     assert ts.positives[25].tolist() == [24, 26]  # b's 4 and 6, offset by 20
+    assert ts.datasets == [("a", 0, 20), ("b", 20, 50)]  # what data.dataset_weights names
     # a negative of a b-submap is any a-submap (never near) or a b-submap beyond 50 m
     mask = ts.negative_mask(25, np.arange(50))
     assert mask[:20].all()

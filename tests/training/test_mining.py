@@ -247,3 +247,39 @@ def test_turned_copies_are_negatives_of_the_negatives_and_nobodys_positive() -> 
     assert tb is not None and set(tb.anchors.tolist()) <= {0, 1}
     for a, ns in zip(tb.anchors, tb.negatives, strict=True):
         assert all(neg2[a, n] for n in ns)
+
+
+def _two_datasets() -> TrainingSet:
+    """Two datasets pooled as training_set_from_tuples pools them: 'a' rows 0-19, 'b' 20-59."""
+    ts = line_set(60)
+    ts.datasets = [("a", 0, 20), ("b", 20, 60)]
+    return ts
+
+
+def test_dataset_weights_repeat_and_thin_each_datasets_anchors() -> None:
+    ts = _two_datasets()
+    anchors = ts.anchors()
+    assert mining.weighted_anchors(ts, anchors, {}, 0) is anchors
+    out = mining.weighted_anchors(ts, anchors, {"a": 3, "b": 0.5}, 0)
+    a = anchors[anchors < 20]
+    b = anchors[anchors >= 20]
+    # every anchor of 'a' exactly three times; half of 'b' (rounded), each at most once
+    counts = np.bincount(out, minlength=60)
+    assert (counts[a] == 3).all()
+    assert sorted(set(out[out >= 20].tolist())) == out[out >= 20].tolist()
+    assert len(out[out >= 20]) == round(0.5 * len(b)) and set(out[out >= 20]) <= set(b)
+    # seeded: the same half again; weight 0 leaves the dataset out; 2.5 = twice + a half
+    assert mining.weighted_anchors(ts, anchors, {"a": 3, "b": 0.5}, 0).tolist() == out.tolist()
+    assert set(mining.weighted_anchors(ts, anchors, {"a": 0}, 0).tolist()) == set(b.tolist())
+    c = np.bincount(mining.weighted_anchors(ts, anchors, {"b": 2.5}, 1), minlength=60)[b]
+    assert set(c.tolist()) == {2, 3} and (c == 3).sum() == round(0.5 * len(b))
+
+
+@pytest.mark.parametrize(
+    ("weights", "says"), [({"c": 1.0}, "no training dataset 'c' (have: a, b)"), ({"a": -1}, "-1")]
+)
+def test_dataset_weights_refuse_an_unknown_name_or_a_negative_weight(weights, says) -> None:
+    ts = _two_datasets()
+    with pytest.raises(InputError, match="data.dataset_weights") as err:
+        mining.weighted_anchors(ts, ts.anchors(), weights, 0)
+    assert says in str(err.value)

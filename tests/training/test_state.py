@@ -43,3 +43,17 @@ def test_prepare_data_fits_the_tuple_and_drops_a_one_run_validation(
     # in-batch mining draws its negatives from the batch: nothing to fit
     data = prepare_data(cfg.with_overrides({"train.mining": "in_batch"}), rt, ts, progress=False)
     assert (data.negatives, data.hard_negatives) == (18, 10)
+
+
+def test_prepare_data_weights_the_datasets(tmp_path: Path) -> None:
+    ts = _line_set(tmp_path, 24, 5.0)
+    ts.datasets = [("near", 0, 12), ("far", 12, 24)]
+    cfg = TrainConfig().with_overrides(
+        {"model.num_points": 16, "train.workers": 1, "data.dataset_weights": {"far": 2}}
+    )
+    data = prepare_data(cfg, Runtime(Dist(), torch.device("cpu")), ts, progress=False)
+    plain = ts.anchors()
+    assert sorted(data.anchors.tolist()) == sorted(
+        plain[plain < 12].tolist() + 2 * plain[plain >= 12].tolist()
+    )
+    assert data.clouds.shape[0] == 24  # the clouds are held once
