@@ -195,7 +195,10 @@ def package_model(
             extra={**checks, "packaged_from_weights_sha256": source_sha},
         )
         _check_sizes(entry, others, max_model_bytes, max_total_bytes)
-    new = Catalogue(cat.path, (*others, entry))
+    # A replaced model keeps its place in the catalogue (and in `pnvlad model list`).
+    names = [e.name for e in cat.entries]
+    at = names.index(name) if name in names else len(others)
+    new = Catalogue(cat.path, (*others[:at], entry, *others[at:]))
     import json
 
     atomic_write_text(cat.path, json.dumps(new.to_json(), indent=2) + "\n")

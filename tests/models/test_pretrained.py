@@ -233,8 +233,10 @@ def test_a_name_is_packaged_once_unless_replaced(trained: Path, catalogue: Path)
     package_model(trained, "bev-test", CARD, float16=False, onnx=False)
     with pytest.raises(InputError, match="already in the catalogue"):
         package_model(trained, "bev-test", CARD)
+    package_model(trained, "after", CARD, float16=False, onnx=False)
     entry = package_model(trained, "bev-test", CARD, onnx=False, overwrite=True)
-    assert entry.dtype == "float16" and Catalogue.read().names == ["bev-test"]
+    # replaced where it stood, not moved to the end of the list
+    assert entry.dtype == "float16" and Catalogue.read().names == ["bev-test", "after"]
     for bad, field in [("Bev_Test", "name"), ("../up", "name")]:
         with pytest.raises(InputError) as err:
             package_model(trained, bad, CARD)
