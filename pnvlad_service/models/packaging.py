@@ -121,6 +121,16 @@ class Card:
     date: str = ""
 
 
+def _with_entry(cat: Catalogue, entry: Entry) -> Catalogue:
+    """The catalogue with ``entry`` added at its end, or in place of the one of its name (a
+    replaced model keeps its place in ``pnvlad model list``)."""
+    names = [e.name for e in cat.entries]
+    if entry.name not in names:
+        return Catalogue(cat.path, (*cat.entries, entry))
+    at = names.index(entry.name)
+    return Catalogue(cat.path, (*cat.entries[:at], entry, *cat.entries[at + 1 :]))
+
+
 def package_model(
     source: str | Path,
     name: str,
@@ -195,10 +205,7 @@ def package_model(
             extra={**checks, "packaged_from_weights_sha256": source_sha},
         )
         _check_sizes(entry, others, max_model_bytes, max_total_bytes)
-    # A replaced model keeps its place in the catalogue (and in `pnvlad model list`).
-    names = [e.name for e in cat.entries]
-    at = names.index(name) if name in names else len(others)
-    new = Catalogue(cat.path, (*others[:at], entry, *others[at:]))
+    new = _with_entry(cat, entry)
     import json
 
     atomic_write_text(cat.path, json.dumps(new.to_json(), indent=2) + "\n")
