@@ -84,12 +84,16 @@ def test_shipped_configs_load() -> None:
     assert cpu.model == run16.model
     assert cpu.train.model_copy(update={"threads": 1}) == run16.train
     assert cpu.train.augment.active and cpu.train.lr_schedule == "cosine"
-    # bev: the cpu recipe's training (base: cpu) of ModelConfig.bev(), with wider margins.
+    # bev: the cpu recipe's training (base: cpu) of ModelConfig.bev(), with wider margins and
+    # scaling by up to 25 % (cpu: 3 %).
     from pnvlad_service.models.config import ModelConfig
 
     bev = TrainConfig.preset("bev")
     assert bev.model == ModelConfig.bev() and bev.data == cpu.data
-    assert bev.train == cpu.train.model_copy(update={"margin1": 1.0, "margin2": 0.5})
+    scaled = cpu.train.augment.model_copy(update={"scale": 0.25})
+    assert bev.train == cpu.train.model_copy(
+        update={"margin1": 1.0, "margin2": 0.5, "augment": scaled}
+    )
     # bev_scan / cpu_scan: those recipes for single scans, each cloud turned to its own
     # dominant direction, trained with turns of up to 5 degrees; bev_scan (run 42) with
     # quarter-turned in-batch negatives for 10 epochs.
@@ -97,7 +101,8 @@ def test_shipped_configs_load() -> None:
     for name, base in (("bev_scan", bev), ("cpu_scan", cpu)):
         scan = TrainConfig.preset(name)
         assert scan.model == base.model.model_copy(update={"canonical_heading": True})
-        augment = base.train.augment.model_copy(update={"yaw_deg": 5.0})
+        # both scan recipes scale by up to 3 % (bev's 25 % was measured on submaps only)
+        augment = base.train.augment.model_copy(update={"yaw_deg": 5.0, "scale": 0.03})
         assert scan.train == base.train.model_copy(update={"augment": augment, **extra[name]})
     with pytest.raises(InputError, match="bev, bev_scan, compact, cpu, cpu_scan, paper"):
         TrainConfig.preset("gpu")
