@@ -20,8 +20,7 @@ def _run(area: Path, name: str, north: list[float], scales: list[float], truth: 
     d.mkdir(parents=True)
     csv = d / "pointcloud_locations_20m.csv"
     csv.write_text(
-        "timestamp,northing,easting\n"
-        + "".join(f"{k},{n},600000.0\n" for k, n in enumerate(north))
+        "timestamp,northing,easting\n" + "".join(f"{k},{n},600000.0\n" for k, n in enumerate(north))
     )
     frames = []
     for k, (n, s) in enumerate(zip(north, scales, strict=True)):

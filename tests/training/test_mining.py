@@ -280,6 +280,6 @@ def test_dataset_weights_repeat_and_thin_each_datasets_anchors() -> None:
 )
 def test_dataset_weights_refuse_an_unknown_name_or_a_negative_weight(weights, says) -> None:
     ts = _two_datasets()
-    with pytest.raises(InputError, match="data.dataset_weights") as err:
+    with pytest.raises(InputError, match=r"data\.dataset_weights") as err:
         mining.weighted_anchors(ts, ts.anchors(), weights, 0)
     assert says in str(err.value)
