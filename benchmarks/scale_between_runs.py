@@ -26,20 +26,20 @@ from pathlib import Path
 import numpy as np
 from entry import run
 
-from pnvlad_service.data.frames import frames_path, read_frames_csv
+from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.errors import InputError
 
 SAME_PLACE_M = 5.0
 
 
-def _runs(area: Path) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(positions [N, 2], G's scales [N]) of each run of an area with a frames sidecar."""
+def _runs(tree: BenchmarkTree, area: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(positions [N, 2], G's scales [N]) of each run of an area whose test submaps have a
+    frames sidecar."""
     out = []
-    for csv_path in sorted(area.glob("*/pointcloud_locations_20m.csv")):
-        sidecar = frames_path(csv_path)
-        if not sidecar.exists():
+    for name in tree.runs(area):
+        frames = tree.frames(area, name, "test") if tree.has(area, name, "test") else None
+        if not frames:
             continue
-        frames = read_frames_csv(sidecar)
         xy = np.array(
             [(f.true_position if f.true_position is not None else f.origin)[:2] for f in frames]
         )
@@ -47,9 +47,9 @@ def _runs(area: Path) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def measure(area: Path) -> dict[str, float] | None:
+def measure(tree: BenchmarkTree, area: str) -> dict[str, float] | None:
     """The area's figures, or None when it has fewer than two runs with sidecars."""
-    runs = _runs(area)
+    runs = _runs(tree, area)
     if len(runs) < 2:
         return None
     ratios = []
@@ -85,13 +85,12 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="also write the figures here")
     args = ap.parse_args()
     res: dict[str, dict[str, float]] = {}
-    for tree in args.trees:
-        if not tree.is_dir():
-            raise InputError("not a directory", source=str(tree))
-        for area in sorted(p for p in tree.iterdir() if p.is_dir()):
-            figs = measure(area)
+    for root in args.trees:
+        tree = BenchmarkTree(root)
+        for area in tree.datasets:
+            figs = measure(tree, area)
             if figs is not None:
-                res[f"{tree.name}/{area.name}"] = figs
+                res[f"{root.name}/{area}"] = figs
     if not res:
         raise InputError("no area with two runs of frames sidecars", source=str(args.trees[0]))
     print(
