@@ -189,15 +189,16 @@ def weighted_anchors(
         mine = anchors[(anchors >= first) & (anchors < stop)]
         w = float(weights.get(name, 1.0))
         whole, share = int(w), w - int(w)
+        extra = round(share * len(mine))
         out += [mine] * whole
         if share > 0 and len(mine):
-            out.append(np.sort(rng.choice(mine, round(share * len(mine)), replace=False)))
+            out.append(np.sort(rng.choice(mine, extra, replace=False)))
         log.info(
             "dataset %s: %d anchors, weight %g: %d a epoch",
             name,
             len(mine),
             w,
-            whole * len(mine) + (round(share * len(mine)) if share > 0 else 0),
+            whole * len(mine) + extra,
         )
     return np.concatenate(out).astype(np.int64) if out else anchors[:0]
 
