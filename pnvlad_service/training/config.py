@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -118,7 +118,7 @@ class DataSection(BaseModel):
     splits: Path | None = Field(None, description="Splits JSON (pnvlad data splits).")
     pickles: Path | None = Field(None, description="Folder of the published pickles instead.")
     val_max_runs: int = Field(4, ge=2, description="Runs used by the periodic validation.")
-    dataset_weights: dict[str, float] = Field(
+    dataset_weights: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]] = Field(
         default_factory=dict,
         description="How often an epoch visits each dataset's anchors, by dataset folder name "
         "(1: once, the default; 3: three times; 0.5: a seeded half of them; 0: never, its "

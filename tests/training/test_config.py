@@ -38,6 +38,14 @@ def test_config_errors_name_the_field(tmp_path: Path) -> None:
         TrainConfig().with_overrides({"nope.x": 1})
     with pytest.raises(InputError):
         TrainConfig.from_file(tmp_path / "missing.yaml")
+    # a dataset weight is bounded where the config is read, as every numeric field is
+    for bad in ("-1", "inf"):
+        with pytest.raises(InputError, match=r"data\.dataset_weights\.business"):
+            TrainConfig().with_overrides(
+                parse_assignments([f"data.dataset_weights={{business: {bad}}}"])
+            )
+    ok = TrainConfig().with_overrides(parse_assignments(["data.dataset_weights={business: 2.5}"]))
+    assert ok.data.dataset_weights == {"business": 2.5}
 
 
 def test_set_assignments_reach_nested_fields_as_yaml_values() -> None:
