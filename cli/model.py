@@ -274,6 +274,12 @@ def package(
         256, "--check-count", help="With --check-root: submaps checked (the first ones)."
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a model of this name."),
+    embed_scales: str = typer.Option(
+        None,
+        "--embed-scales",
+        help="Scales to embed each cloud at, descriptors averaged (e.g. 0.85,1,1.18; the "
+        "model's embed_scales; '' for none). Default: as the model was trained.",
+    ),
 ) -> None:
     """Add a trained model to the pretrained catalogue (pnvlad_service/pretrained/).
 
@@ -303,8 +309,22 @@ def package(
         if check_tree is not None:
             points = _check_points(check_tree, check_count)
         card = Card(kind=kind, trained_with=trained_with, data=data, figures=figures)
+        scales = None
+        if embed_scales is not None:
+            try:
+                scales = tuple(float(v) for v in embed_scales.split(",") if v.strip())
+            except ValueError as exc:
+                msg = f"expected numbers, got {embed_scales!r}"
+                raise InputError(msg, "--embed-scales") from exc
         entry = package_model(
-            source, name, card, float16=float16, onnx=onnx, points=points, overwrite=overwrite
+            source,
+            name,
+            card,
+            float16=float16,
+            onnx=onnx,
+            points=points,
+            overwrite=overwrite,
+            embed_scales=scales,
         )
         fid = entry.extra["fidelity"]
         typer.echo(

@@ -60,6 +60,12 @@ class ModelConfig(BaseModel):
         "network (models/heading.py): for single scans, whose heading on the map is unknown; "
         "trained with train.augment.quarter_turns.",
     )
+    embed_scales: tuple[float, ...] = Field(
+        (),
+        description="Scales each cloud is embedded at, its descriptors averaged (the map's and "
+        "the queries' alike; training sees one scale): filter G draws one place at sizes that "
+        "differ between drives. Empty: the cloud as given.",
+    )
 
     # Per-point trunk: shared layers (1x1 convolutions, i.e. matrix products over points).
     stem_widths: tuple[int, ...] = Field(
@@ -146,6 +152,10 @@ class ModelConfig(BaseModel):
             raise ValueError("transform nets need at least one per-point layer")
         if 0 < self.local_k < 3:
             raise ValueError(f"local_k must be 0 or at least 3 (a covariance), got {self.local_k}")
+        if len(self.embed_scales) > 8 or not all(0.25 <= f <= 4 for f in self.embed_scales):
+            raise ValueError(f"embed_scales: at most 8, each in [0.25, 4], got {self.embed_scales}")
+        if self.embed_scales and self.local_k:
+            raise ValueError("embed_scales cannot rescale local shape features (local_k > 0)")
         if self.arch == "bev-netvlad":
             self._check_bev()
         return self
@@ -314,11 +324,11 @@ def map_turns(cfg: ModelConfig | dict) -> int:
 def config_sha256(cfg: ModelConfig) -> str:
     """SHA-256 (hex) of the configuration's canonical JSON (sorted keys, no spaces). Fields
     added since the first release are left out at their neutral value (``local_k`` 0,
-    ``canonical_heading`` false, the
+    ``canonical_heading`` false, ``embed_scales`` empty, the
     ``bev_*`` fields of a PointNet model), so a model's hash does not change with the release
     that reads it."""
     doc = cfg.model_dump(mode="json")
-    for name in ("local_k", "canonical_heading"):
+    for name in ("local_k", "canonical_heading", "embed_scales"):
         if not doc[name]:
             del doc[name]
     if cfg.arch != "bev-netvlad":

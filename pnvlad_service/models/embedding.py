@@ -20,6 +20,25 @@ if TYPE_CHECKING:
 EmbedFn = Callable[[np.ndarray], np.ndarray]
 
 
+def over_scales(
+    forward: Callable[[Any], Any], x: Any, scales: tuple[float, ...], l2: Callable[[Any], Any]
+) -> Any:
+    """``forward(x)``, or with ``scales`` (``ModelConfig.embed_scales``) the sum of
+    ``forward(x * s)`` over them made a unit row again by ``l2``: the descriptors of one batch
+    ``x`` [B, N, 3] (numpy or torch, as ``forward`` takes) averaged over the scales."""
+    if not scales:
+        return forward(x)
+    total = forward(x * scales[0])
+    for s in scales[1:]:
+        total = total + forward(x * s)
+    return l2(total)
+
+
+def unit_rows(a: np.ndarray) -> np.ndarray:
+    """``a`` [B, D] with each row divided by its L2 norm (at least 1e-12)."""
+    return a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+
+
 class Embedder(Protocol):
     """What embeds clouds (``models.inference.Encoder`` fits)."""
 

@@ -46,6 +46,7 @@ import numpy as np
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.models.config import ModelConfig
+from pnvlad_service.models.embedding import over_scales
 from pnvlad_service.models.folding import Dense, cast_folded, fold_model
 from pnvlad_service.models.local_shape import split_inputs
 
@@ -248,9 +249,18 @@ class Encoder:
         out = torch.empty((x.shape[0], self.dim), dtype=torch.float32)
         with torch.inference_mode():
             q = self._all_threads(self._cast, self.dtype)  # the first cast copies every weight
+
+            def forward(c: torch.Tensor) -> torch.Tensor:
+                return self._forward(c, q)
+
+            def unit(t: torch.Tensor) -> torch.Tensor:
+                return torch.nn.functional.normalize(t, dim=1)
+
             for s in range(0, x.shape[0], self.batch_size):
                 chunk = x[s : s + self.batch_size].to(self.device, torch.float32)
-                out[s : s + chunk.shape[0]] = self._forward(chunk, q).cpu()
+                out[s : s + chunk.shape[0]] = over_scales(
+                    forward, chunk, self.cfg.embed_scales, unit
+                ).cpu()
         return out.numpy()
 
     def _as_tensor(self, points: Any) -> torch.Tensor:

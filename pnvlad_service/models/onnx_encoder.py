@@ -42,6 +42,7 @@ import numpy as np
 from pnvlad_service.errors import InputError
 from pnvlad_service.extras import require
 from pnvlad_service.models.config import ModelConfig, config_sha256
+from pnvlad_service.models.embedding import over_scales, unit_rows
 
 log = logging.getLogger(__name__)
 
@@ -414,7 +415,9 @@ class OnnxEncoder:
         out = np.empty((x.shape[0], self.dim), dtype=np.float32)
         for s in range(0, x.shape[0], self.batch_size):
             chunk = x[s : s + self.batch_size]
-            out[s : s + chunk.shape[0]] = self._forward(chunk)
+            out[s : s + chunk.shape[0]] = over_scales(
+                self._forward, chunk, self.cfg.embed_scales, unit_rows
+            )
         return out
 
     def _as_array(self, points: Any) -> np.ndarray:

@@ -23,6 +23,7 @@ import numpy as np
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_directory, atomic_write_text, sha256_file
 from pnvlad_service.models import pretrained, store
+from pnvlad_service.models.config import ModelConfig
 from pnvlad_service.models.pretrained import Catalogue, Entry, FileRecord
 
 log = logging.getLogger(__name__)
@@ -141,6 +142,7 @@ def package_model(
     points: np.ndarray | None = None,
     catalogue: str | Path | None = None,
     overwrite: bool = False,
+    embed_scales: tuple[float, ...] | None = None,
     max_model_bytes: int = pretrained.MAX_MODEL_BYTES,
     max_total_bytes: int = pretrained.MAX_TOTAL_BYTES,
 ) -> Entry:
@@ -148,7 +150,8 @@ def package_model(
     package's, or ``$PNVLAD_PRETRAINED``) as ``name``; returns its entry. :class:`InputError`
     for a bad name or kind, a name already there (without ``overwrite``), a stored model whose
     descriptors fall below cosine :data:`MIN_COSINE` of the original's, or sizes over the
-    limits; nothing is written then."""
+    limits; nothing is written then. ``embed_scales``: the packaged model's
+    ``ModelConfig.embed_scales`` (None: the source's)."""
     if not pretrained.NAME_RE.match(name):
         raise InputError("use lower-case letters, digits and dashes (e.g. bev-benchmark)", "name")
     if card.kind not in pretrained.KINDS:
@@ -159,6 +162,11 @@ def package_model(
         raise InputError("already in the catalogue (pass overwrite to replace it)", name)
     src = store.resolve_model_dir(source)
     original, cfg = store.load_model(src)
+    if embed_scales is not None:
+        try:
+            cfg = ModelConfig.model_validate({**cfg.model_dump(), "embed_scales": embed_scales})
+        except ValueError as exc:
+            raise InputError(str(exc).splitlines()[-1].strip(), "embed_scales") from exc
     source_sha = store.weights_sha256(src)
     target = cat.root / name
     # A directory under the name that the catalogue does not list is a leftover: replaced.

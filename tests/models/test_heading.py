@@ -200,13 +200,14 @@ def test_config_hash_leaves_canonical_heading_out_when_false() -> None:
     cfg = ModelConfig.model_validate(old["config"])
     assert config_sha256(cfg) == old["config_sha256"]
     assert config_sha256(cfg.model_copy(update={"canonical_heading": True})) != old["config_sha256"]
-    # bev-netvlad: the hash of the canonical JSON without the field (nor local_k at 0).
+    # bev-netvlad: the hash of the canonical JSON without the field (nor local_k at 0, nor
+    # embed_scales empty).
     for overrides in (BEV, {}):
         cfg = ModelConfig.bev(**overrides)
         doc = {
             k: v
             for k, v in cfg.model_dump(mode="json").items()
-            if k not in ("canonical_heading", "local_k")
+            if k not in ("canonical_heading", "local_k", "embed_scales")
         }
         text = json.dumps(doc, sort_keys=True, separators=(",", ":"))
         assert config_sha256(cfg) == hashlib.sha256(text.encode()).hexdigest()

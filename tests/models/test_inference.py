@@ -320,3 +320,33 @@ def test_the_runtime_line_gives_the_embedding_threads_whatever_thread_asks() -> 
     caller.start()
     caller.join()
     assert seen == [f"torch {torch.__version__}, {embedding} threads"]
+
+
+@pytest.mark.parametrize("name", ["bev", "compact"])
+def test_embed_scales_average_the_descriptors_of_the_rescaled_clouds(name: str) -> None:
+    """``embed_scales``: the descriptor is the unit mean of the plain encoder's descriptors of
+    the cloud multiplied by each scale (computed here from the plain encoder); no scales is
+    the plain encoder, and the hash of a model without them is the one it had before."""
+    from pnvlad_service.models.bev import BEVNetVLAD
+    from pnvlad_service.models.config import config_sha256
+    from tests.models.helpers import BEV_SMALL
+
+    plain = BEV_SMALL if name == "bev" else CONFIGS["compact"]
+    model = BEVNetVLAD(plain).eval() if name == "bev" else trained_like(plain)
+    scaled = plain.model_copy(update={"embed_scales": (0.8, 1.0, 1.25)})
+    x = clouds(5, n=200, seed=7).numpy() * 0.7
+    base = Encoder(model, plain)
+    want = sum(base.embed(x * s) for s in (0.8, 1.0, 1.25))
+    want /= np.linalg.norm(want, axis=1, keepdims=True)
+    got = Encoder(model, scaled).embed(x)
+    np.testing.assert_allclose(got, want, atol=2e-6)
+    assert np.abs(got - base.embed(x)).max() > 1e-4  # the scales change it
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-6)
+    assert config_sha256(scaled) != config_sha256(plain)  # and plain's: test_config.py
+    for bad in ((0.1,), (1.0,) * 9):
+        with pytest.raises(ValueError, match="embed_scales"):
+            plain.model_copy(update={"embed_scales": bad}).model_validate(
+                {**plain.model_dump(), "embed_scales": bad}
+            )
+    with pytest.raises(ValueError, match="local shape"):
+        ModelConfig.compact(local_k=8, embed_scales=(1.0, 1.2))

@@ -270,3 +270,16 @@ def test_the_same_top1_on_the_tiny_citys_submaps(tiny: Path, tmp_path: Path) -> 
         assert len(x) >= 100
         assert cosines(got, want).min() >= MIN_COS
         assert (other_distances(got).argmin(1) == other_distances(want).argmin(1)).all(), name
+
+
+def test_onnx_runtime_averages_over_the_embed_scales_as_torch_does() -> None:
+    """``embed_scales`` is applied outside the graph: ONNX Runtime's descriptors of the
+    rescaled clouds averaged are torch's, and differ from those of the clouds as given."""
+    cfg = BEV_SMALL.model_copy(update={"embed_scales": (0.85, 1.0, 1.18)})
+    model = trained_bev_like(cfg)
+    x = clouds(4, n=300, seed=9).numpy() * 0.8
+    want = Encoder(model, cfg).embed(x)
+    got = onnx_of(model, cfg).embed(x)
+    assert cosines(got, want).min() >= MIN_COS
+    plain = onnx_of(model, BEV_SMALL).embed(x)
+    assert np.abs(got - plain).max() > 10 * np.abs(got - want).max()

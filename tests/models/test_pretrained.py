@@ -278,6 +278,38 @@ def test_the_cli_packages_with_figures(trained: Path, catalogue: Path) -> None:
     assert res.exit_code == 2 and "--figure" in res.output
 
 
+def test_embed_scales_are_set_at_packaging_and_embed_by_them(
+    trained: Path, catalogue: Path
+) -> None:
+    """``--embed-scales``: the packaged model's config carries them, it embeds as the source
+    with them would (and not as the source as trained), the catalogue entry's files match; a
+    bad value is one error naming the option and nothing is written."""
+    res = CliRunner().invoke(
+        app,
+        ["model", "package", str(trained), "--name", "bev-ms", "--no-onnx",
+         "--embed-scales", "0.8,1,1.25"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    model, cfg = load_model(resolve_model_dir("pretrained:bev-ms"))
+    assert cfg.embed_scales == (0.8, 1.0, 1.25)
+    source, source_cfg = load_model(trained)
+    x = np.random.default_rng(3).uniform(-0.6, 0.6, (4, 256, 3)).astype(np.float32)
+    scaled_cfg = source_cfg.model_copy(update={"embed_scales": (0.8, 1.0, 1.25)})
+    got = Encoder(model, cfg).embed(x)
+    assert _cosines(got, Encoder(source, scaled_cfg).embed(x)).min() > 0.999
+    want = sum(Encoder(source, source_cfg).embed(x * s) for s in (0.8, 1.0, 1.25))
+    want /= np.linalg.norm(want, axis=1, keepdims=True)
+    assert _cosines(got, want).min() > 0.999
+    for bad, says in (("0.8,x", "--embed-scales"), ("0.1,1", "embed_scales")):
+        res = CliRunner().invoke(
+            app,
+            ["model", "package", str(trained), "--name", "bev-bad", "--embed-scales", bad],
+        )
+        assert res.exit_code != 0 and says in res.output, res.output
+        assert "bev-bad" not in [e.name for e in Catalogue.read().entries]
+        assert not (catalogue.parent / "bev-bad").exists()
+
+
 def test_the_models_verification_threshold_goes_with_it(
     trained: Path, catalogue: Path, tmp_path: Path
 ) -> None:

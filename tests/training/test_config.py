@@ -93,11 +93,11 @@ def test_shipped_configs_load() -> None:
     assert cpu.train.model_copy(update={"threads": 1}) == run16.train
     assert cpu.train.augment.active and cpu.train.lr_schedule == "cosine"
     # bev: the cpu recipe's training (base: cpu) of ModelConfig.bev(), with wider margins and
-    # scaling by up to 25 % (cpu: 3 %).
+    # scaling by up to 25 % (cpu: 3 %); its encoder averages three scales.
     from pnvlad_service.models.config import ModelConfig
 
     bev = TrainConfig.preset("bev")
-    assert bev.model == ModelConfig.bev() and bev.data == cpu.data
+    assert bev.model == ModelConfig.bev(embed_scales=(0.85, 1.0, 1.18)) and bev.data == cpu.data
     scaled = cpu.train.augment.model_copy(update={"scale": 0.25})
     assert bev.train == cpu.train.model_copy(
         update={"margin1": 1.0, "margin2": 0.5, "augment": scaled}
@@ -108,8 +108,10 @@ def test_shipped_configs_load() -> None:
     extra = {"bev_scan": {"epochs": 10, "turned_negatives": True}, "cpu_scan": {}}
     for name, base in (("bev_scan", bev), ("cpu_scan", cpu)):
         scan = TrainConfig.preset(name)
-        assert scan.model == base.model.model_copy(update={"canonical_heading": True})
-        # both scan recipes scale by up to 3 % (bev's 25 % was measured on submaps only)
+        update = {"canonical_heading": True, "embed_scales": ()}
+        assert scan.model == base.model.model_copy(update=update)
+        # both scan recipes scale by up to 3 % and embed one scale (bev's 25 % and its three
+        # scales were measured on submaps only)
         augment = base.train.augment.model_copy(update={"yaw_deg": 5.0, "scale": 0.03})
         assert scan.train == base.train.model_copy(update={"augment": augment, **extra[name]})
     with pytest.raises(InputError, match="bev, bev_scan, compact, cpu, cpu_scan, paper"):
