@@ -309,13 +309,6 @@ def package(
         if check_tree is not None:
             points = _check_points(check_tree, check_count)
         card = Card(kind=kind, trained_with=trained_with, data=data, figures=figures)
-        scales = None
-        if embed_scales is not None:
-            try:
-                scales = tuple(float(v) for v in embed_scales.split(",") if v.strip())
-            except ValueError as exc:
-                msg = f"expected numbers, got {embed_scales!r}"
-                raise InputError(msg, "--embed-scales") from exc
         entry = package_model(
             source,
             name,
@@ -324,7 +317,7 @@ def package(
             onnx=onnx,
             points=points,
             overwrite=overwrite,
-            embed_scales=scales,
+            embed_scales=_scales(embed_scales),
         )
         fid = entry.extra["fidelity"]
         typer.echo(
@@ -333,6 +326,18 @@ def package(
             f"cosine {fid['min_cosine']:.6f} of the original's on {fid['clouds']} clouds, "
             f"top-1 agreement {fid['top1_agreement']:.3f}"
         )
+
+
+def _scales(text: str | None) -> tuple[float, ...] | None:
+    """``--embed-scales``: comma-separated numbers ('' for none; None: not given)."""
+    from pnvlad_service.errors import InputError
+
+    if text is None:
+        return None
+    try:
+        return tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError as exc:
+        raise InputError(f"expected numbers, got {text!r}", "--embed-scales") from exc
 
 
 def _number(text: str) -> float | int | str:

@@ -13,6 +13,7 @@ sizes. Needs torch (and onnx for ``model.onnx``).
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -162,11 +163,7 @@ def package_model(
         raise InputError("already in the catalogue (pass overwrite to replace it)", name)
     src = store.resolve_model_dir(source)
     original, cfg = store.load_model(src)
-    if embed_scales is not None:
-        try:
-            cfg = ModelConfig.model_validate({**cfg.model_dump(), "embed_scales": embed_scales})
-        except ValueError as exc:
-            raise InputError(str(exc).splitlines()[-1].strip(), "embed_scales") from exc
+    cfg = _with_scales(cfg, embed_scales)
     source_sha = store.weights_sha256(src)
     target = cat.root / name
     # A directory under the name that the catalogue does not list is a leftover: replaced.
@@ -191,9 +188,8 @@ def package_model(
             from pnvlad_service.models.onnx_export import export_onnx
 
             onnx_cosine = export_onnx(tmp, float16=float16).min_cosine
-        checks = {"fidelity": fid.to_json()}
-        if onnx:
-            checks["onnx_min_cosine"] = round(onnx_cosine, 7)
+        checks: dict[str, Any] = {"fidelity": fid.to_json()}
+        checks.update({"onnx_min_cosine": round(onnx_cosine, 7)} if onnx else {})
         files = {
             p.name: FileRecord(sha256=sha256_file(p), bytes=p.stat().st_size)
             for p in sorted(tmp.iterdir())
@@ -214,11 +210,20 @@ def package_model(
         )
         _check_sizes(entry, others, max_model_bytes, max_total_bytes)
     new = _with_entry(cat, entry)
-    import json
-
     atomic_write_text(cat.path, json.dumps(new.to_json(), indent=2) + "\n")
     log.info("packaged %s as %s (%.1f MiB) in %s", src, name, entry.bytes / 2**20, cat.path)
     return entry
+
+
+def _with_scales(cfg: ModelConfig, scales: tuple[float, ...] | None) -> ModelConfig:
+    """``cfg`` with ``embed_scales`` set to ``scales`` (None: as it is), checked as the field
+    is (:class:`InputError` naming it)."""
+    if scales is None:
+        return cfg
+    try:
+        return ModelConfig.model_validate({**cfg.model_dump(), "embed_scales": scales})
+    except ValueError as exc:
+        raise InputError(str(exc).splitlines()[-1].strip(), "embed_scales") from exc
 
 
 #: The verification threshold chosen for a model (``localization/calibration.py``).
@@ -231,8 +236,6 @@ def _carry_calibration(src: Path, tmp: Path, source_sha: str) -> None:
     :data:`MIN_COSINE`, so the threshold chosen on them holds) with the original weights'
     sha256 kept as ``calibrated_on_weights_sha256``; one chosen for other weights is left out
     with a warning."""
-    import json
-
     path = src / CALIBRATION_FILE
     if not path.is_file():
         return
