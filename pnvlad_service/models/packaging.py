@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import atomic_directory, atomic_write_text, sha256_file
@@ -163,7 +164,7 @@ def package_model(
         raise InputError("already in the catalogue (pass overwrite to replace it)", name)
     src = store.resolve_model_dir(source)
     original, cfg = store.load_model(src)
-    cfg = _with_scales(cfg, embed_scales)
+    cfg = _with_scales(cfg, embed_scales, src)
     source_sha = store.weights_sha256(src)
     target = cat.root / name
     # A directory under the name that the catalogue does not list is a leftover: replaced.
@@ -184,12 +185,11 @@ def package_model(
                 src,
             )
         _carry_calibration(src, tmp, source_sha)
+        checks = {"fidelity": fid.to_json()}
         if onnx:
             from pnvlad_service.models.onnx_export import export_onnx
 
-            onnx_cosine = export_onnx(tmp, float16=float16).min_cosine
-        checks: dict[str, Any] = {"fidelity": fid.to_json()}
-        checks.update({"onnx_min_cosine": round(onnx_cosine, 7)} if onnx else {})
+            checks["onnx_min_cosine"] = round(export_onnx(tmp, float16=float16).min_cosine, 7)
         files = {
             p.name: FileRecord(sha256=sha256_file(p), bytes=p.stat().st_size)
             for p in sorted(tmp.iterdir())
@@ -215,15 +215,16 @@ def package_model(
     return entry
 
 
-def _with_scales(cfg: ModelConfig, scales: tuple[float, ...] | None) -> ModelConfig:
-    """``cfg`` with ``embed_scales`` set to ``scales`` (None: as it is), checked as the field
-    is (:class:`InputError` naming it)."""
+def _with_scales(cfg: ModelConfig, scales: tuple[float, ...] | None, src: Path) -> ModelConfig:
+    """``cfg`` (of the model ``src``) with ``embed_scales`` set to ``scales`` (None: as it is),
+    checked as the field is (:class:`InputError` naming the model and the field)."""
     if scales is None:
         return cfg
     try:
         return ModelConfig.model_validate({**cfg.model_dump(), "embed_scales": scales})
-    except ValueError as exc:
-        raise InputError(str(exc).splitlines()[-1].strip(), "embed_scales") from exc
+    except ValidationError as exc:
+        msg = exc.errors()[0]["msg"].removeprefix("Value error, ")
+        raise InputError(msg, src) from None
 
 
 #: The verification threshold chosen for a model (``localization/calibration.py``).
