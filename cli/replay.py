@@ -67,8 +67,10 @@ ODOMETRY = typer.Option(
     "auto",
     "--odometry",
     help="Following: the motion between scans from 'poses' (--pose-topic / --tf, or the KITTI "
-    "poses), 'kiss-icp' (LiDAR odometry on the scans, extra 'odometry') or 'none' (constant "
-    "velocity); 'auto': poses when given, else kiss-icp when installed, else none.",
+    "poses), 'registered' (those poses' steps refined by registering each scan onto the one "
+    "before it: centimetres where a GNSS/INS step is decimetres off), 'kiss-icp' (LiDAR "
+    "odometry on the scans, extra 'odometry') or 'none' (constant velocity); 'auto': "
+    "registered when poses are given, else kiss-icp when installed, else none.",
     rich_help_panel=PANEL,
 )
 WINDOW = typer.Option(

@@ -96,7 +96,7 @@ def test_follow_a_bag_against_a_real_server(tiny_maps: dict, bag: dict, tmp_path
         stop_server(proc)
     assert res.exit_code == 0, res.output
     lines = res.stdout.strip().splitlines()
-    assert lines[0] == f"wrote {out}.csv, {out}.png" and lines[1] == "odometry: poses"
+    assert lines[0] == f"wrote {out}.csv, {out}.png" and lines[1] == "odometry: registered"
     rows = read_rows(Path(f"{out}.csv"))
     assert tuple(rows[0]) == COLUMNS["tracked"]
     assert [int(r["scan"]) for r in rows] == list(range(SCANS))
@@ -137,8 +137,12 @@ def test_follow_here_and_the_options_refused(tiny_maps: dict, bag: dict, tmp_pat
     assert not Path(f"{out}.png").exists()
     kitti = ["localize", "--kitti", str(tmp_path), "--index", str(tiny_maps["keys"])]
     cases = [
-        ([*base, "--odometry", "wheels"], "--odometry: must be auto, poses, kiss-icp or none"),
+        (
+            [*base, "--odometry", "wheels"],
+            "--odometry: must be auto, poses, registered, kiss-icp or none",
+        ),
         ([*base, "--odometry", "poses"], "--odometry: the drive has no poses"),
+        ([*base, "--odometry", "registered"], "--odometry: the drive has no poses"),
         ([*base, "--confirm", "0"], "--confirm: confirm and failures must be at least 1"),
         ([*base, "--radius", "-2"], "--radius: radius_m must be > 0"),
         ([*base, "--per-scan", "--radius", "5"], "--radius: applies to following"),

@@ -94,7 +94,7 @@ def test_a_whole_drive_from_its_config(tmp_path) -> None:
     result = run_job(config, StandInDrive(), svc, source=tmp_path / "bag", truth=true_poses())
     assert result.written == [tmp_path / "stand-in.follow.csv"]
     lines = result.lines()
-    assert lines[:2] == [f"wrote {tmp_path / 'stand-in.follow.csv'}", "odometry: poses"]
+    assert lines[:2] == [f"wrote {tmp_path / 'stand-in.follow.csv'}", "odometry: registered"]
     assert lines[-1] == result.summary.line() and lines[-1].startswith(f"follow: {N} scans")
     assert any(line.startswith("stages, tracking (") for line in lines)
     again = read_rows(result.written[0])

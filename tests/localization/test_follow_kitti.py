@@ -80,7 +80,7 @@ def test_a_kitti_drive_is_followed(real_scans: Path, tmp_path: Path) -> None:
                           "--origin", f"{float(first[1, 3])!r},{float(first[0, 3])!r}",
                           "--yaw", repr(yaw), "--out", str(out), "--no-progress"])  # fmt: skip
         lines = stdout.strip().splitlines()
-        assert lines[0] == f"wrote {out}.csv, {out}.png" and lines[1] == "odometry: poses"
+        assert lines[0] == f"wrote {out}.csv, {out}.png" and lines[1] == "odometry: registered"
         assert lines[-1].startswith("follow: 2 scans in ")
         with open(f"{out}.csv", newline="") as fh:
             rows = list(csv.DictReader(fh))
@@ -118,4 +118,4 @@ def test_a_kitti_drive_is_followed(real_scans: Path, tmp_path: Path) -> None:
     assert float(rows[0]["true_northing"]) == pytest.approx(first[1, 3], abs=1e-3)
     lines = run_cli(["localize", "--per-scan", "--kitti", seq, *place,
                      "--out", str(tmp_path / "old")]).strip().splitlines()  # fmt: skip
-    assert lines[1] == "odometry: poses" and lines[-1].startswith("follow: 2 scans in ")
+    assert lines[1] == "odometry: registered" and lines[-1].startswith("follow: 2 scans in ")

@@ -93,7 +93,8 @@ class OutputConfig(_Section):
 class DriveConfig(_Section):
     """A drive's settings: the ``policy`` (``tracked``: followed by the drive localiser;
     ``per-scan``: each scan asked alone), ``every`` Nth scan (default 1 tracked, 10 per-scan),
-    the ``odometry`` of a tracked drive (``auto``, ``poses``, ``kiss-icp`` or ``none``),
+    the ``odometry`` of a tracked drive (``auto``, ``poses``, ``registered``, ``kiss-icp`` or
+    ``none``),
     ``window_m`` (per-scan: ask with the last metres of driving laid together) and the
     sections."""
 

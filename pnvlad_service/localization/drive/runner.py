@@ -29,6 +29,7 @@ import numpy as np
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.drive.rows import PER_SCAN, TRACKED, DriveRow, Policy
+from pnvlad_service.localization.drive.scan_steps import ScanSteps
 from pnvlad_service.localization.drive.service import Ask, Reply
 from pnvlad_service.localization.drive.tracking import (
     DriveLocalizer,
@@ -41,21 +42,24 @@ from pnvlad_service.localization.outputs.sinks import Outputs, Sink
 from pnvlad_service.localization.outputs.step import DriveStep, roll_pitch_yaw, upper_triangle
 
 #: Where a tracked drive's motion between scans comes from.
-ODOMETRY = ("auto", "poses", "kiss-icp", "none")
+ODOMETRY = ("auto", "poses", "registered", "kiss-icp", "none")
 
 
 def choose_odometry(choice: str, has_poses: bool) -> str:
-    """``odometry``: ``auto`` resolved (the drive's poses, else KISS-ICP when installed, else
-    none); InputError naming ``odometry`` for an unknown choice or poses the drive lacks."""
+    """``odometry``: ``auto`` resolved (the drive's poses with their steps refined by the
+    scans, else KISS-ICP when installed, else none); InputError naming ``odometry`` for an
+    unknown choice or poses the drive lacks."""
     if choice not in ODOMETRY:
-        raise InputError(f"must be auto, poses, kiss-icp or none, got {choice!r}", "odometry")
-    if choice == "poses" and not has_poses:
+        raise InputError(
+            f"must be auto, poses, registered, kiss-icp or none, got {choice!r}", "odometry"
+        )
+    if choice in ("poses", "registered") and not has_poses:
         raise InputError("the drive has no poses: give --pose-topic or --tf, or choose "
                          "kiss-icp or none", "odometry")  # fmt: skip
     if choice != "auto":
         return choice
     if has_poses:
-        return "poses"
+        return "registered"
     import importlib.util
 
     return "kiss-icp" if importlib.util.find_spec("kiss_icp") is not None else "none"
@@ -150,10 +154,11 @@ class _Tracked:
         config: TrackerConfig | None,
         initial_pose: np.ndarray | None,
     ) -> None:
-        if odometry == "poses" and poses is None:
+        if odometry in ("poses", "registered") and poses is None:
             raise InputError("the drive has no poses to use as odometry", "odometry")
         self.odometry, self.poses = odometry, poses
         self.lidar = None
+        self.steps = ScanSteps() if odometry == "registered" else None
         if odometry == "kiss-icp":
             from pnvlad_service.data.sources.odometry import LidarOdometry
 
@@ -171,6 +176,9 @@ class _Tracked:
         if self.odometry == "poses":
             assert self.poses is not None
             odo = self.poses[i]
+        elif self.steps is not None:
+            assert self.poses is not None
+            odo = self.steps.update(points, self.poses[i])
         elif self.lidar is not None:
             try:
                 odo = self.lidar.update(points)
@@ -224,7 +232,8 @@ def run_drive(
     """Scans 0, ``every``, 2 * ``every``, ... of ``drive`` asked by ``policy``
     (``every`` default: 1 tracked, 10 per-scan): one :class:`~.rows.DriveRow` a scan.
 
-    ``odometry`` (tracked): ``poses`` (the drive's ``poses``), ``kiss-icp``
+    ``odometry`` (tracked): ``poses`` (the drive's ``poses``), ``registered`` (their steps
+    refined by registering each scan onto the one before it, :mod:`.scan_steps`), ``kiss-icp``
     (:class:`~pnvlad_service.data.sources.odometry.LidarOdometry` on the scans, extra
     ``odometry``) or ``none`` (constant velocity); ``config``, ``initial_pose``: the
     :class:`~.tracking.DriveLocalizer`'s; ``windows`` (per-scan): ask with accumulated

@@ -1,0 +1,132 @@
+"""The odometry's steps refined by the scans: each scan registered onto the one before it.
+
+A tracked drive predicts each scan's pose by moving the last verified pose by the odometry's
+step (:mod:`.tracking`), and registers the scan to the map from that prediction. A recorded
+pose stream is often poor at that scale: a GNSS/INS fix's error wanders by decimetres between
+two scans a few metres apart (the benchmark's drives: the registration moved the prediction
+0.37 m at the median, 0.66 m at p90), and a registration started that far off can settle in
+the wrong groove of a street whose facades leave the shift along it nearly free. Two
+consecutive scans see almost the same street, so the scan registered onto the one before it,
+started from the recorded step, gives the step itself to about a centimetre (the map
+alignment's steps between keyframes 5 m apart: 1 cm and 0.01 degree at the median,
+docs/ALIGN.md). :class:`ScanSteps` chains those refined steps into an odometry of its own;
+the tracker uses it as it would the recorded poses (only their steps count).
+
+A step the registration does not confirm (a degenerate or empty scan, too low a fitness, a
+result farther from the recorded step than ``gate_m`` / ``gate_deg``) is the recorded step
+as it is: the chain never moves where the recording did not, beyond the gate. A scan without
+a recorded pose breaks the chain (the next one starts it again), as it breaks the recorded
+odometry.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pnvlad_service.localization.verify import registration as reg
+
+#: The registration of one scan onto the one before it: the map alignment's odometry's (0.5 m
+#: voxels, where the verification's 1 m keeps a sixth of a scan's structure), one thread.
+STEP_REGISTRATION = reg.RegistrationConfig(threads=1, fine_voxel_m=0.5, vgicp_leaf_m=0.5)
+
+
+@dataclass(frozen=True)
+class ScanStepConfig:
+    """``min_fitness``: a registration scoring less leaves the recorded step; ``gate_m`` /
+    ``gate_deg``: ... as does one farther than this from it (the recorded step's own error is
+    decimetres; a registration metres off slid along a street); ``same_m`` / ``same_deg``: the
+    last refined step is tried as a second start when it is farther than this from the
+    recorded one; ``registration``: its
+    settings (started from the recorded step: no yaw search)."""
+
+    min_fitness: float = 0.3
+    gate_m: float = 1.5
+    gate_deg: float = 3.0
+    same_m: float = 0.2
+    same_deg: float = 1.0
+    registration: reg.RegistrationConfig = field(default_factory=lambda: STEP_REGISTRATION)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_fitness <= 1.0:
+            raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
+        if not (self.gate_m > 0 and self.gate_deg > 0):
+            raise ValueError(f"gate_m and gate_deg must be > 0, got {self.gate_m}, {self.gate_deg}")
+
+
+def _yaw_deg(t: np.ndarray) -> float:
+    return math.degrees(math.atan2(t[1, 0], t[0, 0]))
+
+
+class ScanSteps:
+    """The recorded poses of a drive, each step refined by registering the scan onto the one
+    before it (see the module doc). ``refined`` / ``kept``: how many steps the registration
+    refined and how many kept the recorded step."""
+
+    def __init__(self, config: ScanStepConfig | None = None) -> None:
+        self.config = config or ScanStepConfig()
+        self._last: reg.Prepared | None = None
+        self._recorded: np.ndarray | None = None
+        self._pose: np.ndarray | None = None
+        self._step: np.ndarray | None = None
+        self.refined = 0
+        self.kept = 0
+
+    def update(self, points: np.ndarray, recorded: np.ndarray | None) -> np.ndarray | None:
+        """The scan's pose in the chain's own frame (float64 [4, 4]) from its ``points``
+        (sensor frame, metres) and its ``recorded`` pose (sensor -> the recording's frame);
+        ``None`` when it has no recorded pose."""
+        rc = self.config.registration
+        scan = reg.prepare(points, rc, "both", search=False)
+        if recorded is None:
+            self._last = self._recorded = self._pose = self._step = None
+            return None
+        recorded = np.asarray(recorded, dtype=np.float64)
+        if self._pose is None or self._recorded is None:
+            self._pose = recorded.copy()
+        else:
+            step = np.linalg.inv(self._recorded) @ recorded
+            self._pose = self._pose @ self._refine(scan, step)
+        self._last = scan if scan.reason is None else None
+        self._recorded = recorded
+        return self._pose.copy()
+
+    def _refine(self, scan: reg.Prepared, step: np.ndarray) -> np.ndarray:
+        """The step from the last scan to ``scan``: registered from the recorded ``step`` (and
+        from the last refined step, where the two differ: a vehicle's motion changes little
+        between two scans, a recording's error can change by a metre), the better fit of
+        those the gates pass; ``step`` itself where none does."""
+        c = self.config
+        if self._last is None or scan.reason is not None:
+            return self._kept(step)
+        starts = [step]
+        if self._step is not None:
+            off_m, off_deg = _apart(self._step, step)
+            if off_m > c.same_m or off_deg > c.same_deg:
+                starts.append(self._step)
+        best = None
+        for start in starts:
+            r = reg.register(scan, self._last, c.registration, init=start)
+            off_m, off_deg = _apart(r.transform, step)
+            passes = r.reason is None and r.fitness >= c.min_fitness
+            passes = passes and off_m <= c.gate_m and off_deg <= c.gate_deg
+            if passes and (best is None or r.fitness > best.fitness):
+                best = r
+        if best is None:
+            return self._kept(step)
+        self.refined += 1
+        self._step = best.transform
+        return best.transform
+
+    def _kept(self, step: np.ndarray) -> np.ndarray:
+        self.kept += 1
+        self._step = None
+        return step
+
+
+def _apart(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """How far transform ``a`` is from ``b``: (metres, degrees of yaw)."""
+    d = np.linalg.inv(b) @ a
+    return float(np.linalg.norm(d[:3, 3])), abs(_yaw_deg(d))

@@ -1,0 +1,126 @@
+"""The recorded poses' steps refined by registering each scan onto the one before it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pnvlad_service.localization.drive.scan_steps import ScanStepConfig, ScanSteps
+
+
+def _street(rng: np.random.Generator) -> np.ndarray:
+    """A street 200 m long: two facades with recesses, poles and vans at random along it, a
+    ground plane."""
+    parts = []
+    for side in (-8.0, 8.0):
+        x = rng.uniform(-20, 220, 30000)
+        depth = side + np.sign(side) * 1.5 * (np.sin(x / 7.0) > 0.6)  # recesses every ~44 m
+        parts.append(np.c_[x, depth, rng.uniform(0, 10, len(x))])
+    for x0 in rng.uniform(0, 200, 16):  # poles, trees' trunks
+        a = rng.uniform(0, 2 * math.pi, 400)
+        y0 = rng.uniform(4.5, 6.5) * rng.choice([-1, 1])
+        parts.append(np.c_[x0 + 0.2 * np.cos(a), y0 + 0.2 * np.sin(a), rng.uniform(0, 5, 400)])
+    for x0 in rng.uniform(0, 200, 9):  # parked vans
+        p = rng.uniform(0, 1, (1500, 3)) * [rng.uniform(3, 6), 2.0, 2.0]
+        parts.append(p + np.array([x0, rng.choice([-6.0, 4.0]), 0.0]))
+    ground = np.c_[rng.uniform(-20, 220, 20000), rng.uniform(-8, 8, 20000), np.zeros(20000)]
+    parts.append(ground)
+    return np.concatenate(parts)
+
+
+def _pose(x: float, y: float, yaw_deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    t = np.eye(4)
+    t[:2, :2] = [[c, -s], [s, c]]
+    t[:3, 3] = (x, y, 1.8)
+    return t
+
+
+def _scan(world: np.ndarray, pose: np.ndarray, reach_m: float = 40.0) -> np.ndarray:
+    """The world's points within reach of the sensor, in the sensor's frame."""
+    near = world[np.linalg.norm(world[:, :2] - pose[:2, 3], axis=1) < reach_m]
+    inv = np.linalg.inv(pose)
+    return near @ inv[:3, :3].T + inv[:3, 3]
+
+
+def _step_error(a: np.ndarray, b: np.ndarray, ta: np.ndarray, tb: np.ndarray) -> float:
+    """Metres between the step from pose a to b and the true step from ta to tb."""
+    d = np.linalg.inv(np.linalg.inv(ta) @ tb) @ (np.linalg.inv(a) @ b)
+    return float(np.linalg.norm(d[:3, 3]))
+
+
+@pytest.fixture(scope="module")
+def drive() -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    rng = np.random.default_rng(4)
+    world = _street(rng)
+    truth = [_pose(10 + 2.5 * k, 0.3 * math.sin(k / 5), 2.0 * math.sin(k / 7)) for k in range(12)]
+    # the recording: the truth with a wandering error of decimetres a step (a GNSS/INS)
+    walk = np.cumsum(rng.normal(0, 0.3, (12, 2)), axis=0)
+    recorded = []
+    for t, e in zip(truth, walk, strict=True):
+        r = t.copy()
+        r[:2, 3] += e
+        recorded.append(r)
+    return world, truth, recorded
+
+
+def test_each_step_is_the_scans_not_the_recordings(drive) -> None:
+    world, truth, recorded = drive
+    steps = ScanSteps()
+    chain = [steps.update(_scan(world, t), r) for t, r in zip(truth, recorded, strict=True)]
+    assert np.allclose(chain[0], recorded[0])  # the chain starts where the recording does
+    raw = [_step_error(recorded[k], recorded[k + 1], truth[k], truth[k + 1]) for k in range(11)]
+    refined = [_step_error(chain[k], chain[k + 1], truth[k], truth[k + 1]) for k in range(11)]
+    assert np.median(raw) > 0.2  # the recording's steps are decimetres off
+    assert max(refined) < 0.05  # the scans' steps are centimetres off
+    assert steps.refined == 11 and steps.kept == 0
+
+
+@pytest.mark.parametrize("off_m", [0.8, -1.2])
+def test_a_recorded_step_a_metre_off_is_started_again_from_the_last_one(drive, off_m) -> None:
+    """Along a street the registration from a start a metre off stays about a metre off; the
+    last refined step (the vehicle's motion changes little between scans) starts it right."""
+    world, truth, _ = drive
+    recorded = [t.copy() for t in truth[:6]]
+    for r in recorded[4:]:
+        r[0, 3] += off_m  # the recording jumps along the street between scans 3 and 4
+    errors = {}
+    for name, same_m in (("one start", 1e9), ("two starts", 0.2)):
+        steps = ScanSteps(ScanStepConfig(same_m=same_m))
+        chain = [steps.update(_scan(world, t), r) for t, r in zip(truth, recorded, strict=False)]
+        errors[name] = _step_error(chain[3], chain[4], truth[3], truth[4])
+    assert errors["one start"] > 0.5  # what the second start is for
+    assert errors["two starts"] < 0.05
+
+
+def test_a_step_the_scans_cannot_confirm_is_the_recorded_one(drive) -> None:
+    world, truth, recorded = drive
+    steps = ScanSteps()
+    steps.update(_scan(world, truth[0]), recorded[0])
+    empty = np.zeros((0, 3))  # a dropped scan: nothing to register
+    second = steps.update(empty, recorded[1])
+    assert np.allclose(second, recorded[1])  # the chain started at recorded[0]: its step
+    assert steps.kept == 1
+    # the gate: a registration may not move the recorded step by more than gate_m
+    tight = ScanSteps(ScanStepConfig(gate_m=0.01))
+    tight.update(_scan(world, truth[0]), recorded[0])
+    out = tight.update(_scan(world, truth[1]), recorded[1])
+    assert np.allclose(out, recorded[1]) and tight.kept == 1
+
+
+def test_a_scan_without_a_recorded_pose_breaks_the_chain(drive) -> None:
+    world, truth, recorded = drive
+    steps = ScanSteps()
+    steps.update(_scan(world, truth[0]), recorded[0])
+    assert steps.update(_scan(world, truth[1]), None) is None
+    restart = steps.update(_scan(world, truth[2]), recorded[2])
+    assert np.allclose(restart, recorded[2])  # started again, not stepped from scan 0
+
+
+def test_bad_settings_are_refused() -> None:
+    with pytest.raises(ValueError, match="min_fitness"):
+        ScanStepConfig(min_fitness=1.5)
+    with pytest.raises(ValueError, match="gate_m"):
+        ScanStepConfig(gate_m=0)
