@@ -69,16 +69,9 @@ class EdgeConfig:
     the point-to-plane standard deviations are multiplied by this (1: most edges then sit on
     the floors; on the demo city 1 left the map's p99 error at 0.88 m where 3 left 0.98 and 10
     1.29, the robust kernels taking the tail); ``min_sigma_m`` / ``min_sigma_deg``: floors of
-    the edges' standard deviations; ``odometry_min_sigma_deg``: the odometry's own yaw floor.
-    Against the simulator's truth (the benchmark's 9,036 steps and 7,714 closures) the
-    odometry's yaw is 0.010 degree off at the median (0.029 at p90), the closures' 0.019
-    (0.061), both steps and closures about 1-2 cm: a floor of 0.1 degree left each step's turn
-    five times looser than it is, and the recorded headings' walk bent the runs between
-    corners (the map's yaw error 0.114 degree at the median); 0.02 for the steps holds them to
-    what they measure (0.055), while the closures keep 0.1 (0.05 left more of them set aside
-    and the map's p99 higher: docs/results/align.md); ``verify``: the verification's
-    settings; ``odometry``: the odometry's registration (:data:`ODOMETRY_REGISTRATION`);
-    ``cache_entries``: prepared clouds kept."""
+    the edges' standard deviations (what the odometry's errors against the truth are, median 1
+    cm and 0.03 degree); ``verify``: the verification's settings; ``odometry``: the odometry's
+    registration (:data:`ODOMETRY_REGISTRATION`); ``cache_entries``: prepared clouds kept."""
 
     odometry_min_fitness: float = 0.2
     odometry_gate_m: float = 3.0
@@ -87,7 +80,6 @@ class EdgeConfig:
     sigma_scale: float = 1.0
     min_sigma_m: float = 0.03
     min_sigma_deg: float = 0.1
-    odometry_min_sigma_deg: float = 0.02
     verify: VerifyConfig = field(default_factory=lambda: MAPPING_VERIFY)
     odometry: reg.RegistrationConfig = ODOMETRY_REGISTRATION
     cache_entries: int = 600
@@ -179,24 +171,17 @@ def _moved(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def edge_covariance(
-    clouds: Clouds,
-    source: int,
-    target: int,
-    transform: np.ndarray,
-    config: EdgeConfig,
-    min_sigma_deg: float | None = None,
+    clouds: Clouds, source: int, target: int, transform: np.ndarray, config: EdgeConfig
 ) -> np.ndarray | None:
-    """The scaled point-to-plane covariance of ``transform`` (source -> target), floored
-    (``min_sigma_deg``: the rotations' floor, default ``config.min_sigma_deg``), or ``None``
-    when too few points overlap."""
+    """The scaled point-to-plane covariance of ``transform`` (source -> target), floored, or
+    ``None`` when too few points overlap."""
     src = clouds.get(source).prepared
     inlier_m = clouds.config.inlier_m
     cov = point_to_plane_covariance(src.points, clouds.get(target), transform, inlier_m)
     if cov is None:
         return None
     cov = cov * config.sigma_scale**2
-    deg = config.min_sigma_deg if min_sigma_deg is None else min_sigma_deg
-    floor = [config.min_sigma_m**2] * 3 + [math.radians(deg) ** 2] * 3
+    floor = [config.min_sigma_m**2] * 3 + [math.radians(config.min_sigma_deg) ** 2] * 3
     return cov + np.diag(floor)
 
 
@@ -227,10 +212,7 @@ def odometry_edges(nodes: MapNodes, clouds: Clouds, config: EdgeConfig) -> list[
             metres > config.odometry_gate_m or degrees > config.odometry_gate_deg
         ):
             reason = f"moved the step {metres:.2f} m, {degrees:.2f} deg from the recorded one"
-        cov = None
-        if reason is None:
-            floor = config.odometry_min_sigma_deg
-            cov = edge_covariance(clouds, source, target, r.transform, config, floor)
+        cov = None if reason else edge_covariance(clouds, source, target, r.transform, config)
         if reason is None and cov is None:
             reason = "too few points overlap for a covariance"
         edges.append(
