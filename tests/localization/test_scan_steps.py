@@ -11,20 +11,23 @@ from pnvlad_service.localization.drive.scan_steps import ScanStepConfig, ScanSte
 
 
 def _street(rng: np.random.Generator) -> np.ndarray:
-    """A street 200 m long: two facades with recesses, poles and vans at random along it, a
-    ground plane."""
+    """A street 200 m long: two facades with doorways and recesses of random widths, trees'
+    trunks and parked vans at random along it, a ground plane."""
     parts = []
     for side in (-8.0, 8.0):
-        x = rng.uniform(-20, 220, 30000)
-        depth = side + np.sign(side) * 1.5 * (np.sin(x / 7.0) > 0.6)  # recesses every ~44 m
+        x = rng.uniform(-20, 220, 40000)
+        edges = np.sort(rng.uniform(-20, 220, 40))
+        recessed = np.searchsorted(edges, x) % 2 == 1  # every other stretch set back
+        depth = side + np.sign(side) * rng.choice([1.0, 2.5]) * recessed
         parts.append(np.c_[x, depth, rng.uniform(0, 10, len(x))])
-    for x0 in rng.uniform(0, 200, 16):  # poles, trees' trunks
+    for x0 in rng.uniform(-20, 220, 50):  # trees' trunks, poles
         a = rng.uniform(0, 2 * math.pi, 400)
         y0 = rng.uniform(4.5, 6.5) * rng.choice([-1, 1])
-        parts.append(np.c_[x0 + 0.2 * np.cos(a), y0 + 0.2 * np.sin(a), rng.uniform(0, 5, 400)])
-    for x0 in rng.uniform(0, 200, 9):  # parked vans
-        p = rng.uniform(0, 1, (1500, 3)) * [rng.uniform(3, 6), 2.0, 2.0]
-        parts.append(p + np.array([x0, rng.choice([-6.0, 4.0]), 0.0]))
+        r = rng.uniform(0.15, 0.5)
+        parts.append(np.c_[x0 + r * np.cos(a), y0 + r * np.sin(a), rng.uniform(0, 5, 400)])
+    for x0 in rng.uniform(-20, 220, 25):  # parked vans
+        p = rng.uniform(0, 1, (1500, 3)) * [rng.uniform(3, 6), 2.0, rng.uniform(1.4, 2.6)]
+        parts.append(p + np.array([x0, rng.choice([-6.5, 4.5]), 0.0]))
     ground = np.c_[rng.uniform(-20, 220, 20000), rng.uniform(-8, 8, 20000), np.zeros(20000)]
     parts.append(ground)
     return np.concatenate(parts)
@@ -39,8 +42,12 @@ def _pose(x: float, y: float, yaw_deg: float) -> np.ndarray:
 
 
 def _scan(world: np.ndarray, pose: np.ndarray, reach_m: float = 40.0) -> np.ndarray:
-    """The world's points within reach of the sensor, in the sensor's frame."""
-    near = world[np.linalg.norm(world[:, :2] - pose[:2, 3], axis=1) < reach_m]
+    """The world's points within reach of the sensor, in the sensor's frame, thinning with
+    range as a spinning sensor's rings do (kept with probability (8 / range)^2), the same
+    points for the same pose."""
+    d = np.linalg.norm(world[:, :2] - pose[:2, 3], axis=1)
+    keep = np.random.default_rng(int(abs(pose[0, 3]) * 1000)).random(len(world))
+    near = world[(d < reach_m) & (keep < (8.0 / np.maximum(d, 8.0)) ** 2)]
     inv = np.linalg.inv(pose)
     return near @ inv[:3, :3].T + inv[:3, 3]
 
@@ -78,7 +85,7 @@ def test_each_step_is_the_scans_not_the_recordings(drive) -> None:
     assert steps.refined == 11 and steps.kept == 0
 
 
-@pytest.mark.parametrize("off_m", [0.8, -1.2])
+@pytest.mark.parametrize("off_m", [1.0, -1.2])
 def test_a_recorded_step_a_metre_off_is_started_again_from_the_last_one(drive, off_m) -> None:
     """Along a street the registration from a start a metre off stays about a metre off; the
     last refined step (the vehicle's motion changes little between scans) starts it right."""
