@@ -45,9 +45,7 @@ class ScanStepConfig:
     degrees two of the benchmark's runs lost track at such a corner, with 1 none did);
     ``same_m`` / ``same_deg``: the
     last refined step is tried as a second start when it is farther than this from the
-    recorded one; ``max_points``: a larger scan is thinned to about this many points (every
-    k-th) before it is voxelised (a 128-beam scan's 240,000 points cost twice the time of
-    60,000 and move the step by under 5 mm on KITTI 00's scans 94-95); ``registration``: its
+    recorded one; ``registration``: its
     settings (started from the recorded step: no yaw search)."""
 
     min_fitness: float = 0.3
@@ -55,14 +53,11 @@ class ScanStepConfig:
     gate_deg: float = 1.0
     same_m: float = 0.2
     same_deg: float = 1.0
-    max_points: int = 60_000
     registration: reg.RegistrationConfig = field(default_factory=lambda: STEP_REGISTRATION)
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_fitness <= 1.0:
             raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
-        if self.max_points < 1000:
-            raise ValueError(f"max_points must be at least 1000, got {self.max_points}")
         if not (self.gate_m > 0 and self.gate_deg > 0):
             raise ValueError(f"gate_m and gate_deg must be > 0, got {self.gate_m}, {self.gate_deg}")
 
@@ -90,9 +85,7 @@ class ScanSteps:
         (sensor frame, metres) and its ``recorded`` pose (sensor -> the recording's frame);
         ``None`` when it has no recorded pose."""
         rc = self.config.registration
-        points = np.asarray(points)
-        k = -(-len(points) // self.config.max_points)
-        scan = reg.prepare(points[::k] if k > 1 else points, rc, "both", search=False)
+        scan = reg.prepare(points, rc, "both", search=False)
         if recorded is None:
             self._last = self._recorded = self._pose = self._step = None
             return None
