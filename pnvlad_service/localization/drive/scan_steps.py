@@ -21,11 +21,11 @@ odometry.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from pnvlad_service.localization.drive.tracking import yaw_of
 from pnvlad_service.localization.verify import registration as reg
 
 #: The registration of one scan onto the one before it: the map alignment's odometry's 0.5 m
@@ -43,10 +43,9 @@ class ScanStepConfig:
     decimetres and a few tenths of a degree; a registration metres off slid along a street, and
     two scans skewed by a corner turned at 90 degrees a second register degrees off: with 3
     degrees two of the benchmark's runs lost track at such a corner, with 1 none did);
-    ``same_m`` / ``same_deg``: the
-    last refined step is tried as a second start when it is farther than this from the
-    recorded one; ``registration``: its
-    settings (started from the recorded step: no yaw search)."""
+    ``same_m`` / ``same_deg``: the last refined step is tried as a second start when it is
+    farther than this from the recorded one; ``registration``: its settings (started from the
+    recorded step: no yaw search)."""
 
     min_fitness: float = 0.3
     gate_m: float = 1.5
@@ -60,10 +59,6 @@ class ScanStepConfig:
             raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
         if not (self.gate_m > 0 and self.gate_deg > 0):
             raise ValueError(f"gate_m and gate_deg must be > 0, got {self.gate_m}, {self.gate_deg}")
-
-
-def _yaw_deg(t: np.ndarray) -> float:
-    return math.degrees(math.atan2(t[1, 0], t[0, 0]))
 
 
 class ScanSteps:
@@ -84,11 +79,10 @@ class ScanSteps:
         """The scan's pose in the chain's own frame (float64 [4, 4]) from its ``points``
         (sensor frame, metres) and its ``recorded`` pose (sensor -> the recording's frame);
         ``None`` when it has no recorded pose."""
-        rc = self.config.registration
-        scan = reg.prepare(points, rc, "both", search=False)
         if recorded is None:
             self._last = self._recorded = self._pose = self._step = None
             return None
+        scan = reg.prepare(points, self.config.registration, "both", search=False)
         recorded = np.asarray(recorded, dtype=np.float64)
         if self._pose is None or self._recorded is None:
             self._pose = recorded.copy()
@@ -135,4 +129,4 @@ class ScanSteps:
 def _apart(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """How far transform ``a`` is from ``b``: (metres, degrees of yaw)."""
     d = np.linalg.inv(b) @ a
-    return float(np.linalg.norm(d[:3, 3])), abs(_yaw_deg(d))
+    return float(np.linalg.norm(d[:3, 3])), abs(yaw_of(d))
