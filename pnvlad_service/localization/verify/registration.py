@@ -49,6 +49,11 @@ class RegistrationConfig:
 
     fine_voxel_m: float = 1.0  # downsampling of the clouds the fine GICP stage aligns
     coarse_voxel_m: float = 1.5  # downsampling of the source for the coarse stage
+    # The coarse cloud voxelised from the fine one rather than from every point: on a full
+    # scan the second pass over every point is most of what the coarse cloud costs (KITTI 00's
+    # 121,618 points: 1.3 ms from the fine 0.5 m cloud, 6.4 ms from all of them, 2 idle cores);
+    # its voxels' centres move by a fraction of a fine voxel, and it only starts the fine stage.
+    coarse_of_fine: bool = False
     neighbours: int = 10  # points per covariance estimate
     method: Literal["GICP", "VGICP"] = "VGICP"  # as accurate as GICP here, 2-3x faster
     vgicp_leaf_m: float = 1.0  # voxel size of VGICP's Gaussian voxel map
@@ -184,7 +189,8 @@ def prepare(
         pts, config.fine_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads
     )
     # The shape checks on the downsampled cloud: as telling (duplicates collapse) and cheaper.
-    reason = degenerate(fine.points()[:, :3], config)
+    fine_points = np.ascontiguousarray(fine.points()[:, :3])
+    reason = degenerate(fine_points, config)
     if reason is not None:
         if fine.size() < config.min_points:
             reason = (
@@ -195,7 +201,10 @@ def prepare(
     coarse = None
     if role != "target":
         coarse, _ = sg.preprocess_points(
-            pts, config.coarse_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads
+            fine_points if config.coarse_of_fine else pts,
+            config.coarse_voxel_m,
+            num_neighbors=config.neighbours,
+            num_threads=config.threads,
         )
     voxels = None
     if config.method == "VGICP" and role != "source":
@@ -203,7 +212,7 @@ def prepare(
         voxels.insert(fine)
     spectrum = np.fft.rfft2(bev_image(pts, config)) if search else None
     return Prepared(
-        points=fine.points()[:, :3].copy(),
+        points=fine_points,
         reason=None,
         fine=fine,
         coarse=coarse,
