@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pnvlad_service.localization.drive.scan_steps import ScanStepConfig, ScanSteps
+from pnvlad_service.localization.drive.scan_steps import ScanStepConfig, ScanSteps, StepsAhead
 
 
 def _street(rng: np.random.Generator) -> np.ndarray:
@@ -144,3 +144,65 @@ def test_bad_settings_are_refused() -> None:
         ScanStepConfig(min_fitness=1.5)
     with pytest.raises(ValueError, match="gate_m"):
         ScanStepConfig(gate_m=0)
+
+
+def test_steps_taken_in_a_worker_are_the_same(drive) -> None:
+    """The worker's chain is this process's to a few millimetres (small_gicp's two threads
+    make the registrations themselves vary by that much from one run to the next)."""
+    world, truth, recorded = drive
+    here = ScanSteps()
+    expected = [here.update(_scan(world, t), r) for t, r in zip(truth, recorded, strict=True)]
+    with StepsAhead() as worker:
+        futures = [worker.submit(_scan(world, t), r) for t, r in zip(truth, recorded, strict=True)]
+        got = [f.result(timeout=60) for f in futures]
+    assert max(np.abs(a - b).max() for a, b in zip(got, expected, strict=True)) < 0.01
+    with StepsAhead() as worker:  # a scan without a pose breaks the worker's chain too
+        assert worker.submit(_scan(world, truth[0]), None).result(timeout=60) is None
+
+
+class _StreetDrive:
+    """The street's scans with their recorded poses; each scan's first point names its index
+    (as the stand-in service reads it back)."""
+
+    name = "street"
+
+    def __init__(self, world: np.ndarray, truth: list, recorded: list) -> None:
+        self.world, self.truth = world, truth
+        self.timestamps = np.arange(len(truth), dtype=np.int64) * 250_000
+        self.poses = np.stack(recorded)
+
+    def scan(self, i: int) -> np.ndarray:
+        return np.vstack([np.full((1, 3), float(i)), _scan(self.world, self.truth[i])])
+
+
+@pytest.mark.parametrize("every", [1, 2])
+def test_a_follow_with_its_steps_taken_ahead_asks_the_same(drive, every) -> None:
+    """The runner hands each scan to the worker while the scan before it is localised: the
+    service is asked about the same scans with the same predictions (to the few millimetres
+    the registrations vary by) as when the steps are taken in turn, and they are not the
+    recorded steps' predictions (the worker's steps are used)."""
+    from pnvlad_service.localization.drive.runner import run_drive
+    from tests.localization.stand_in import Service
+
+    world, truth, recorded = drive
+    calls = {}
+    for name, odometry, ahead in [
+        ("in turn", "registered", False),
+        ("ahead", "registered", True),
+        ("recorded", "poses", False),
+    ]:
+        svc = Service(right=set(range(12)), reach=2.0, scan_truth=lambda i: truth[i])
+        street = _StreetDrive(world, truth, recorded)
+        rows = run_drive(
+            street, svc, "tracked", every=every, odometry=odometry, ahead=ahead, progress=False
+        )
+        assert [r.scan for r in rows] == list(range(0, 12, every))
+        calls[name] = [(i, p and (p.easting, p.northing)) for i, p in svc.calls]
+
+    def apart(a: list, b: list) -> float:
+        assert [(i, p is None) for i, p in a] == [(i, p is None) for i, p in b]
+        return max(math.dist(p, q) for (_, p), (_, q) in zip(a, b, strict=True) if p is not None)
+
+    assert sum(p is not None for _, p in calls["ahead"]) >= 3  # it tracked with predictions
+    assert apart(calls["ahead"], calls["in turn"]) < 0.01
+    assert apart(calls["ahead"], calls["recorded"]) > 0.1

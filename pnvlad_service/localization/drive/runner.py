@@ -20,16 +20,19 @@ own truth how far the pose is from where the map itself would put the scan.
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
 import time
 from collections.abc import Sequence
+from concurrent.futures import Future
 from typing import Any
 
 import numpy as np
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.drive.rows import PER_SCAN, TRACKED, DriveRow, Policy
-from pnvlad_service.localization.drive.scan_steps import ScanSteps
+from pnvlad_service.localization.drive.scan_steps import ScanSteps, StepsAhead
 from pnvlad_service.localization.drive.service import Ask, Reply
 from pnvlad_service.localization.drive.tracking import (
     DriveLocalizer,
@@ -43,6 +46,10 @@ from pnvlad_service.localization.outputs.step import DriveStep, roll_pitch_yaw, 
 
 #: Where a tracked drive's motion between scans comes from.
 ODOMETRY = ("auto", "poses", "registered", "kiss-icp", "none")
+#: A drive of at least this many scans has its refined steps taken one scan ahead in a worker
+#: process (:class:`~.scan_steps.StepsAhead`; it starts in about a second) on a machine of two
+#: cores or more; a shorter one steps them in this process.
+AHEAD_MIN_SCANS = 100
 
 
 def choose_odometry(choice: str, has_poses: bool) -> str:
@@ -140,6 +147,9 @@ class _PerScan:
     def postfix(self, row: DriveRow) -> dict[str, str]:
         return {} if row.error_m is None else {"error": f"{row.error_m:.1f} m"}
 
+    def close(self) -> None:
+        pass
+
 
 class _Tracked:
     """Every scan to the drive localiser, with the odometry chosen."""
@@ -158,6 +168,7 @@ class _Tracked:
             raise InputError("the drive has no poses to use as odometry", "odometry")
         self.odometry, self.poses = odometry, poses
         self.lidar = None
+        self.ahead: StepsAhead | None = None
         self.steps = ScanSteps() if odometry == "registered" else None
         if odometry == "kiss-icp":
             from pnvlad_service.data.sources.odometry import LidarOdometry
@@ -167,23 +178,47 @@ class _Tracked:
         self.points: np.ndarray | None = None
         self.covariance: np.ndarray | None = None
         self.step: Any = None
+        # With a worker: the scan after each one asked, and the scans handed to it already.
+        self.after: dict[int, int] = {}
+        self.pending: dict[int, tuple[np.ndarray, Future[np.ndarray | None]]] = {}
+
+    def go_ahead(self, order: Sequence[int]) -> None:
+        """Take the refined steps in a worker, each scan's while the one before it in ``order``
+        (the scans to be asked, in order) is localised."""
+        if self.steps is not None:
+            self.ahead, self.steps = StepsAhead(self.steps.config), None
+            self.after = dict(itertools.pairwise(order))
+
+    def close(self) -> None:
+        if self.ahead is not None:
+            self.ahead.close()
 
     def fill(self, drive: Any, i: int, row: DriveRow) -> np.ndarray | None:
         t0 = time.perf_counter()
-        points = self.points = drive.scan(i)
-        t1 = time.perf_counter()
         odo = None
-        if self.odometry == "poses":
-            assert self.poses is not None
-            odo = self.poses[i]
-        elif self.steps is not None:
-            assert self.poses is not None
-            odo = self.steps.update(points, self.poses[i])
-        elif self.lidar is not None:
-            try:
-                odo = self.lidar.update(points)
-            except InputError:
-                odo = None
+        if self.ahead is not None:
+            # This scan's step was taken while the last scan was localised; the next scan's is
+            # taken while this one is.
+            points, stepped = self.pending.pop(i, None) or self._hand_over(drive, i)
+            if i in self.after:
+                self.pending[self.after[i]] = self._hand_over(drive, self.after[i])
+            t1 = time.perf_counter()
+            odo = stepped.result()
+        else:
+            points = drive.scan(i)
+            t1 = time.perf_counter()
+            if self.odometry == "poses":
+                assert self.poses is not None
+                odo = self.poses[i]
+            elif self.steps is not None:
+                assert self.poses is not None
+                odo = self.steps.update(points, self.poses[i])
+            elif self.lidar is not None:
+                try:
+                    odo = self.lidar.update(points)
+                except InputError:
+                    odo = None
+        self.points = points
         t2 = time.perf_counter()
         step = self.step = self.localizer.step(DriveScan(i, row.timestamp, points, odo))
         # A registered pose's covariance is its registration's; a fix found by search and a
@@ -200,6 +235,12 @@ class _Tracked:
             row.correction_m = step.reply.correction_m
             _timings(row, step.reply)
         return step.pose
+
+    def _hand_over(self, drive: Any, i: int) -> tuple[np.ndarray, Future[np.ndarray | None]]:
+        """Scan ``i`` read and handed to the worker: (its points, the future of its pose)."""
+        assert self.ahead is not None and self.poses is not None
+        points = drive.scan(i)
+        return points, self.ahead.submit(points, self.poses[i])
 
     def postfix(self, row: DriveRow) -> dict[str, str]:
         if row.pose_error_m is not None and row.verified:
@@ -228,6 +269,7 @@ def run_drive(
     initial_pose: np.ndarray | None = None,
     progress: bool = True,
     outputs: Outputs | Sequence[Sink] = (),
+    ahead: bool | None = None,
 ) -> list[DriveRow]:
     """Scans 0, ``every``, 2 * ``every``, ... of ``drive`` asked by ``policy``
     (``every`` default: 1 tracked, 10 per-scan): one :class:`~.rows.DriveRow` a scan.
@@ -240,7 +282,9 @@ def run_drive(
     windows; ``truth``: float64 [T, 4, 4] sensor -> UTM of every scan of ``drive`` (NaN: no
     truth for that scan), for the errors; ``positions``: the map's
     :class:`~..prior.MapPositions` (``off_map_m``); ``truth_of_map``: :func:`~.maps.map_truth`
-    (``map_error_m``)."""
+    (``map_error_m``); ``ahead`` (tracked, ``registered``): take each scan's refined step in a
+    worker process while the scan before it is localised (the same steps; None: with
+    :data:`AHEAD_MIN_SCANS` scans or more and two cores)."""
     from pnvlad_service.progress import tqdm
 
     every = (1 if policy == TRACKED else 10) if every is None else every
@@ -259,28 +303,37 @@ def run_drive(
     if truth is not None and len(truth) != len(stamps):
         raise InputError(f"{len(truth)} true poses for {len(stamps)} scans", "truth")
     driven = None if truth is None else _driven(truth[:, :3, 3])
+    order = range(0, len(stamps), every)
+    if isinstance(runner, _Tracked):
+        if ahead is None:
+            ahead = len(order) >= AHEAD_MIN_SCANS and (os.cpu_count() or 1) >= 2
+        if ahead:
+            runner.go_ahead(order)
     sinks = outputs if isinstance(outputs, Outputs) else Outputs(outputs)
     if sinks is not outputs:
         sinks.start(None)
     rows: list[DriveRow] = []
-    bar = tqdm(range(0, len(stamps), every), desc=runner.desc, unit=runner.unit,
-               disable=None if progress else True)  # fmt: skip
-    for i in bar:
-        row = DriveRow(scan=i, timestamp=int(stamps[i]), time_s=float(stamps[i] - stamps[0]) / 1e6)
-        pose = runner.fill(drive, i, row)
-        if pose is not None:
-            _pose_columns(row, pose, runner.covariance)
-        known = truth is not None and np.isfinite(truth[i]).all()
-        if known:
-            _errors(row, pose, truth[i], truth_of_map)
-            row.driven_m = None if driven is None else float(driven[i])
-            if positions is not None:
-                row.off_map_m = positions.nearest_m(row.true_northing, row.true_easting)
-        rows.append(row)
-        if sinks:
-            sinks.step(_step(row, pose, runner, truth[i] if known else None))
-        bar.set_postfix(runner.postfix(row), refresh=False)
-    bar.close()
+    bar = tqdm(order, desc=runner.desc, unit=runner.unit, disable=None if progress else True)
+    try:
+        for i in bar:
+            since_s = float(stamps[i] - stamps[0]) / 1e6
+            row = DriveRow(scan=i, timestamp=int(stamps[i]), time_s=since_s)
+            pose = runner.fill(drive, i, row)
+            if pose is not None:
+                _pose_columns(row, pose, runner.covariance)
+            known = truth is not None and np.isfinite(truth[i]).all()
+            if known:
+                _errors(row, pose, truth[i], truth_of_map)
+                row.driven_m = None if driven is None else float(driven[i])
+                if positions is not None:
+                    row.off_map_m = positions.nearest_m(row.true_northing, row.true_easting)
+            rows.append(row)
+            if sinks:
+                sinks.step(_step(row, pose, runner, truth[i] if known else None))
+            bar.set_postfix(runner.postfix(row), refresh=False)
+    finally:
+        runner.close()
+        bar.close()
     if sinks is not outputs:
         sinks.close()
     return rows
