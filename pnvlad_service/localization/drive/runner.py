@@ -26,6 +26,7 @@ import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -186,7 +187,10 @@ class _Tracked:
         """Take the refined steps in a worker, each scan's while the one before it in ``order``
         (the scans to be asked, in order) is localised."""
         if self.steps is not None:
-            self.ahead, self.steps = StepsAhead(self.steps.config), None
+            # One thread in the worker: this process's registrations take both cores in
+            # turn, and the worker fills the gaps (G runs on one).
+            one = replace(self.steps.config.registration, threads=1)
+            self.ahead, self.steps = StepsAhead(replace(self.steps.config, registration=one)), None
             self.after = dict(itertools.pairwise(order))
 
     def close(self) -> None:

@@ -26,6 +26,7 @@ interpreter's lock while they run, so a thread could not overlap them).
 from __future__ import annotations
 
 import multiprocessing
+import os
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 
@@ -171,6 +172,9 @@ _WORKER: ScanSteps | None = None
 
 def _start_worker(config: ScanStepConfig | None) -> None:
     global _WORKER
+    # Its OpenMP threads wait by sleeping, not spinning (read when small_gicp first loads, in
+    # the first step): the worker shares the cores with the process that localises.
+    os.environ.setdefault("OMP_WAIT_POLICY", "passive")
     _WORKER = ScanSteps(config)
 
 
