@@ -183,10 +183,13 @@ class _Tracked:
         self.after: dict[int, int] = {}
         self.pending: dict[int, tuple[np.ndarray, Future[np.ndarray | None]]] = {}
 
-    def go_ahead(self, order: Sequence[int]) -> None:
-        """Take the refined steps in a worker, each scan's while the one before it in ``order``
-        (the scans to be asked, in order) is localised."""
-        if self.steps is not None:
+    def go_ahead(self, order: Sequence[int], ahead: bool | None) -> None:
+        """With ``ahead`` (None: with :data:`AHEAD_MIN_SCANS` scans or more in ``order`` and
+        two cores), take the refined steps in a worker, each scan's while the one before it in
+        ``order`` (the scans to be asked, in order) is localised."""
+        if ahead is None:
+            ahead = len(order) >= AHEAD_MIN_SCANS and (os.cpu_count() or 1) >= 2
+        if ahead and self.steps is not None:
             # One thread in the worker: this process's registrations take both cores in
             # turn, and the worker fills the gaps (G runs on one).
             one = replace(self.steps.config.registration, threads=1)
@@ -309,10 +312,7 @@ def run_drive(
     driven = None if truth is None else _driven(truth[:, :3, 3])
     order = range(0, len(stamps), every)
     if isinstance(runner, _Tracked):
-        if ahead is None:
-            ahead = len(order) >= AHEAD_MIN_SCANS and (os.cpu_count() or 1) >= 2
-        if ahead:
-            runner.go_ahead(order)
+        runner.go_ahead(order, ahead)
     sinks = outputs if isinstance(outputs, Outputs) else Outputs(outputs)
     if sinks is not outputs:
         sinks.start(None)
