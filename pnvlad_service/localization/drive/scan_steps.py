@@ -26,7 +26,6 @@ interpreter's lock while they run, so a thread could not overlap them).
 from __future__ import annotations
 
 import multiprocessing
-import os
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 
@@ -34,6 +33,7 @@ import numpy as np
 
 from pnvlad_service.localization.drive.tracking import yaw_of
 from pnvlad_service.localization.verify import registration as reg
+from pnvlad_service.localization.verify.verify_process import settle_child
 
 #: The registration of one scan onto the one before it: the map alignment's odometry's 0.5 m
 #: voxels, with the verification's two threads. Along a street whose facades leave the shift
@@ -141,10 +141,11 @@ def _apart(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 class StepsAhead:
     """A :class:`ScanSteps` in a worker process: :meth:`submit` hands it a scan and returns the
-    future of :meth:`ScanSteps.update`'s pose; scans are stepped in the order submitted, each
-    with the same result as in this process. The worker starts in about a second (a fresh
-    interpreter: the caller may hold threads a fork would copy mid-work); :meth:`close` ends
-    it (also as a context manager)."""
+    future of :meth:`ScanSteps.update`'s pose; scans are stepped in the order submitted, as in
+    this process (to the millimetres small_gicp's threads vary a step by). The worker starts in
+    about a second (a fresh interpreter: the caller may hold threads a fork would copy
+    mid-work; a script that makes one must do it under ``if __name__ == "__main__":``, as the
+    CLI does); :meth:`close` ends it (also as a context manager)."""
 
     def __init__(self, config: ScanStepConfig | None = None) -> None:
         self._pool = ProcessPoolExecutor(
@@ -171,10 +172,10 @@ _WORKER: ScanSteps | None = None
 
 
 def _start_worker(config: ScanStepConfig | None) -> None:
+    """The worker's initialiser: it shares the cores with the process that localises, so its
+    OpenMP threads sleep while they wait (small_gicp loads in its first step, after this)."""
     global _WORKER
-    # Its OpenMP threads wait by sleeping, not spinning (read when small_gicp first loads, in
-    # the first step): the worker shares the cores with the process that localises.
-    os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+    settle_child()
     _WORKER = ScanSteps(config)
 
 

@@ -50,22 +50,9 @@ def _start(bundle_dir: str, cache_entries: int) -> None:
     """The child's initialiser: map the geometry of ``bundle_dir`` (the parent checked the
     bundle's files at its own start-up; the size check runs again)."""
     global _HERE, _GOMP_BEFORE
-    # small_gicp's OpenMP runtime (libgomp) lets a thread that reaches a barrier first spin
-    # there. While the parent embeds on the other core, the thread it waits for has no core,
-    # and each call stalls for scheduler slices: preparing a query on 2 threads took 40-61 ms
-    # with a core busy, 6.6 ms with the threads sleeping at barriers instead, and 4.4-5.5 ms
-    # either way on idle cores (docs/VERIFY.md). libgomp reads this when it loads; the child
-    # loads small_gicp (and its libgomp) only after this line (the tests check, through
-    # _runtime, that no libgomp at all was mapped here before). A value the user set is kept.
+    # The tests check, through _runtime, that no libgomp at all was mapped here before.
     _GOMP_BEFORE = _gomp_loaded()
-    # `pnvlad serve` sets GOMP_SPINCOUNT for the server's encoder; an explicit spin count
-    # would override PASSIVE here, so the child drops the one serve set (not a user's).
-    if os.environ.pop(SPINCOUNT_MARK, None):
-        os.environ.pop("GOMP_SPINCOUNT", None)
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    # Ctrl-C reaches the whole process group: the parent stops the child (close), so the
-    # child does not die mid-call with a traceback of its own.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    settle_child()
     from pnvlad_service.index.geometry import BundleGeometry
     from pnvlad_service.index.manifest import Manifest
 
@@ -74,6 +61,24 @@ def _start(bundle_dir: str, cache_entries: int) -> None:
         raise RuntimeError(f"{bundle_dir} carries no geometry")
     geometry = BundleGeometry.open(bundle_dir, manifest.geometry, verify=False)
     _HERE = InProcess(geometry, cache_entries)
+
+
+def settle_child() -> None:
+    """What a registering child process of ours sets first, before it loads small_gicp.
+
+    small_gicp's OpenMP runtime (libgomp) lets a thread that reaches a barrier first spin
+    there. While the parent works on the other core, the thread it waits for has no core, and
+    each call stalls for scheduler slices: preparing a query on 2 threads took 40-61 ms with a
+    core busy, 6.6 ms with the threads sleeping at barriers instead, and 4.4-5.5 ms either way
+    on idle cores (docs/VERIFY.md). libgomp reads the wait policy when it loads, so the child
+    must load small_gicp only after this. A value the user set is kept; the GOMP_SPINCOUNT
+    `pnvlad serve` sets for the server's encoder would override PASSIVE, so that one (not a
+    user's) is dropped. Ctrl-C reaches the whole process group: the parent stops the child, so
+    the child ignores it rather than die mid-call with a traceback of its own."""
+    if os.environ.pop(SPINCOUNT_MARK, None):
+        os.environ.pop("GOMP_SPINCOUNT", None)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _gomp_loaded() -> bool:
