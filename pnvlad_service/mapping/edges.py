@@ -150,12 +150,9 @@ class Clouds:
     def get(self, g: int) -> NearTarget:
         made = self.cache.get(g)
         if made is None:
-            prepared = reg.prepare(self.nodes.metres(g), self.config, "both", self.search)
-            normals = np.empty((0, 3))
-            if prepared.reason is None:
-                covs = np.asarray(prepared.fine.covs())[:, :3, :3]
-                normals = np.linalg.eigh(covs)[1][:, :, 0]
-            made = NearTarget(prepared, normals)
+            made = NearTarget.of(
+                reg.prepare(self.nodes.metres(g), self.config, "both", self.search)
+            )
             self.cache[g] = made
         return made
 

@@ -20,6 +20,7 @@ from pnvlad_service.localization.verify.prior import (
     MapPositions,
     Prior,
     horizontal_sigma,
+    plane_normals,
     point_to_plane_covariance,
     prepare_target,
 )
@@ -62,6 +63,30 @@ def test_near_is_the_brute_force_answer(entries, dn, de, radius, most, run) -> N
 
 
 # -- the covariance --------------------------------------------------------------------------
+
+
+def test_plane_normals_are_the_smallest_eigenvectors_of_small_gicps_covariances() -> None:
+    """The column of ``I - C`` against numpy's ``eigh`` (up to sign) on the covariances
+    small_gicp estimates for a cloud of walls, ground and scattered points, and ``eigh`` itself
+    for covariances small_gicp would not write (another trace)."""
+    rng = np.random.default_rng(3)
+    wall = np.c_[rng.uniform(-20, 20, 3000), np.full(3000, 4.0), rng.uniform(0, 6, 3000)]
+    slanted = np.c_[rng.uniform(-20, 20, 3000), rng.uniform(-9, -5, 3000), np.zeros(3000)]
+    slanted[:, 2] = 0.3 * slanted[:, 0] + 0.7 * slanted[:, 1]
+    cloud = np.r_[wall, slanted, rng.normal(0, 8, (3000, 3))]
+    fine, _ = reg._gicp().preprocess_points(cloud, 0.5, num_neighbors=10, num_threads=1)
+    covs = np.asarray(fine.covs())[:, :3, :3]
+    expected = np.linalg.eigh(covs)[1][:, :, 0]
+    normals = plane_normals(covs)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", normals, expected)), 1.0, atol=1e-9)
+    # Covariances of another form: their own smallest eigenvector.
+    a = rng.normal(size=(50, 3, 3))
+    other = a @ a.transpose(0, 2, 1) + 0.1 * np.eye(3)
+    both = np.r_[covs[:5], other]
+    normals = plane_normals(both)
+    np.testing.assert_allclose(normals[5:], np.linalg.eigh(other)[1][:, :, 0])
+    assert np.allclose(np.abs(np.einsum("ij,ij->i", normals[:5], expected[:5])), 1.0)
 
 
 def test_a_street_of_two_walls_leaves_the_shift_along_it_free() -> None:

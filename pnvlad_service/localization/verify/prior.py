@@ -293,20 +293,46 @@ def laid_together(geometry: Any, rows: tuple[int, ...]) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class NearTarget:
-    """A prepared target of entries laid together, with the unit normal of each of its fine
-    points (float64 [M, 3], from small_gicp's covariances) for the covariance."""
+    """A prepared target (entries laid together, or one map node) with the unit normal of each
+    of its fine points (float64 [M, 3], from small_gicp's covariances) for the covariance."""
 
     prepared: reg.Prepared
     normals: np.ndarray
 
+    @classmethod
+    def of(cls, prepared: reg.Prepared) -> NearTarget:
+        if prepared.reason is not None:
+            return cls(prepared, np.empty((0, 3)))
+        return cls(prepared, plane_normals(np.asarray(prepared.fine.covs())[:, :3, :3]))
+
+
+def plane_normals(covs: np.ndarray) -> np.ndarray:
+    """float64 [M, 3] unit eigenvectors of the smallest eigenvalue of covariances [M, 3, 3],
+    sign arbitrary. small_gicp regularises every covariance to eigenvalues (1e-3, 1, 1), so
+    ``I - C`` is a multiple of ``n n^T`` and its column of the largest diagonal entry lies along
+    ``n``: a column instead of an eigen-decomposition (a twentieth of numpy's batched ``eigh``,
+    which took as long as the registration). A covariance not of that form (its trace not
+    2.001) goes to ``eigh``."""
+    covs = np.asarray(covs, dtype=np.float64)
+    rest = np.eye(3) - covs
+    diagonal = np.einsum("nii->ni", rest)
+    k = np.argmax(diagonal, axis=1)
+    cols = rest[np.arange(len(rest)), :, k]
+    length = np.linalg.norm(cols, axis=1)
+    normals = cols / np.maximum(length, 1e-300)[:, None]
+    odd = np.abs(np.einsum("nii->n", covs) - REGULARISED_TRACE) > 1e-9
+    if odd.any():
+        normals[odd] = np.linalg.eigh(covs[odd])[1][:, :, 0]
+    return normals
+
+
+#: The trace of a covariance as small_gicp regularises it (eigenvalues 1e-3, 1, 1).
+REGULARISED_TRACE = 2.001
+
 
 def prepare_target(points_m: np.ndarray, config: reg.RegistrationConfig) -> NearTarget:
-    prepared = reg.prepare(points_m, config, "target")
-    if prepared.reason is not None:
-        return NearTarget(prepared, np.empty((0, 3)))
-    covs = np.asarray(prepared.fine.covs())[:, :3, :3]
-    _, vectors = np.linalg.eigh(covs)
-    return NearTarget(prepared, vectors[:, :, 0])
+    """The points in metres as a target registered to from a prior (no yaw search's spectra)."""
+    return NearTarget.of(reg.prepare(points_m, config, "target", search=False))
 
 
 #: A horizontal direction of the shift whose information is below this share of the other's is
@@ -394,7 +420,7 @@ def register_near(
             threshold=config.min_fitness, **kw,
         )  # fmt: skip
 
-    source = reg.prepare(query.points_m, rc, "source")
+    source = reg.prepare(query.points_m, rc, "source", search=False)
     if source.reason is not None:
         return done(verified=False, reason=f"query: {source.reason}")
     tgt = target()
