@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from pnvlad_service.localization.drive.scan_steps import ScanStepConfig, ScanSteps, StepsAhead
+from pnvlad_service.localization.drive.ahead import ScansAhead
+from pnvlad_service.localization.drive.scan_steps import ScanStepConfig, ScanSteps
 
 
 def _street(rng: np.random.Generator) -> np.ndarray:
@@ -152,12 +153,13 @@ def test_steps_taken_in_a_worker_are_the_same(drive) -> None:
     world, truth, recorded = drive
     here = ScanSteps()
     expected = [here.update(_scan(world, t), r) for t, r in zip(truth, recorded, strict=True)]
-    with StepsAhead() as worker:
+    with ScansAhead(ScanStepConfig()) as worker:
         futures = [worker.submit(_scan(world, t), r) for t, r in zip(truth, recorded, strict=True)]
         got = [f.result(timeout=60) for f in futures]
-    assert max(np.abs(a - b).max() for a, b in zip(got, expected, strict=True)) < 0.01
-    with StepsAhead() as worker:  # a scan without a pose breaks the worker's chain too
-        assert worker.submit(_scan(world, truth[0]), None).result(timeout=60) is None
+    assert all(a.filtered is None for a in got)  # no filter G asked for
+    assert max(np.abs(a.step - b).max() for a, b in zip(got, expected, strict=True)) < 0.01
+    with ScansAhead(ScanStepConfig()) as worker:  # a scan without a pose breaks the chain too
+        assert worker.submit(_scan(world, truth[0]), None).result(timeout=60).step is None
 
 
 class _StreetDrive:
