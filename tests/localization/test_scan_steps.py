@@ -7,8 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pnvlad_service.localization.drive.ahead import ScansAhead
-from pnvlad_service.localization.drive.scan_steps import ScanStepConfig, ScanSteps
+from pnvlad_service.localization.drive.scan_steps import ScanStepConfig, ScanSteps, StepsAhead
 
 
 def _street(rng: np.random.Generator) -> np.ndarray:
@@ -153,13 +152,12 @@ def test_steps_taken_in_a_worker_are_the_same(drive) -> None:
     world, truth, recorded = drive
     here = ScanSteps()
     expected = [here.update(_scan(world, t), r) for t, r in zip(truth, recorded, strict=True)]
-    with ScansAhead(ScanStepConfig()) as worker:
+    with StepsAhead() as worker:
         futures = [worker.submit(_scan(world, t), r) for t, r in zip(truth, recorded, strict=True)]
         got = [f.result(timeout=60) for f in futures]
-    assert all(a.filtered is None for a in got)  # no filter G asked for
-    assert max(np.abs(a.step - b).max() for a, b in zip(got, expected, strict=True)) < 0.01
-    with ScansAhead(ScanStepConfig()) as worker:  # a scan without a pose breaks the chain too
-        assert worker.submit(_scan(world, truth[0]), None).result(timeout=60).step is None
+    assert max(np.abs(a - b).max() for a, b in zip(got, expected, strict=True)) < 0.01
+    with StepsAhead() as worker:  # a scan without a pose breaks the worker's chain too
+        assert worker.submit(_scan(world, truth[0]), None).result(timeout=60) is None
 
 
 class _StreetDrive:

@@ -32,9 +32,8 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.drive.ahead import Ahead, ScansAhead
 from pnvlad_service.localization.drive.rows import PER_SCAN, TRACKED, DriveRow, Policy
-from pnvlad_service.localization.drive.scan_steps import ScanSteps
+from pnvlad_service.localization.drive.scan_steps import ScanSteps, StepsAhead
 from pnvlad_service.localization.drive.service import Ask, Reply
 from pnvlad_service.localization.drive.tracking import (
     DriveLocalizer,
@@ -48,10 +47,9 @@ from pnvlad_service.localization.outputs.step import DriveStep, roll_pitch_yaw, 
 
 #: Where a tracked drive's motion between scans comes from.
 ODOMETRY = ("auto", "poses", "registered", "kiss-icp", "none")
-#: A drive of at least this many scans has its refined steps and (asking a localiser in this
-#: process) its filter G taken one scan ahead in a worker process (:class:`~.ahead.ScansAhead`;
-#: it starts in about a second) on a machine of two cores or more; a shorter one takes them in
-#: this process.
+#: A drive of at least this many scans has its refined steps taken one scan ahead in a worker
+#: process (:class:`~.scan_steps.StepsAhead`; it starts in about a second) on a machine of two
+#: cores or more; a shorter one steps them in this process.
 AHEAD_MIN_SCANS = 100
 
 
@@ -171,9 +169,8 @@ class _Tracked:
             raise InputError("the drive has no poses to use as odometry", "odometry")
         self.odometry, self.poses = odometry, poses
         self.lidar = None
-        self.ahead: ScansAhead | None = None
+        self.ahead: StepsAhead | None = None
         self.steps = ScanSteps() if odometry == "registered" else None
-        self.stepped_ahead = False
         if odometry == "kiss-icp":
             from pnvlad_service.data.sources.odometry import LidarOdometry
 
@@ -184,26 +181,20 @@ class _Tracked:
         self.step: Any = None
         # With a worker: the scan after each one asked, and the scans handed to it already.
         self.after: dict[int, int] = {}
-        self.pending: dict[int, tuple[np.ndarray, Future[Ahead]]] = {}
+        self.pending: dict[int, tuple[np.ndarray, Future[np.ndarray | None]]] = {}
 
     def go_ahead(self, order: Sequence[int], ahead: bool | None) -> None:
         """With ``ahead`` (None: with :data:`AHEAD_MIN_SCANS` scans or more in ``order`` and
-        two cores), take the refined steps and, asking a localiser in this process, the
-        filter G in a worker, each scan's while the one before it in ``order`` (the scans to
-        be asked, in order) is localised."""
+        two cores), take the refined steps in a worker, each scan's while the one before it in
+        ``order`` (the scans to be asked, in order) is localised."""
         if ahead is None:
             ahead = len(order) >= AHEAD_MIN_SCANS and (os.cpu_count() or 1) >= 2
-        g = getattr(self.localizer.ask, "g_config", None)
-        if not ahead or (self.steps is None and g is None):
-            return
-        steps = None
-        if self.steps is not None:
+        if ahead and self.steps is not None:
             # One thread in the worker: this process's registrations take both cores in
-            # turn, and the worker fills the gaps.
+            # turn, and the worker fills the gaps (G runs on one).
             one = replace(self.steps.config.registration, threads=1)
-            steps, self.steps = replace(self.steps.config, registration=one), None
-        self.ahead, self.stepped_ahead = ScansAhead(steps, g), steps is not None
-        self.after = dict(itertools.pairwise(order))
+            self.ahead, self.steps = StepsAhead(replace(self.steps.config, registration=one)), None
+            self.after = dict(itertools.pairwise(order))
 
     def close(self) -> None:
         if self.ahead is not None:
@@ -211,25 +202,32 @@ class _Tracked:
 
     def fill(self, drive: Any, i: int, row: DriveRow) -> np.ndarray | None:
         t0 = time.perf_counter()
-        filtered = None
+        odo = None
         if self.ahead is not None:
-            # This scan's work was taken while the last scan was localised; the next scan's is
+            # This scan's step was taken while the last scan was localised; the next scan's is
             # taken while this one is.
-            points, taken = self.pending.pop(i, None) or self._hand_over(drive, i)
+            points, stepped = self.pending.pop(i, None) or self._hand_over(drive, i)
             if i in self.after:
                 self.pending[self.after[i]] = self._hand_over(drive, self.after[i])
             t1 = time.perf_counter()
-            done = taken.result()
-            filtered = done.filtered
-            odo = done.step if self.stepped_ahead else self._odometry(points, i)
+            odo = stepped.result()
         else:
             points = drive.scan(i)
             t1 = time.perf_counter()
-            odo = self._odometry(points, i)
+            if self.odometry == "poses":
+                assert self.poses is not None
+                odo = self.poses[i]
+            elif self.steps is not None:
+                assert self.poses is not None
+                odo = self.steps.update(points, self.poses[i])
+            elif self.lidar is not None:
+                try:
+                    odo = self.lidar.update(points)
+                except InputError:
+                    odo = None
         self.points = points
         t2 = time.perf_counter()
-        scan = DriveScan(i, row.timestamp, points, odo, filtered)
-        step = self.step = self.localizer.step(scan)
+        step = self.step = self.localizer.step(DriveScan(i, row.timestamp, points, odo))
         # A registered pose's covariance is its registration's; a fix found by search and a
         # pose carried on by the odometry have none.
         registered = step.how == "registered" and step.reply is not None
@@ -245,26 +243,11 @@ class _Tracked:
             _timings(row, step.reply)
         return step.pose
 
-    def _odometry(self, points: np.ndarray, i: int) -> np.ndarray | None:
-        """Scan ``i``'s pose in the odometry's frame, taken here."""
-        if self.odometry == "poses":
-            assert self.poses is not None
-            return self.poses[i]
-        if self.steps is not None:
-            assert self.poses is not None
-            return self.steps.update(points, self.poses[i])
-        if self.lidar is not None:
-            try:
-                return self.lidar.update(points)
-            except InputError:
-                return None
-        return None
-
-    def _hand_over(self, drive: Any, i: int) -> tuple[np.ndarray, Future[Ahead]]:
-        """Scan ``i`` read and handed to the worker: (its points, the future of its work)."""
-        assert self.ahead is not None
+    def _hand_over(self, drive: Any, i: int) -> tuple[np.ndarray, Future[np.ndarray | None]]:
+        """Scan ``i`` read and handed to the worker: (its points, the future of its pose)."""
+        assert self.ahead is not None and self.poses is not None
         points = drive.scan(i)
-        return points, self.ahead.submit(points, None if self.poses is None else self.poses[i])
+        return points, self.ahead.submit(points, self.poses[i])
 
     def postfix(self, row: DriveRow) -> dict[str, str]:
         if row.pose_error_m is not None and row.verified:
@@ -306,8 +289,9 @@ def run_drive(
     windows; ``truth``: float64 [T, 4, 4] sensor -> UTM of every scan of ``drive`` (NaN: no
     truth for that scan), for the errors; ``positions``: the map's
     :class:`~..prior.MapPositions` (``off_map_m``); ``truth_of_map``: :func:`~.maps.map_truth`
-    (``map_error_m``); ``ahead`` (tracked): take each scan's refined step and filter G in a
-    worker while the scan before it is localised (:meth:`_Tracked.go_ahead`)."""
+    (``map_error_m``); ``ahead`` (tracked, ``registered``): take each scan's refined step in a
+    worker process while the scan before it is localised (the same steps; None: with
+    :data:`AHEAD_MIN_SCANS` scans or more and two cores)."""
     from pnvlad_service.progress import tqdm
 
     every = (1 if policy == TRACKED else 10) if every is None else every

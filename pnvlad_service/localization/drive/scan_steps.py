@@ -18,18 +18,22 @@ as it is: the chain never moves where the recording did not, beyond the gate. A 
 a recorded pose breaks the chain (the next one starts it again), as it breaks the recorded
 odometry.
 
-A follow takes each scan's step in a worker process, one scan ahead of the localisation
-(:mod:`.ahead`).
+:class:`StepsAhead` runs a :class:`ScanSteps` in a process of its own, so that a follow
+registers the next scan's step while it localises this one (the step's registrations hold the
+interpreter's lock while they run, so a thread could not overlap them).
 """
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from pnvlad_service.localization.drive.tracking import yaw_of
 from pnvlad_service.localization.verify import registration as reg
+from pnvlad_service.localization.verify.verify_process import settle_child
 
 #: The registration of one scan onto the one before it: the map alignment's odometry's 0.5 m
 #: voxels, with the verification's two threads. Along a street whose facades leave the shift
@@ -133,3 +137,48 @@ def _apart(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """How far transform ``a`` is from ``b``: (metres, degrees of yaw)."""
     d = np.linalg.inv(b) @ a
     return float(np.linalg.norm(d[:3, 3])), abs(yaw_of(d))
+
+
+class StepsAhead:
+    """A :class:`ScanSteps` in a worker process: :meth:`submit` hands it a scan and returns the
+    future of :meth:`ScanSteps.update`'s pose; scans are stepped in the order submitted, as in
+    this process (to the millimetres small_gicp's threads vary a step by). The worker starts in
+    about a second (a fresh interpreter: the caller may hold threads a fork would copy
+    mid-work; a script that makes one must do it under ``if __name__ == "__main__":``, as the
+    CLI does); :meth:`close` ends it (also as a context manager)."""
+
+    def __init__(self, config: ScanStepConfig | None = None) -> None:
+        self._pool = ProcessPoolExecutor(
+            1,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_start_worker,
+            initargs=(config,),
+        )
+
+    def submit(self, points: np.ndarray, recorded: np.ndarray | None) -> Future[np.ndarray | None]:
+        return self._pool.submit(_worker_update, points, recorded)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> StepsAhead:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_WORKER: ScanSteps | None = None
+
+
+def _start_worker(config: ScanStepConfig | None) -> None:
+    """The worker's initialiser: it shares the cores with the process that localises, so its
+    OpenMP threads sleep while they wait (small_gicp loads in its first step, after this)."""
+    global _WORKER
+    settle_child()
+    _WORKER = ScanSteps(config)
+
+
+def _worker_update(points: np.ndarray, recorded: np.ndarray | None) -> np.ndarray | None:
+    assert _WORKER is not None, "the worker was not started"
+    return _WORKER.update(points, recorded)

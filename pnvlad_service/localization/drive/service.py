@@ -151,50 +151,27 @@ class Ask(Protocol):
     """The service a drive asks: ``ask(points, prior, kind)`` -> :class:`Reply` of a raw scan
     float [N, 3] (sensor frame, metres) or of a ``window`` (the last stretch of the drive laid
     together), searched for (``prior`` None) or registered near ``prior``. Raises
-    :class:`~pnvlad_service.errors.InputError` when the service refuses the scan.
-
-    An ask of a localiser in this process (:class:`LocalAsk`) also has ``g_config``, the filter
-    G its raw scans go through, and takes ``filtered``, G's result of ``points`` taken already
-    (:mod:`.ahead`); another is asked without it."""
+    :class:`~pnvlad_service.errors.InputError` when the service refuses the scan."""
 
     def __call__(
         self, points: np.ndarray, prior: Prior | None = None, kind: str = "scan"
     ) -> Reply: ...
 
 
-class LocalAsk:
-    """:class:`Ask` of a :class:`~..localizer.Localizer` in this process (a raw scan is bounded
+def local_ask(localizer: Any, top_n: int = 5) -> Ask:
+    """:data:`Ask` of a :class:`~..localizer.Localizer` in this process (a raw scan is bounded
     by the bundle, not by a server's request limits)."""
+    from pnvlad_service.localization.query.limits import Limits
 
-    def __init__(self, localizer: Any, top_n: int = 5) -> None:
-        self.localizer, self.top_n = localizer, top_n
-
-    @property
-    def g_config(self) -> Any:
-        return self.localizer.g_config
-
-    def __call__(
-        self,
-        points: np.ndarray,
-        prior: Prior | None = None,
-        kind: str = "scan",
-        filtered: Any = None,
-    ) -> Reply:
-        from pnvlad_service.localization.query.limits import Limits
-
+    def ask(points: np.ndarray, prior: Prior | None = None, kind: str = "scan") -> Reply:
         limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)))
         if prior is not None:
             limits = replace(limits, max_prior_radius_m=max(limits.max_prior_radius_m,
                                                             prior.radius_m))  # fmt: skip
-        answer = self.localizer.localize(
-            points, top_n=self.top_n, limits=limits, kind=kind, prior=prior, filtered=filtered
-        )
+        answer = localizer.localize(points, top_n=top_n, limits=limits, kind=kind, prior=prior)
         return Reply.of_answer(answer)
 
-
-def local_ask(localizer: Any, top_n: int = 5) -> LocalAsk:
-    """:class:`Ask` of a :class:`~..localizer.Localizer` in this process."""
-    return LocalAsk(localizer, top_n)
+    return ask
 
 
 def http_ask(client: Any, top_n: int = 5) -> Ask:

@@ -128,22 +128,13 @@ class TrackerConfig(BaseModel):
 @dataclass(frozen=True)
 class DriveScan:
     """One scan of a drive: its ``index`` in the drive, ``timestamp`` (µs), ``points`` float
-    [N, 3] (sensor frame, metres), ``odometry`` float [4, 4] (sensor -> the odometry's own
-    frame, any origin; ``None`` when the caller has none) and ``filtered``, the filter G's
-    result of the points when a worker took it already (:mod:`.ahead`)."""
+    [N, 3] (sensor frame, metres) and ``odometry`` float [4, 4] (sensor -> the odometry's own
+    frame, any origin; ``None`` when the caller has none)."""
 
     index: int
     timestamp: int
     points: np.ndarray
     odometry: np.ndarray | None = None
-    filtered: Any = None
-
-    def ask(self, ask: Ask, prior: Prior | None) -> Reply:
-        """``ask`` about this scan near ``prior`` (or searched for), with G's result of it
-        when it was taken already (``filtered``, for a :class:`~.service.LocalAsk`)."""
-        if self.filtered is None:
-            return ask(self.points, prior)
-        return ask(self.points, prior, filtered=self.filtered)  # type: ignore[call-arg]
 
 
 @dataclass
@@ -381,7 +372,7 @@ class DriveLocalizer:
         prior = Prior.of_matrix(predicted, cfg.radius_m, run=run)
         reply: Reply | None
         try:
-            reply = scan.ask(self.ask, prior)
+            reply = self.ask(scan.points, prior)
         except InputError as exc:
             reply, why = None, f"refused: {getattr(exc, 'detail', None) or exc}"
         else:
@@ -445,7 +436,7 @@ class DriveLocalizer:
             self._candidates.popleft()
         step = Step(scan.index, scan.timestamp, SEARCHING)
         try:
-            reply = scan.ask(self.ask, None)
+            reply = self.ask(scan.points, None)
         except InputError as exc:
             step.reason = f"refused: {getattr(exc, 'detail', None) or exc}"
             return step

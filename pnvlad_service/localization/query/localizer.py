@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -62,9 +62,6 @@ from pnvlad_service.models.embedding import Embedder
 from pnvlad_service.models.runtimes import describe as describe_runtime
 from pnvlad_service.models.runtimes import load_encoder
 from pnvlad_service.models.store import ModelIdentity
-
-if TYPE_CHECKING:
-    from pnvlad_service.preprocess.filter_g import GConfig
 
 log = logging.getLogger(__name__)
 
@@ -338,28 +335,17 @@ class Localizer:
         """How many neighbours to search for: ``top_n``, or the candidates to verify."""
         return max(top_n, self.verify_config.candidates) if verify else top_n
 
-    @property
-    def g_config(self) -> GConfig:
-        """The filter G this bundle's raw scans go through."""
-        return self._gconfig
-
     def prepare(
-        self,
-        points: np.ndarray,
-        preprocess: bool,
-        scale: float | None = None,
-        filtered: Any = None,
+        self, points: np.ndarray, preprocess: bool, scale: float | None = None
     ) -> PreparedCloud:
         """The encoder's input: ``points`` as they are (``scale``: metres per unit, when the
         caller knows it), or a raw scan float [N, 3] metres through the bundle's filter G ->
-        float32 [4096, 3], with G's centre and scale (sensor frame). ``filtered``: the
-        :class:`~pnvlad_service.preprocess.filter_g.GResult` of ``points`` by
-        :attr:`g_config`, taken already (:mod:`~pnvlad_service.localization.drive.ahead`)."""
+        float32 [4096, 3], with G's centre and scale (sensor frame)."""
         if not preprocess:
             return PreparedCloud(points, None, scale, False)
         from pnvlad_service.preprocess.filter_g import apply_g
 
-        g = apply_g(points, self._gconfig, seed=0) if filtered is None else filtered
+        g = apply_g(points, self._gconfig, seed=0)
         cloud = np.ascontiguousarray(g.points, dtype=np.float32)
         return PreparedCloud(cloud, g.centre, g.scale if self._gconfig.normalize else None, True)
 
@@ -529,7 +515,6 @@ class Localizer:
         scale: float | None = None,
         kind: str | None = None,
         prior: Prior | None = None,
-        filtered: Any = None,
     ) -> Answer:
         """The ``top_n`` map places nearest to one cloud: exactly 4096 points in [-1, 1]
         float [4096, 3], or with ``preprocess`` a raw scan float [N, 3] in metres, as a
@@ -539,8 +524,7 @@ class Localizer:
         (default: when the bundle carries geometry); ``scale``: metres per unit of a
         preprocessed cloud, for a metric pose (estimated when not given). ``prior``: where
         the raw scan's sensor is thought to be (:class:`~..verify.prior.Prior`): the scan is
-        registered to the map entries near it instead of searched for (:meth:`register_near`).
-        ``filtered``: G's result of the raw scan, taken already (:meth:`prepare`)."""
+        registered to the map entries near it instead of searched for (:meth:`register_near`)."""
         t0 = time.perf_counter()
         if prior is not None and kind is None and preprocess is None:
             preprocess = True  # a prior is a sensor's pose: the cloud is its raw scan
@@ -554,7 +538,7 @@ class Localizer:
             scale=scale,
             prior=prior,
         )
-        return run_inline(run(self, query, INLINE, t0=t0, filtered=filtered))
+        return run_inline(run(self, query, INLINE, t0=t0))
 
     def _embed_and_search(
         self, clouds: np.ndarray, k: int

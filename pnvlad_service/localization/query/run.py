@@ -43,11 +43,7 @@ class Steps(Protocol):
     def check(self, query: Query, field: str = "kind") -> bool: ...
 
     def prepare(
-        self,
-        points: np.ndarray,
-        preprocess: bool,
-        scale: float | None = None,
-        filtered: Any = None,
+        self, points: np.ndarray, preprocess: bool, scale: float | None = None
     ) -> PreparedCloud: ...
 
     def search_k(self, top_n: int, verify: bool) -> int: ...
@@ -103,13 +99,11 @@ async def run(
     t0: float | None = None,
     field: str = "points",
     kind_field: str = "kind",
-    filtered: Any = None,
 ) -> Answer:
     """The :class:`Answer` of ``query`` on ``loc``; ``query`` may be a function that parses
     it (a request body: run by ``runner`` while the batcher knows a cloud is coming). ``t0``:
     when the query began (its parse included; default now); ``field`` and ``kind_field``: what
-    a refusal of G or of the map's kind names; ``filtered``: G's result of the query's raw scan,
-    taken already (:mod:`~pnvlad_service.localization.drive.ahead`), used instead of G."""
+    a refusal of G or of the map's kind names."""
     t0 = time.perf_counter() if t0 is None else t0
     with loc.announce():
         if not isinstance(query, Query):
@@ -117,11 +111,11 @@ async def run(
         verify = loc.check(query, kind_field)
         parse_s = time.perf_counter() - t0
         if query.prior is None:
-            prepared = await _prepare(loc, query, runner, field, filtered)
+            prepared = await _prepare(loc, query, runner, field)
             preprocess_s = time.perf_counter() - t0 - parse_s
             future = loc.submit(prepared, loc.search_k(query.top_n, verify))
     if query.prior is not None:
-        prepared = await _prepare(loc, query, runner, field, filtered)
+        prepared = await _prepare(loc, query, runner, field)
         preprocess_s = time.perf_counter() - t0 - parse_s
         fit = await runner.blocking(loc.register_near, prepared, query.prior)
         answer = loc.answer_near(fit, **_told(query, t0, parse_s, preprocess_s))
@@ -164,13 +158,11 @@ async def run_many(
     return list(answers)  # type: ignore[arg-type]
 
 
-async def _prepare(
-    loc: Steps, query: Query, runner: Runner, field: str, filtered: Any = None
-) -> PreparedCloud:
+async def _prepare(loc: Steps, query: Query, runner: Runner, field: str) -> PreparedCloud:
     """The encoder's input of ``query``: a raw scan through the filter G (blocking work; its
-    refusal names ``field``) or G's result ``filtered`` of it, a preprocessed cloud as it is."""
-    if not query.raw or filtered is not None:
-        return loc.prepare(query.points, query.raw, query.scale, filtered)
+    refusal names ``field``), a preprocessed cloud as it is."""
+    if not query.raw:
+        return loc.prepare(query.points, False, query.scale)
     try:
         return await runner.blocking(loc.prepare, query.points, True)
     except InputError as exc:
