@@ -139,29 +139,11 @@ def test_a_scan_without_a_recorded_pose_breaks_the_chain(drive) -> None:
     assert np.allclose(restart, recorded[2])  # started again, not stepped from scan 0
 
 
-def test_points_beyond_the_range_are_left_out_of_the_step(drive) -> None:
-    """``max_range_m``: with 1 m only the few ground points under the sensor are left (too
-    few to register), so every step is the recorded one; with the default the same scans'
-    steps are refined, and with none (``None``) as well."""
-    world, truth, recorded = drive
-    scans = [_scan(world, t) for t in truth]
-    for reach, refined in ((1.0, False), (ScanStepConfig.max_range_m, True), (None, True)):
-        steps = ScanSteps(ScanStepConfig(max_range_m=reach))
-        chain = [steps.update(p, r) for p, r in zip(scans, recorded, strict=True)]
-        assert (steps.refined == len(scans) - 1) is refined, (reach, steps.refined)
-        if not refined:
-            assert steps.kept == len(scans) - 1
-            for a, b in zip(chain, recorded, strict=True):
-                assert _step_error(chain[0], a, recorded[0], b) < 1e-9
-
-
 def test_bad_settings_are_refused() -> None:
     with pytest.raises(ValueError, match="min_fitness"):
         ScanStepConfig(min_fitness=1.5)
     with pytest.raises(ValueError, match="gate_m"):
         ScanStepConfig(gate_m=0)
-    with pytest.raises(ValueError, match="max_range_m"):
-        ScanStepConfig(max_range_m=0.0)
 
 
 def test_steps_taken_in_a_worker_are_the_same(drive) -> None:

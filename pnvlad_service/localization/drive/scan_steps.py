@@ -39,11 +39,9 @@ from pnvlad_service.localization.verify.verify_process import settle_child
 #: voxels, with the verification's two threads. Along a street whose facades leave the shift
 #: nearly free (the case the refined steps are for) 1 m voxels leave 4-14 cm along it where
 #: 0.5 m leave 3 mm (tests/localization/test_scan_steps.py's street); on KITTI 00's scans 94
-#: and 95 both are within 7 mm. No coarse stage: a step starts within centimetres (the last
-#: step's shift carried), and over the benchmark's campus and business drives the steps
-#: without it were as far from the true ones (median 3.0 against 3.1 mm, 3.9 against 4.0) for
-#: a sixth less of the time (docs/results/tracking.md).
-STEP_REGISTRATION = reg.RegistrationConfig(fine_voxel_m=0.5, vgicp_leaf_m=0.5, coarse_iterations=0)
+#: and 95 both are within 7 mm. The coarse cloud is voxelised from the fine one: a scan is
+#: prepared every time one arrives, and the second pass over all its points is saved.
+STEP_REGISTRATION = reg.RegistrationConfig(fine_voxel_m=0.5, vgicp_leaf_m=0.5, coarse_of_fine=True)
 
 
 @dataclass(frozen=True)
@@ -57,19 +55,12 @@ class ScanStepConfig:
     refined step's shift (a vehicle's motion changes little between two scans, a recording's
     position error by decimetres: the benchmark's recorded steps are 0.37 m off at the median),
     and from the recorded step only where that start fails the gates; False: from the recorded
-    step alone; ``max_range_m``: points farther than this horizontally from the sensor are
-    left out of the step's registration (``None``: none): a spinning sensor's far returns are
-    sparse rings that cost much of a scan's preparation and pin the step least (the
-    benchmark's campus and business drives: 12 % of a campus scan's points lie beyond 40 m;
-    without them a step took about half the time and was 5-6 mm from the true one at the
-    median against 3-4, with the same p99; docs/results/tracking.md); ``registration``:
-    its settings (started from a given step: no yaw search)."""
+    step alone; ``registration``: its settings (started from a given step: no yaw search)."""
 
     min_fitness: float = 0.3
     gate_m: float = 1.5
     gate_deg: float = 1.0
     carry_shift: bool = True
-    max_range_m: float | None = 40.0
     registration: reg.RegistrationConfig = field(default_factory=lambda: STEP_REGISTRATION)
 
     def __post_init__(self) -> None:
@@ -77,8 +68,6 @@ class ScanStepConfig:
             raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
         if not (self.gate_m > 0 and self.gate_deg > 0):
             raise ValueError(f"gate_m and gate_deg must be > 0, got {self.gate_m}, {self.gate_deg}")
-        if self.max_range_m is not None and not self.max_range_m > 0:
-            raise ValueError(f"max_range_m must be > 0 or None, got {self.max_range_m}")
 
 
 class ScanSteps:
@@ -102,10 +91,6 @@ class ScanSteps:
         if recorded is None:
             self._last = self._recorded = self._pose = self._step = None
             return None
-        reach = self.config.max_range_m
-        points = np.asarray(points)
-        if reach is not None and points.ndim == 2 and points.shape[1] == 3:
-            points = points[np.einsum("ij,ij->i", points[:, :2], points[:, :2]) <= reach**2]
         scan = reg.prepare(points, self.config.registration, "both", search=False)
         recorded = np.asarray(recorded, dtype=np.float64)
         if self._pose is None or self._recorded is None:

@@ -49,13 +49,16 @@ class RegistrationConfig:
 
     fine_voxel_m: float = 1.0  # downsampling of the clouds the fine GICP stage aligns
     coarse_voxel_m: float = 1.5  # downsampling of the source for the coarse stage
+    # The coarse cloud voxelised from the fine one rather than from every point: on a full
+    # scan the second pass over every point is most of what the coarse cloud costs (KITTI 00's
+    # 121,618 points: 1.3 ms from the fine 0.5 m cloud, 6.4 ms from all of them, 2 idle cores);
+    # its voxels' centres move by a fraction of a fine voxel, and it only starts the fine stage.
+    coarse_of_fine: bool = False
     neighbours: int = 10  # points per covariance estimate
     method: Literal["GICP", "VGICP"] = "VGICP"  # as accurate as GICP here, 2-3x faster
     vgicp_leaf_m: float = 1.0  # voxel size of VGICP's Gaussian voxel map
     coarse_distance_m: float = 3.0  # correspondence distance of the coarse stage
     fine_distance_m: float = 1.0  # ... and of the fine stage
-    # 0: no coarse stage after a given init, and no coarse cloud prepared without the yaw
-    # search (a start already within centimetres: the follow's steps between scans).
     coarse_iterations: int = 6
     fine_iterations: int = 10
     inlier_m: float = 0.5  # a source point within this of the target counts for fitness
@@ -196,9 +199,12 @@ def prepare(
             )
         return Prepared(points=np.empty((0, 3)), reason=reason)
     coarse = None
-    if role != "target" and (search or config.coarse_iterations > 0):
+    if role != "target":
         coarse, _ = sg.preprocess_points(
-            pts, config.coarse_voxel_m, num_neighbors=config.neighbours, num_threads=config.threads
+            fine_points if config.coarse_of_fine else pts,
+            config.coarse_voxel_m,
+            num_neighbors=config.neighbours,
+            num_threads=config.threads,
         )
     voxels = None
     if config.method == "VGICP" and role != "source":
@@ -455,11 +461,8 @@ def register(
     """
     src = source if isinstance(source, Prepared) else prepare(source, config, "source")
     tgt = target if isinstance(target, Prepared) else prepare(target, config, "target")
-    if src.coarse is None and src.reason is None and (init is None or config.coarse_iterations):
-        raise ValueError(
-            "the source has no coarse cloud: prepared as a target only (role='target'), or "
-            "with no coarse stage (coarse_iterations=0) and no yaw search"
-        )
+    if src.coarse is None and src.reason is None:
+        raise ValueError("the source was prepared as a target only (role='target')")
     if tgt.tree is None and tgt.reason is None:
         raise ValueError("the target was prepared as a source only (role='source')")
     reason = src.reason or tgt.reason
@@ -471,13 +474,11 @@ def register(
         if init is None:
             start, yaws, how = *_best_start(src, tgt, config), "yaw search"
         else:
-            start, yaws, how = np.asarray(init, dtype=np.float64), (), "given"
-            if config.coarse_iterations > 0:
-                coarse = _align(
-                    src.coarse, tgt, start, config.coarse_distance_m, config.coarse_iterations,
-                    config,
-                )  # fmt: skip
-                start = coarse.T_target_source
+            start = np.asarray(init, dtype=np.float64)
+            coarse = _align(
+                src.coarse, tgt, start, config.coarse_distance_m, config.coarse_iterations, config
+            )
+            start, yaws, how = coarse.T_target_source, (), "given"
         result = _align(
             src.fine, tgt, start, config.fine_distance_m, config.fine_iterations, config
         )
