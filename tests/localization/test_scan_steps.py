@@ -160,6 +160,38 @@ def test_steps_taken_in_a_worker_are_the_same(drive) -> None:
         assert worker.submit(_scan(world, truth[0]), None).result(timeout=60) is None
 
 
+def test_a_worker_that_cannot_start_says_why(tmp_path) -> None:
+    """A script that makes the worker at its top level, without the ``__main__`` guard: the
+    worker, importing the script again, cannot start one of its own; the script fails with
+    an error that names the guard (not a bare BrokenProcessPool at its first step)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from pnvlad_service.localization.drive.scan_steps import StepsAhead\n"
+        "StepsAhead().close()\n"
+        "print('started')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode != 0
+    assert "did not start" in done.stderr and "if __name__ == '__main__':" in done.stderr
+    assert "started" not in done.stdout
+    guarded = tmp_path / "guarded.py"
+    guarded.write_text(
+        "from pnvlad_service.localization.drive.scan_steps import StepsAhead\n"
+        "if __name__ == '__main__':\n"
+        "    StepsAhead().close()\n"
+        "    print('started')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, str(guarded)], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0 and "started" in done.stdout, done.stderr
+
+
 class _StreetDrive:
     """The street's scans with their recorded poses; each scan's first point names its index
     (as the stand-in service reads it back)."""

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import multiprocessing
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -145,7 +146,8 @@ class StepsAhead:
     this process (to the millimetres small_gicp's threads vary a step by). The worker starts in
     about a second (a fresh interpreter: the caller may hold threads a fork would copy
     mid-work; a script that makes one must do it under ``if __name__ == "__main__":``, as the
-    CLI does); :meth:`close` ends it (also as a context manager)."""
+    CLI does: a worker that does not start is a RuntimeError that says so); :meth:`close`
+    ends it (also as a context manager)."""
 
     def __init__(self, config: ScanStepConfig | None = None) -> None:
         self._pool = ProcessPoolExecutor(
@@ -154,6 +156,16 @@ class StepsAhead:
             initializer=_start_worker,
             initargs=(config,),
         )
+        try:
+            self._pool.submit(_ready).result()
+        except (BrokenProcessPool, RuntimeError) as exc:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            raise RuntimeError(
+                f"the refined steps' worker process did not start ({exc}); a script that follows "
+                "a drive of 100 scans or more must do it under `if __name__ == '__main__':` "
+                "(multiprocessing's spawn imports the script again in the worker), or pass "
+                "ahead=False"
+            ) from exc
 
     def submit(self, points: np.ndarray, recorded: np.ndarray | None) -> Future[np.ndarray | None]:
         return self._pool.submit(_worker_update, points, recorded)
@@ -177,6 +189,10 @@ def _start_worker(config: ScanStepConfig | None) -> None:
     global _WORKER
     settle_child()
     _WORKER = ScanSteps(config)
+
+
+def _ready() -> bool:
+    return _WORKER is not None
 
 
 def _worker_update(points: np.ndarray, recorded: np.ndarray | None) -> np.ndarray | None:
