@@ -157,16 +157,6 @@ class Clouds:
         return made
 
 
-def _yaw_deg(t: np.ndarray) -> float:
-    return math.degrees(math.atan2(t[1, 0], t[0, 0]))
-
-
-def _moved(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """How far transform ``a`` is from ``b``: (metres, degrees of yaw)."""
-    d = np.linalg.inv(b) @ a
-    return float(np.linalg.norm(d[:3, 3])), abs(_yaw_deg(d))
-
-
 def edge_covariance(
     clouds: Clouds, source: int, target: int, transform: np.ndarray, config: EdgeConfig
 ) -> np.ndarray | None:
@@ -201,7 +191,7 @@ def odometry_edges(nodes: MapNodes, clouds: Clouds, config: EdgeConfig) -> list[
         r = reg.register(
             clouds.get(source).prepared, clouds.get(target).prepared, clouds.config, init=recorded
         )
-        metres, degrees = _moved(r.transform, recorded)
+        metres, degrees = reg.apart(r.transform, recorded)
         reason = r.reason
         if reason is None and r.fitness < config.odometry_min_fitness:
             reason = f"fitness {r.fitness:.2f} < {config.odometry_min_fitness}"
@@ -261,7 +251,7 @@ def _judged(
 ) -> Edge:
     """The closure edge of one verification: accepted, or rejected with its reason."""
     recorded = np.linalg.inv(poses[target]) @ poses[query]
-    metres, _ = _moved(best.transform, recorded)
+    metres, _ = reg.apart(best.transform, recorded)
     reason = v.reason
     if reason is None and not v.verified:
         reason = f"not verified (confidence {v.confidence:.3f} < {v.threshold})"

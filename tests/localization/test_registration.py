@@ -4,6 +4,7 @@ loop, KITTI's recorded poses, an independent point-to-plane ICP written here in 
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -465,3 +466,23 @@ def test_the_polar_spectrum_from_the_half_plane_is_the_full_planes() -> None:
     )
     corr = [float((np.roll(got, k, axis=1) * turned).sum()) for k in range(cfg.polar_angles)]
     assert int(np.argmax(corr)) == 10
+
+
+def test_apart_is_the_shift_and_turn_between_two_transforms() -> None:
+    """``apart(a, b)``: the metres and degrees of ``b^-1 a``, whatever frame both are in, and
+    across the +-180 degree seam."""
+
+    def pose(x: float, y: float, yaw_deg: float) -> np.ndarray:
+        c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+        t = np.eye(4)
+        t[:2, :2] = [[c, -s], [s, c]]
+        t[:2, 3] = (x, y)
+        return t
+
+    b = pose(10.0, -4.0, 170.0)
+    a = b @ pose(3.0, 4.0, 20.0)  # 5 m and 20 degrees on from b, in b's frame
+    assert reg.apart(a, b) == pytest.approx((5.0, 20.0))
+    assert reg.apart(b, a) == pytest.approx((5.0, 20.0))
+    frame = pose(-300.0, 77.0, -63.0)
+    assert reg.apart(frame @ a, frame @ b) == pytest.approx((5.0, 20.0))
+    assert reg.apart(b, b) == pytest.approx((0.0, 0.0), abs=1e-12)

@@ -32,7 +32,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pnvlad_service.localization.drive.tracking import yaw_of
 from pnvlad_service.localization.verify import registration as reg
 from pnvlad_service.localization.verify.verify_process import settle_child
 
@@ -120,7 +119,7 @@ class ScanSteps:
             starts.insert(0, carried)
         for start in starts:
             r = reg.register(scan, self._last, c.registration, init=start)
-            off_m, off_deg = _apart(r.transform, step)
+            off_m, off_deg = reg.apart(r.transform, step)
             passes = r.reason is None and r.fitness >= c.min_fitness
             if passes and off_m <= c.gate_m and off_deg <= c.gate_deg:
                 self.refined += 1
@@ -132,12 +131,6 @@ class ScanSteps:
         self.kept += 1
         self._step = None
         return step
-
-
-def _apart(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """How far transform ``a`` is from ``b``: (metres, degrees of yaw)."""
-    d = np.linalg.inv(b) @ a
-    return float(np.linalg.norm(d[:3, 3])), abs(yaw_of(d))
 
 
 class StepsAhead:

@@ -29,6 +29,7 @@ Clouds are float [N, 3] metres, z up, in any frame whose origin is near the clou
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -496,6 +497,14 @@ def register(
         yaws,
         constraint=translation_constraint(np.asarray(result.H)),
     )
+
+
+def apart(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """How far transform ``a`` is from ``b`` (float [4, 4] each): the metres of ``b^-1 a``'s
+    shift and the degrees of its yaw (a registration's result against the step it started
+    from, as the map's odometry and the follow's steps gate them)."""
+    d = np.linalg.inv(b) @ a
+    return float(np.linalg.norm(d[:3, 3])), abs(math.degrees(math.atan2(d[1, 0], d[0, 0])))
 
 
 def translation_constraint(hessian: np.ndarray) -> float:
