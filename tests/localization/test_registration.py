@@ -277,6 +277,28 @@ def test_a_coarse_cloud_of_the_fine_one_keeps_the_kitti_step(real_scans: Path) -
 
 
 @pytest.mark.real_scans
+def test_no_coarse_stage_keeps_the_kitti_step(real_scans: Path) -> None:
+    """``coarse_iterations=0``: clouds prepared without the yaw search have no coarse level, a
+    registration from a given start runs the fine stage alone, and consecutive KITTI frames
+    95 -> 94 registered from no motion (the car moved about 0.8 m) still land within 2 cm and
+    0.05 degrees of the recorded relative pose; without a start there is nothing to begin
+    from, and that is refused."""
+    config = reg.RegistrationConfig(fine_voxel_m=0.5, vgicp_leaf_m=0.5, coarse_iterations=0)
+    source = reg.prepare(kitti(real_scans, "kitti00_000095.bin"), config, "both", search=False)
+    target = reg.prepare(kitti(real_scans, "kitti00_000094.bin"), config, "both", search=False)
+    assert source.coarse is None and target.coarse is None and source.fine is not None
+    result = reg.register(source, target, config, init=np.eye(4))
+    dt, dr = errors(result.transform, relative_pose(real_scans, 94, 95))
+    assert dt < 0.02 and dr < 0.05, (dt, dr)
+    assert result.init == "given" and np.array_equal(result.init_transform, np.eye(4))
+    assert result.fitness > 0.5
+    with pytest.raises(ValueError, match="no coarse cloud"):
+        reg.register(source, target, config)
+    searched = reg.prepare(kitti(real_scans, "kitti00_000095.bin"), config, "both")
+    assert searched.coarse is not None  # the yaw search's coarse stage needs it
+
+
+@pytest.mark.real_scans
 def test_kitti_pair_agrees_with_independent_icp(real_scans: Path) -> None:
     """kitti00_000005.bin registered onto kitti00_000000.bin, checked against an independent
     method.

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
 import pytest
 
 from pnvlad_service.localization.drive.scan_steps import ScanStepConfig, ScanSteps, StepsAhead
+from pnvlad_service.localization.verify.registration import apart
 
 
 def _street(rng: np.random.Generator) -> np.ndarray:
@@ -139,11 +141,35 @@ def test_a_scan_without_a_recorded_pose_breaks_the_chain(drive) -> None:
     assert np.allclose(restart, recorded[2])  # started again, not stepped from scan 0
 
 
+def test_a_straight_step_takes_the_near_points_a_turning_one_all(drive) -> None:
+    """``near_m`` / ``turning_deg``: the street's steps turn by tenths of a degree; with
+    ``near_m`` 1 m a straight step has only the few ground points under the sensor (too few to
+    register) and keeps the recorded step, while the same steps taken as turning ones
+    (``turning_deg`` 0) or with every point (``near_m`` None) use all the points and are
+    refined."""
+    world, truth, recorded = drive
+    scans = [_scan(world, t) for t in truth]
+    turns = [apart(b, a)[1] for a, b in itertools.pairwise(recorded)]
+    assert min(turns) > 0 and max(turns) < ScanStepConfig.turning_deg
+    for near, turning, refined in ((1.0, 2.0, False), (1.0, 0.0, True), (None, 2.0, True)):
+        steps = ScanSteps(ScanStepConfig(near_m=near, turning_deg=turning))
+        chain = [steps.update(p, r) for p, r in zip(scans, recorded, strict=True)]
+        assert (steps.refined == len(scans) - 1) is refined, (near, turning, steps.refined)
+        if not refined:
+            assert steps.kept == len(scans) - 1
+            for a, b in zip(chain, recorded, strict=True):
+                assert _step_error(chain[0], a, recorded[0], b) < 1e-9
+
+
 def test_bad_settings_are_refused() -> None:
     with pytest.raises(ValueError, match="min_fitness"):
         ScanStepConfig(min_fitness=1.5)
     with pytest.raises(ValueError, match="gate_m"):
         ScanStepConfig(gate_m=0)
+    with pytest.raises(ValueError, match="near_m"):
+        ScanStepConfig(near_m=0.0)
+    with pytest.raises(ValueError, match="turning_deg"):
+        ScanStepConfig(turning_deg=-1.0)
 
 
 def test_steps_taken_in_a_worker_are_the_same(drive) -> None:

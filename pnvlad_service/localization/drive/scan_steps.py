@@ -28,7 +28,7 @@ from __future__ import annotations
 import multiprocessing
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -55,12 +55,23 @@ class ScanStepConfig:
     refined step's shift (a vehicle's motion changes little between two scans, a recording's
     position error by decimetres: the benchmark's recorded steps are 0.37 m off at the median),
     and from the recorded step only where that start fails the gates; False: from the recorded
-    step alone; ``registration``: its settings (started from a given step: no yaw search)."""
+    step alone; ``registration``: its settings (started from a given step: no yaw search).
+
+    ``near_m``, ``turning_deg``: a step whose recorded turn is at most ``turning_deg`` is
+    registered with the points within ``near_m`` horizontally of the sensor only, and without
+    the coarse stage; a sharper one (a corner) with every point and both stages (``near_m``
+    None: every step so). A spinning sensor's far returns are sparse rings that cost half a
+    scan's preparation and pin a straight step least, and a step started from the last one's
+    shift is within centimetres; at a corner turned at 90 degrees a second the two scans are
+    skewed, the start is decimetres off, and only the far points and the coarse stage keep
+    the step (docs/results/tracking.md)."""
 
     min_fitness: float = 0.3
     gate_m: float = 1.5
     gate_deg: float = 1.0
     carry_shift: bool = True
+    near_m: float | None = 40.0
+    turning_deg: float = 2.0
     registration: reg.RegistrationConfig = field(default_factory=lambda: STEP_REGISTRATION)
 
     def __post_init__(self) -> None:
@@ -68,6 +79,38 @@ class ScanStepConfig:
             raise ValueError(f"min_fitness must be in [0, 1], got {self.min_fitness}")
         if not (self.gate_m > 0 and self.gate_deg > 0):
             raise ValueError(f"gate_m and gate_deg must be > 0, got {self.gate_m}, {self.gate_deg}")
+        if self.near_m is not None and not self.near_m > 0:
+            raise ValueError(f"near_m must be > 0 or None, got {self.near_m}")
+        if not self.turning_deg >= 0:
+            raise ValueError(f"turning_deg must be >= 0, got {self.turning_deg}")
+
+    @property
+    def near_registration(self) -> reg.RegistrationConfig:
+        """The registration of a step that turns little: no coarse stage."""
+        return replace(self.registration, coarse_iterations=0)
+
+
+class _Scan:
+    """One scan's points and its preparations, each made once when first asked for: with
+    every point and the coarse stage (``full``), or the near points alone."""
+
+    def __init__(self, points: np.ndarray, config: ScanStepConfig) -> None:
+        self.points, self.config = np.asarray(points), config
+        self._made: dict[bool, reg.Prepared] = {}
+
+    def prepared(self, full: bool) -> reg.Prepared:
+        made = self._made.get(full)
+        if made is None:
+            c, points = self.config, self.points
+            if full:
+                made = reg.prepare(points, c.registration, "both", search=False)
+            else:
+                if c.near_m is not None and points.ndim == 2 and points.shape[1] == 3:
+                    xy = points[:, :2]
+                    points = points[np.einsum("ij,ij->i", xy, xy) <= c.near_m**2]
+                made = reg.prepare(points, c.near_registration, "both", search=False)
+            self._made[full] = made
+        return made
 
 
 class ScanSteps:
@@ -77,7 +120,7 @@ class ScanSteps:
 
     def __init__(self, config: ScanStepConfig | None = None) -> None:
         self.config = config or ScanStepConfig()
-        self._last: reg.Prepared | None = None
+        self._last: _Scan | None = None
         self._recorded: np.ndarray | None = None
         self._pose: np.ndarray | None = None
         self._step: np.ndarray | None = None
@@ -91,34 +134,40 @@ class ScanSteps:
         if recorded is None:
             self._last = self._recorded = self._pose = self._step = None
             return None
-        scan = reg.prepare(points, self.config.registration, "both", search=False)
+        scan = _Scan(points, self.config)
         recorded = np.asarray(recorded, dtype=np.float64)
         if self._pose is None or self._recorded is None:
             self._pose = recorded.copy()
         else:
             step = np.linalg.inv(self._recorded) @ recorded
             self._pose = self._pose @ self._refine(scan, step)
-        self._last = scan if scan.reason is None else None
+        self._last = scan
         self._recorded = recorded
         return self._pose.copy()
 
-    def _refine(self, scan: reg.Prepared, step: np.ndarray) -> np.ndarray:
+    def _refine(self, scan: _Scan, step: np.ndarray) -> np.ndarray:
         """The step from the last scan to ``scan``: registered from the recorded ``step``'s
         turn with the last refined step's shift (where there is one and ``carry_shift``: along
         a street whose facades leave the shift nearly free the registration stays about where
         it starts, and the recording's shift can be a metre off where the vehicle's changed by
         centimetres), then from ``step`` itself if that fails the gates; ``step`` where none
-        passes."""
+        passes. A step that turns more than ``turning_deg`` is registered with every point
+        and the coarse stage, another with the near points alone (:class:`ScanStepConfig`)."""
         c = self.config
-        if self._last is None or scan.reason is not None:
+        if self._last is None:
             return self._kept(step)
+        full = c.near_m is None or reg.apart(step, np.eye(4))[1] > c.turning_deg
+        source, target = scan.prepared(full), self._last.prepared(full)
+        if source.reason is not None or target.reason is not None:
+            return self._kept(step)
+        config = c.registration if full else c.near_registration
         starts = [step]
         if c.carry_shift and self._step is not None:
             carried = step.copy()
             carried[:3, 3] = self._step[:3, 3]
             starts.insert(0, carried)
         for start in starts:
-            r = reg.register(scan, self._last, c.registration, init=start)
+            r = reg.register(source, target, config, init=start)
             off_m, off_deg = reg.apart(r.transform, step)
             passes = r.reason is None and r.fitness >= c.min_fitness
             if passes and off_m <= c.gate_m and off_deg <= c.gate_deg:

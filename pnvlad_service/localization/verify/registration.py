@@ -60,6 +60,8 @@ class RegistrationConfig:
     vgicp_leaf_m: float = 1.0  # voxel size of VGICP's Gaussian voxel map
     coarse_distance_m: float = 3.0  # correspondence distance of the coarse stage
     fine_distance_m: float = 1.0  # ... and of the fine stage
+    # 0: no coarse stage after a given init, and no coarse cloud prepared without the yaw
+    # search (a start already within centimetres).
     coarse_iterations: int = 6
     fine_iterations: int = 10
     inlier_m: float = 0.5  # a source point within this of the target counts for fitness
@@ -200,7 +202,7 @@ def prepare(
             )
         return Prepared(points=np.empty((0, 3)), reason=reason)
     coarse = None
-    if role != "target":
+    if role != "target" and (search or config.coarse_iterations > 0):
         coarse, _ = sg.preprocess_points(
             fine_points if config.coarse_of_fine else pts,
             config.coarse_voxel_m,
@@ -462,8 +464,11 @@ def register(
     """
     src = source if isinstance(source, Prepared) else prepare(source, config, "source")
     tgt = target if isinstance(target, Prepared) else prepare(target, config, "target")
-    if src.coarse is None and src.reason is None:
-        raise ValueError("the source was prepared as a target only (role='target')")
+    if src.coarse is None and src.reason is None and (init is None or config.coarse_iterations):
+        raise ValueError(
+            "the source has no coarse cloud: prepared as a target only (role='target'), or "
+            "with no coarse stage (coarse_iterations=0) and no yaw search"
+        )
     if tgt.tree is None and tgt.reason is None:
         raise ValueError("the target was prepared as a source only (role='source')")
     reason = src.reason or tgt.reason
@@ -475,11 +480,13 @@ def register(
         if init is None:
             start, yaws, how = *_best_start(src, tgt, config), "yaw search"
         else:
-            start = np.asarray(init, dtype=np.float64)
-            coarse = _align(
-                src.coarse, tgt, start, config.coarse_distance_m, config.coarse_iterations, config
-            )
-            start, yaws, how = coarse.T_target_source, (), "given"
+            start, yaws, how = np.asarray(init, dtype=np.float64), (), "given"
+            if config.coarse_iterations > 0:
+                coarse = _align(
+                    src.coarse, tgt, start, config.coarse_distance_m, config.coarse_iterations,
+                    config,
+                )  # fmt: skip
+                start = coarse.T_target_source
         result = _align(
             src.fine, tgt, start, config.fine_distance_m, config.fine_iterations, config
         )
