@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from pnvlad_service.localization.drive.tracking import yaw_of
 from pnvlad_service.localization.verify import registration as reg
 from pnvlad_service.localization.verify.verify_process import settle_child
 
@@ -156,7 +157,7 @@ class ScanSteps:
         c = self.config
         if self._last is None:
             return self._kept(step)
-        full = c.near_m is None or reg.apart(step, np.eye(4))[1] > c.turning_deg
+        full = c.near_m is None or abs(yaw_of(step)) > c.turning_deg
         source, target = scan.prepared(full), self._last.prepared(full)
         if source.reason is not None or target.reason is not None:
             return self._kept(step)
