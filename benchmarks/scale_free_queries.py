@@ -2,7 +2,7 @@
 with their known scale: how often each verifies, and how often a verified answer is right.
 
     python benchmarks/scale_free_queries.py TREE --index MAP [--model MODEL] [--dataset D]
-        [--run RUN ...] [--splits SPLITS] [--count N] [--json out.json]
+        [--run RUN ...] [--splits SPLITS] [--count N] [--sweep N] [--json out.json]
 
 TREE: a ``pnvlad synth`` tree (its frame sidecars give each query's scale and true pose);
 MAP: a bundle with geometry built from the runs of TREE but the query run. The queries are
@@ -15,6 +15,9 @@ twice in this process by :meth:`Localizer.localize`: with the scale of its frame
 the candidates by registration, localization/verify/scale.py). ``--median`` adds a third
 pass, ``median``: no scale given and the candidates' median scale taken as it is (the rigid
 registration only, as verification did before the scale was free).
+
+``--sweep N``: the candidates the free scale's one factor is fitted to (0: each candidate
+keeps a factor of its own, as verification did before; localization/verify/scale.py).
 
 ``--off-map`` verifies each query once more as if the map did not hold its place (its
 candidates the nearest by descriptor among those over 50 m away, as the threshold's
@@ -208,6 +211,12 @@ def main() -> int:
         "--bounds",
         help="the free scale's factor bounds LO,HI (default: the shipped 0.7,1.4)",
     )
+    ap.add_argument(
+        "--sweep",
+        type=int,
+        help="candidates the query's one scale is fitted to (default: the shipped 2; 0: each "
+        "candidate keeps its own factor)",
+    )
     args = ap.parse_args()
     tree = BenchmarkTree(args.root)
     dataset = args.dataset or tree.datasets[0]
@@ -218,8 +227,10 @@ def main() -> int:
     modes = [("known", True), ("free", False)] + [("median", False)] * args.median
     with Localizer.load(args.index, args.model, LocalizerConfig()) as loc:
         free = loc.verify_config
-        if args.starts or args.bounds:
+        if args.starts or args.bounds or args.sweep is not None:
             scale = free.scale
+            if args.sweep is not None:
+                scale = replace(scale, sweep_candidates=args.sweep)
             if args.bounds:
                 lo, hi = (float(f) for f in args.bounds.split(","))
                 scale = replace(scale, bounds=(lo, hi))
@@ -227,7 +238,7 @@ def main() -> int:
                 scale = replace(scale, starts=tuple(float(f) for f in args.starts.split(",")))
             free = replace(free, scale=scale)
         for mode, known in modes:
-            fixed = replace(free, scale=ScaleConfig(bounds=(1.0, 1.0)))
+            fixed = replace(free, scale=ScaleConfig(bounds=(1.0, 1.0), sweep_candidates=0))
             loc.verify_config = fixed if mode == "median" else free
             records = localise_all(loc, tree, queries, known)
             figs = summary(records)

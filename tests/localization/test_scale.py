@@ -17,12 +17,14 @@ from pnvlad_service.localization.query.localizer import Localizer
 from pnvlad_service.localization.verify import registration as reg
 from pnvlad_service.localization.verify.scale import (
     ScaleConfig,
+    common_factor,
     refine_scale,
     register_scaled,
     similarity,
 )
 from pnvlad_service.localization.verify.verify import (
     Candidate,
+    Check,
     QueryCloud,
     VerifyConfig,
     estimated_scale,
@@ -94,9 +96,58 @@ def test_refine_scale_stays_within_its_bounds() -> None:
     assert k == pytest.approx(0.9)  # the truth (1 / 1.3) lies beyond: held at the bound
 
 
+def test_common_factor_keeps_the_factor_that_fits_most() -> None:
+    """A query 25 % too large: from a check at the true pose but its factor 1, the sweep's
+    factor nearest the truth is kept (its steps are 12-14 % apart). One 20 % too large, with
+    also the check :func:`register_scaled` gives (its factor within 1 % of the truth): that
+    check's factor."""
+    cloud, mpu, truth = _normalised_query(5)
+    target = reg.prepare(street(1), reg.DEFAULT, "target")
+    query_m = cloud * mpu * 1.25
+    posed = Check(1, 0.2, 1.0, truth, 0.1, 1.0)
+    k = common_factor(query_m, [(target, posed)])
+    assert k in ScaleConfig().sweep()
+    assert abs(1.25 * k - 1.0) < 0.07, k
+    query_m = cloud * mpu * 1.2
+    scaled, own = register_scaled(query_m, reg.prepare(query_m, reg.DEFAULT, "source"), target)
+    assert abs(1.2 * own - 1.0) < 0.01
+    refined = Check(1, scaled.fitness, scaled.rmse_m, scaled.transform, scaled.constraint, own)
+    assert common_factor(query_m, [(target, posed), (target, refined)]) == own
+
+
+def test_without_a_scale_every_candidate_is_registered_rigidly_at_one_factor() -> None:
+    """The second pass: each check is the rigid registration of the query rescaled by one
+    factor, computed here apart, and the pose's metres per unit are the start times it."""
+    cloud, mpu, truth = _normalised_query(7)
+    query = QueryCloud.from_normalised(cloud, candidate_scales=[1.1 * mpu])
+    scenes = {1: street(1), 2: street(2)}
+    cands = [Candidate(k, c, np.eye(4), key=f"c{k}") for k, c in scenes.items()]
+    v = verify(query, cands, VerifyConfig(stop_score=None, threshold=0.2))
+    assert v.verified and v.checks[0].rank == 1 and v.registered == 4
+    k = v.checks[0].scale
+    assert {c.scale for c in v.checks} == {k} and abs(1.1 * k - 1.0) < 0.01
+    source = reg.prepare(query.points_m * k, reg.DEFAULT, "source")
+    for check in v.checks:
+        alone = reg.register(source, reg.prepare(scenes[check.rank], reg.DEFAULT, "target"))
+        assert check.score == pytest.approx(alone.fitness, abs=1e-9)
+        assert np.allclose(check.transform, alone.transform, atol=1e-6)
+    assert v.pose.metres_per_unit == pytest.approx(1.1 * mpu * k)
+    assert np.linalg.norm(v.pose.transform[:3, 3] - truth[:3, 3]) < 0.3
+    # without the second pass each candidate keeps a factor of its own
+    alone = verify(
+        query,
+        cands,
+        VerifyConfig(stop_score=None, threshold=0.2, scale=ScaleConfig(sweep_candidates=0)),
+    )
+    assert alone.registered == 2
+
+
 @pytest.mark.parametrize(
     ("kwargs", "field"),
     [
+        ({"sweep_candidates": -1}, "sweep_candidates"),
+        ({"sweep_bounds": (1.2, 1.1)}, "sweep_bounds"),
+        ({"sweep_steps": 0}, "sweep_steps"),
         ({"bounds": (1.1, 1.4)}, "bounds"),
         ({"starts": (1.5,)}, "starts"),
         ({"starts": ()}, "starts"),

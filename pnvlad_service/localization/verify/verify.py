@@ -394,7 +394,15 @@ def verify(
 
     ``cache`` (a dict, or a bounded :class:`PreparedCache`): prepared clouds by
     ``Candidate.key`` and ``query_key``, filled as they are made (a submap is a candidate of
-    many queries). Candidates are registered in ``rank`` order (see ``stop_score``)."""
+    many queries). Candidates are registered in ``rank`` order (see ``stop_score``).
+
+    A query whose scale was estimated (a normalised cloud without one) is registered twice:
+    first each candidate with the scale free (:func:`~.scale.register_scaled`), then every
+    candidate rigidly at the one scale that fits the best of them most
+    (:func:`~.scale.common_factor`; ``ScaleConfig.sweep_candidates`` 0: the first pass is
+    the answer). A query has one scale: held to it, a wrong place can no longer fit with a
+    scale of its own, and the rivals the confidence weighs are registered as the winner is.
+    """
     t0 = time.perf_counter()
 
     def refused(reason: str) -> Verification:
@@ -406,37 +414,76 @@ def verify(
 
     if not candidates:
         return refused("no candidates")
-
     candidates = sorted(candidates, key=lambda c: c.rank)
+    targets = _Targets(config, cache)
+    source = targets.get(lambda: query.points_m, query_key, "source")
+    if source.reason is not None:  # a line, a plane, too few distinct points (reg.prepare)
+        return refused(f"query: {source.reason}")
+    free = query.scale == "estimated" and query.frame == "centroid"
+    ordered, registered = _cascade(query, source, candidates, targets, config, free)
+    if free and config.scale.sweep_candidates > 0 and ordered[0].score > 0.0:
+        ordered, registered = _at_common_scale(query, ordered, candidates, targets, config)
+    best = ordered[0]
+    sure = confidence(ordered, {c.rank: c.map_pose for c in candidates}, config)
+    verified = sure >= config.threshold
+    pose = None
+    if verified:
+        cand = next(c for c in candidates if c.rank == best.rank)
+        pose = Pose.from_check(best, cand, query)
+    seconds = time.perf_counter() - t0
+    return Verification(
+        verified, ordered, pose, config.threshold, None, seconds, len(candidates), sure, registered
+    )
 
-    def prepared(metres: Callable[[], np.ndarray], key: Any, role: str) -> Any:
-        if cache is None or key is None:
-            return reg.prepare(metres(), config.registration, role)  # type: ignore[arg-type]
-        made = cache.get((key, role))
+
+class _Targets:
+    """The prepared clouds of one :func:`verify` call: from ``cache`` when it holds them, and
+    each candidate's kept for the call in any case (a second pass registers them again)."""
+
+    def __init__(self, config: VerifyConfig, cache: dict[Any, Any] | None) -> None:
+        self.config, self.cache = config, cache
+        self.by_rank: dict[int, Any] = {}
+
+    def get(self, metres: Callable[[], np.ndarray], key: Any, role: str) -> Any:
+        """The cloud ``metres()`` prepared for ``role``, by ``key`` in the cache."""
+        made = None if self.cache is None or key is None else self.cache.get((key, role))
         if made is None:
-            made = reg.prepare(metres(), config.registration, role)  # type: ignore[arg-type]
-            cache[(key, role)] = made
+            made = reg.prepare(metres(), self.config.registration, role)  # type: ignore[arg-type]
+            if self.cache is not None and key is not None:
+                self.cache[(key, role)] = made
         return made
 
+    def of(self, cand: Candidate) -> Any:
+        """``cand`` prepared as a target."""
+        made = self.by_rank.get(cand.rank)
+        if made is None:
+            made = self.by_rank[cand.rank] = self.get(cand.metres, cand.key, "target")
+        return made
+
+
+def _cascade(
+    query: QueryCloud,
+    source: Any,
+    candidates: Sequence[Candidate],
+    targets: _Targets,
+    config: VerifyConfig,
+    free: bool,
+) -> tuple[tuple[Check, ...], int]:
+    """The candidates registered in rank order, ``workers`` at a time, until one is sure
+    (:func:`_done`): the re-ranked checks and how many were registered. ``free``: each with
+    the query's scale free (:func:`register_check`), else rigidly."""
     step = max(1, config.workers)
-    # With a pool, the first wave's candidates are prepared on it while this thread prepares
-    # the query (overlapping only where NumPy releases the GIL).
+    # With a pool, the first wave's candidates are prepared on it side by side (overlapping
+    # only where NumPy releases the GIL).
     early: dict[int, Any] = {}
     if step > 1 and len(candidates) > 1:
         pool = _pool(config.workers)
-        early = {
-            c.rank: pool.submit(prepared, c.metres, c.key, "target") for c in candidates[:step]
-        }
-    source = prepared(lambda: query.points_m, query_key, "source")
-    if source.reason is not None:  # a line, a plane, too few distinct points (reg.prepare)
-        return refused(f"query: {source.reason}")
+        early = {c.rank: pool.submit(targets.of, c) for c in candidates[:step]}
 
     def check(cand: Candidate) -> Check:
         pending = early.get(cand.rank)
-        target = pending.result() if pending is not None else None
-        if target is None:
-            target = prepared(cand.metres, cand.key, "target")
-        return register_check(cand.rank, query, source, target, config)
+        target = pending.result() if pending is not None else targets.of(cand)
+        return register_check(cand.rank, query, source, target, config, free)
 
     checks: list[Check] = []
     ordered: tuple[Check, ...] = ()
@@ -449,26 +496,39 @@ def verify(
         ordered = rerank(checks, config.place_radius_m)
         if _done(ordered, config):
             break
-    best = ordered[0]
-    sure = confidence(ordered, {c.rank: c.map_pose for c in candidates}, config)
-    verified = sure >= config.threshold
-    pose = None
-    if verified:
-        cand = next(c for c in candidates if c.rank == best.rank)
-        pose = Pose.from_check(best, cand, query)
-    seconds = time.perf_counter() - t0
-    return Verification(
-        verified, ordered, pose, config.threshold, None, seconds, len(candidates), sure, len(checks)
-    )
+    return ordered, len(checks)
+
+
+def _at_common_scale(
+    query: QueryCloud,
+    first: tuple[Check, ...],
+    candidates: Sequence[Candidate],
+    targets: _Targets,
+    config: VerifyConfig,
+) -> tuple[tuple[Check, ...], int]:
+    """The second pass of a query without a scale: the factor that fits the first pass's best
+    candidates most (:func:`~.scale.common_factor`), then every candidate registered rigidly
+    at it; the re-ranked checks, each with that factor (``Check.scale``: the pose's metres per
+    unit are ``query``'s times it), and how many registrations both passes made."""
+    by_rank = {c.rank: c for c in candidates}
+    tops = [(targets.of(by_rank[c.rank]), c) for c in first[: config.scale.sweep_candidates]]
+    k = free_scale.common_factor(query.points_m, tops, config.registration, config.scale)
+    held = QueryCloud(query.points_m * k, query.frame, "measured", query.metres_per_unit * k)
+    source = reg.prepare(held.points_m, config.registration, "source")
+    if source.reason is not None:
+        return first, len(first)
+    ordered, registered = _cascade(held, source, candidates, targets, config, False)
+    ordered = tuple(replace(c, scale=k) for c in ordered)
+    return ordered, len(first) + registered
 
 
 def register_check(
-    rank: int, query: QueryCloud, source: Any, target: Any, config: VerifyConfig
+    rank: int, query: QueryCloud, source: Any, target: Any, config: VerifyConfig, free: bool
 ) -> Check:
     """The :class:`Check` of one candidate (``source`` the query prepared, ``target`` the
-    candidate): the rigid registration, or with the scale free when the query's was estimated
-    (:func:`~.scale.register_scaled`)."""
-    if query.scale == "estimated" and query.frame == "centroid":
+    candidate): the rigid registration, or with the scale free (``free``: the query's was
+    estimated; :func:`~.scale.register_scaled`)."""
+    if free:
         r, k = free_scale.register_scaled(
             query.points_m, source, target, config.registration, config.scale
         )
