@@ -81,24 +81,24 @@ def fidelity(original: Any, stored: Any, cfg: Any, points: np.ndarray | None = N
     from pnvlad_service.models.inference import Encoder
     from pnvlad_service.models.onnx_encoder import check_clouds
 
-    clouds = check_clouds(CHECK_SEED, CHECK_CLOUDS, cfg.num_points)
+    # The seeded clouds have the model's num_points, the submaps their own (4096 for a model
+    # trained on 1024, as the index and the server embed them): each set embedded apart.
+    sets = [check_clouds(CHECK_SEED, CHECK_CLOUDS, cfg.num_points)]
     real = points is not None and len(points) > 1
     if real:
-        clouds = np.concatenate([clouds, np.asarray(points, dtype=np.float32)])
+        sets.append(np.asarray(points, dtype=np.float32))
     descs = []
     for module in (original, stored):
         enc = Encoder(module, cfg, weights_sha256="fidelity", batch_size=16)
         try:
             with torch.inference_mode():
-                descs.append(enc.embed(clouds))
+                descs.append(np.concatenate([enc.embed(c) for c in sets]))
         finally:
             enc.close()
     a, b = descs
     cos = np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
     top = slice(CHECK_CLOUDS if real else 0, None)
-    return Fidelity(
-        len(clouds), float(cos.min()), float(cos.mean()), _top1_agreement(a[top], b[top])
-    )
+    return Fidelity(len(a), float(cos.min()), float(cos.mean()), _top1_agreement(a[top], b[top]))
 
 
 def _top1_agreement(a: np.ndarray, b: np.ndarray) -> float:

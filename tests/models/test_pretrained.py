@@ -22,7 +22,7 @@ from pnvlad_service.models.inference import Encoder
 from pnvlad_service.models.packaging import Card, package_model
 from pnvlad_service.models.pretrained import Catalogue
 from pnvlad_service.models.store import load_model, model_identity, resolve_model_dir, save_model
-from tests.models.helpers import BEV_SMALL, trained_like
+from tests.models.helpers import BEV_SMALL, CONFIGS, trained_like
 
 CARD = Card(
     kind="submap",
@@ -392,3 +392,24 @@ def test_export_does_not_rewrite_a_pretrained_model(packaged: pretrained.Entry) 
     res = CliRunner().invoke(app, ["model", "export", "pretrained:bev-test"])
     assert res.exit_code == 2 and "copy its directory" in res.output
     assert Catalogue.read().problems(packaged) == []
+
+
+def test_a_model_of_fewer_points_is_checked_on_full_submaps(
+    tmp_path: Path, catalogue: Path
+) -> None:
+    """A PointNetVLAD trained on fewer points than a submap holds (``--num-points 1024``) is
+    checked on its seeded clouds of that size and on the check tree's 4,096-point submaps, as
+    the index and the server embed them: every cloud counted, the float16 copy within the
+    bound, and the stored model embeds both sizes as the original does."""
+    cfg = CONFIGS["compact"]  # 256 points
+    source = save_model(tmp_path / "run" / "model", trained_like(cfg, seed=4), cfg)
+    rng = np.random.default_rng(0)
+    submaps = rng.uniform(-1, 1, (5, 4096, 3)).astype(np.float32)
+    entry = package_model(source, "pn-small", CARD, onnx=False, points=submaps)
+    assert entry.extra["fidelity"]["clouds"] == 64 + 5
+    assert entry.extra["fidelity"]["min_cosine"] >= 0.999
+    stored = Encoder.from_checkpoint(pretrained.resolve("pretrained:pn-small"))
+    original = Encoder.from_checkpoint(source)
+    for n in (256, 4096):
+        clouds = rng.uniform(-1, 1, (3, n, 3)).astype(np.float32)
+        assert _cosines(stored.embed(clouds), original.embed(clouds)).min() >= 0.999
