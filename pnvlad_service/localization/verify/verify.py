@@ -302,8 +302,9 @@ class Verification:
     seconds: float = 0.0
     candidates: int = 0
     confidence: float = 0.0
-    registered: int = 0  # candidates registered: at most ``candidates`` (the cascade stops
-    # at a sure one), 0 when the query itself could not be registered
+    registered: int = 0  # registrations made: at most ``candidates`` a pass (the cascade
+    # stops at a sure one; a query without a scale has two passes), 0 when the query itself
+    # could not be registered
 
     @property
     def order(self) -> list[int]:
@@ -513,11 +514,11 @@ def _at_common_scale(
     by_rank = {c.rank: c for c in candidates}
     tops = [(targets.of(by_rank[c.rank]), c) for c in first[: config.scale.sweep_candidates]]
     k = free_scale.common_factor(query.points_m, tops, config.registration, config.scale)
-    held = QueryCloud(query.points_m * k, query.frame, "measured", query.metres_per_unit * k)
+    held = replace(query, points_m=query.points_m * k, metres_per_unit=query.metres_per_unit * k)
     source = reg.prepare(held.points_m, config.registration, "source")
     if source.reason is not None:
         return first, len(first)
-    ordered, registered = _cascade(held, source, candidates, targets, config, False)
+    ordered, registered = _cascade(held, source, candidates, targets, config, free=False)
     ordered = tuple(replace(c, scale=k) for c in ordered)
     return ordered, len(first) + registered
 
