@@ -69,6 +69,14 @@ RUN pip install --no-deps --no-compile --prefix /opt/pnvlad . \
     && PYTHONPATH="$(python -c 'import sysconfig; print(sysconfig.get_path("purelib", vars={"base": "/opt/pnvlad"}))')" pip check \
     && python -m compileall -q -s /opt/pnvlad -p /opt/venv /opt/pnvlad
 
+# pnvlad as the served image holds it: the pretrained models serving-only (model.json and
+# model.onnx, checked against their catalogue, which is rewritten without the weights). The
+# server embeds with ONNX Runtime and has no torch to read model.safetensors; the tools image
+# takes the build stage's full models. (-P: not the sources in the working directory, /src.)
+FROM build AS served
+RUN PYTHONPATH="$(python -c 'import sysconfig; print(sysconfig.get_path("purelib", vars={"base": "/opt/pnvlad"}))')" \
+    python -P -c "from pnvlad_service.models import pretrained; print(len(pretrained.make_serving_only()), 'weights files left out of', pretrained.PACKAGE_CATALOGUE.parent)"
+
 # The tools image (`--target tools`): pnvlad with torch and onnx (the `torch` extra), for
 # training, evaluation and `pnvlad model export` in a container. Not slimmed; `pnvlad` is its
 # entry point. Bytecode for the whole venv but torch's internal test helpers, some of which are
@@ -95,12 +103,13 @@ ENTRYPOINT ["pnvlad"]
 FROM ${BASE_IMAGE}
 RUN useradd --system --uid 10001 --user-group --no-create-home --home-dir /nonexistent pnvlad
 COPY --from=venv /opt/venv /opt/venv
-COPY --from=build /opt/pnvlad /opt/venv
+COPY --from=served /opt/pnvlad /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 # Bytecode for what the server imports (compiling the whole venv would add 30 MB), and the check
 # that the final image imports what the server imports, without torch.
 RUN python -c "import faiss, onnxruntime, scipy.ndimage, small_gicp, uvicorn.loops.uvloop, uvicorn.protocols.http.httptools_impl, uvicorn.lifespan.on, pnvlad_cli.main, pnvlad_cli.serve, pnvlad_service.server.app, pnvlad_service.localization.verify.registration, pnvlad_service.localization.verify.verify_process, pnvlad_service.localization.query.localizer, pnvlad_service.localization.verify.scale, pnvlad_service.preprocess.filter_g, pnvlad_service.models.onnx_encoder" \
     && pnvlad --version \
+    && pnvlad model list > /dev/null \
     && python -c "import importlib.util, sys; sys.exit('torch in the image' if importlib.util.find_spec('torch') else 0)"
 ENV PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \

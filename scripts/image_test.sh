@@ -6,7 +6,8 @@
 #   3. build the image (no torch: ONNX Runtime) and, when the demo data must be made, the tools
 #      image (--target tools: torch and onnx): the local base and the torch wheel from pip's
 #      find-links folder come in as build arguments; the Dockerfile's defaults (python:3.11-slim,
-#      PyTorch's CPU index) are untouched;
+#      PyTorch's CPU index) are untouched; every pretrained model it ships must load by name on
+#      ONNX Runtime and pass its self-check;
 #   4. make the demo data with the tools image's CLI, cached under runs/image-test/: a tiny
 #      synthetic city, a short training run, the model exported to model.onnx, an index bundle of
 #      every run but one;
@@ -228,6 +229,17 @@ echo "user $user; no compiler, installer or cache in the image (apt-get is the b
 pm run --rm --network none --no-healthcheck --entrypoint python "$IMAGE" -c \
     'import importlib.util, sys; sys.exit(1 if importlib.util.find_spec("torch") else 0)' ||
     fail "torch is in the served image"
+# The pretrained models the image ships serving-only: each loads by name on ONNX Runtime and
+# passes its self-check (the check clouds against torch's descriptors recorded at export).
+pm run --rm --network none --no-healthcheck --entrypoint python "$IMAGE" -c '
+from pnvlad_service.models.pretrained import Catalogue, resolve
+from pnvlad_service.models.runtimes import open_encoder
+from pnvlad_service.models.store import is_serving_only
+for e in Catalogue.read().entries:
+    assert is_serving_only(resolve(e.name)), f"{e.name} ships more than it serves from"
+    enc = open_encoder("pretrained:" + e.name, threads=1)
+    print(f"pretrained:{e.name} serving-only, {enc.runtime}, self-check cosine {enc.self_check():.6f}")
+    enc.close()' || fail "a pretrained model does not load in the served image"
 size=$(pm image inspect --format '{{.Size}}' "$IMAGE")
 [ $(( size / 1000000 )) -le "$SIZE_LIMIT_MB" ] ||
     fail "the image is $(( size / 1000000 )) MB, over the $SIZE_LIMIT_MB MB limit"

@@ -43,10 +43,10 @@ from pnvlad_service.errors import InputError
 from pnvlad_service.extras import require
 from pnvlad_service.models.config import ModelConfig, config_sha256
 from pnvlad_service.models.embedding import over_scales, unit_rows
+from pnvlad_service.models.store import ONNX_FILE
 
 log = logging.getLogger(__name__)
 
-ONNX_FILE = "model.onnx"
 #: ``metadata_props`` keys of an exported file.
 FORMAT = "pnvlad-onnx"
 FORMAT_VERSION = "1"

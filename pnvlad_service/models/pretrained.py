@@ -29,12 +29,12 @@ from __future__ import annotations
 import json
 import os
 import re
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.fileio import sha256_file
+from pnvlad_service.fileio import atomic_write_text, sha256_file
 
 #: How a model reference names a pretrained model instead of a directory.
 PREFIX = "pretrained:"
@@ -63,11 +63,13 @@ __all__ = [
     "MAX_TOTAL_BYTES",
     "PACKAGE_CATALOGUE",
     "PREFIX",
+    "SERVING_FILES",
     "Catalogue",
     "Entry",
     "FileRecord",
     "default_catalogue",
     "is_pretrained",
+    "make_serving_only",
     "refuse_pretrained",
     "resolve",
 ]
@@ -283,6 +285,46 @@ def resolve(ref: str | Path, catalogue: str | Path | None = None) -> Path:
             path,
         )
     return cat.directory(entry)
+
+
+#: The files a model needs where it only serves, with ONNX Runtime (no torch).
+SERVING_FILES = ("model.json", "model.onnx")
+
+
+def make_serving_only(catalogue: str | Path | None = None) -> list[Path]:
+    """Leave every model of the catalogue with only :data:`SERVING_FILES`, for an install that
+    embeds with ONNX Runtime alone (the server image, which has no torch to read the weights):
+    the catalogue is rewritten (atomically) without the other files' records, then those files
+    are deleted. Returns the deleted paths. Every file is checked first; a model without
+    ``model.onnx``, or any file that does not verify, is an :class:`InputError` naming it, and
+    nothing changes. The models then load as serving-only directories
+    (``store.is_serving_only``)."""
+    cat = Catalogue.read(catalogue)
+    for entry in cat.entries:
+        missing = [f for f in SERVING_FILES if f not in entry.files]
+        if missing:
+            raise InputError(
+                f"pretrained model {entry.name} has no {missing[0]}: it cannot serve without torch",
+                cat.directory(entry),
+            )
+        problems = cat.problems(entry)
+        if problems:
+            path, _, why = problems[0].partition(": ")
+            raise InputError(f"pretrained model {entry.name}: {why}", path)
+    slim = tuple(
+        replace(e, files={k: v for k, v in e.files.items() if k in SERVING_FILES})
+        for e in cat.entries
+    )
+    dropped = [
+        cat.directory(e) / fname
+        for e in cat.entries
+        for fname in e.files
+        if fname not in SERVING_FILES
+    ]
+    atomic_write_text(cat.path, json.dumps(Catalogue(cat.path, slim).to_json(), indent=2) + "\n")
+    for path in dropped:
+        path.unlink(missing_ok=True)
+    return dropped
 
 
 def refuse_pretrained(ref: str | Path) -> None:

@@ -2,8 +2,9 @@
 Runtime (:class:`~.onnx_encoder.OnnxEncoder`, ``model.onnx`` beside the weights).
 
 ``runtime="auto"`` takes torch when it is installed, else ONNX Runtime when the directory has
-``model.onnx``; ``"torch"`` and ``"onnx"`` insist. A choice that cannot be had is an error that
-says what to install or export. This module imports neither runtime at module level.
+``model.onnx`` (and ONNX Runtime for a serving-only directory, which has no weights for torch:
+``store.is_serving_only``); ``"torch"`` and ``"onnx"`` insist. A choice that cannot be had is an
+error that says what to install or export. This module imports neither runtime at module level.
 """
 
 from __future__ import annotations
@@ -34,8 +35,11 @@ def choose_runtime(directory: str | Path, runtime: str = "auto") -> str:
     """``"torch"`` or ``"onnx"`` for the model directory ``directory`` (resolved already)."""
     if runtime not in RUNTIMES:
         raise InputError(f"runtime must be one of {list(RUNTIMES)}, got {runtime!r}", "runtime")
+    from pnvlad_service.models.store import is_serving_only
+
     has_onnx = (Path(directory) / ONNX_FILE).is_file()
-    if runtime == "torch" or (runtime == "auto" and torch_installed()):
+    serving_only = runtime == "auto" and is_serving_only(directory)
+    if runtime == "torch" or (runtime == "auto" and torch_installed() and not serving_only):
         if not torch_installed():
             raise MissingDependencyError("torch", "torch", "the torch runtime")
         return "torch"

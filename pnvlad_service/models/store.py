@@ -31,6 +31,8 @@ log = logging.getLogger(__name__)
 FORMAT = "pnvlad-model"
 VERSION = 1
 WEIGHTS_FILE = "model.safetensors"
+#: The weights exported for ONNX Runtime (``pnvlad model export``; models/onnx_encoder.py).
+ONNX_FILE = "model.onnx"
 CONFIG_FILE = "model.json"
 
 __all__ = [
@@ -38,6 +40,7 @@ __all__ = [
     "WEIGHTS_FILE",
     "ModelIdentity",
     "config_sha256",
+    "is_serving_only",
     "load_model",
     "model_identity",
     "read_model_json",
@@ -116,11 +119,33 @@ def model_identity(directory: str | Path) -> ModelIdentity:
 
 
 def weights_sha256(directory: str | Path) -> str:
-    """SHA-256 (hex) of the checkpoint's ``model.safetensors`` file bytes."""
-    path = _named(directory) / WEIGHTS_FILE
-    if not path.is_file():
-        raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
-    return sha256_file(path)
+    """SHA-256 (hex) of the checkpoint's ``model.safetensors`` file bytes.
+
+    A serving-only directory (``model.json`` and ``model.onnx``, the weights left out, as the
+    server image ships the pretrained models) has the hash ``model.json`` records: the ONNX
+    file's own record of the weights it was exported from is checked against it when it loads.
+    """
+    directory = _named(directory)
+    path = directory / WEIGHTS_FILE
+    if path.is_file():
+        return sha256_file(path)
+    if is_serving_only(directory):
+        _, doc = read_model_json(directory)
+        return str(doc["weights_sha256"])
+    raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
+
+
+def is_serving_only(directory: str | Path) -> bool:
+    """Whether ``directory`` holds ``model.onnx`` and ``model.json`` (recording the weights'
+    SHA-256) but no ``model.safetensors``: it embeds with ONNX Runtime only."""
+    directory = Path(directory)
+    if (directory / WEIGHTS_FILE).exists() or not (directory / ONNX_FILE).is_file():
+        return False
+    try:
+        _, doc = read_model_json(directory)
+    except InputError:
+        return False
+    return isinstance(doc.get("weights_sha256"), str)
 
 
 def write_model_files(
@@ -225,7 +250,10 @@ def load_model(
     cfg, doc = read_model_json(directory)
     wpath = directory / WEIGHTS_FILE
     if not wpath.is_file():
-        raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
+        why = f"no {WEIGHTS_FILE} in this model directory"
+        if is_serving_only(directory):
+            why += " (a serving-only directory: it embeds with ONNX Runtime, --runtime onnx)"
+        raise InputError(why, directory)
     recorded = doc.get("weights_sha256")
     if recorded is not None and recorded != sha256_file(wpath):
         raise InputError(

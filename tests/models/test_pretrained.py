@@ -413,3 +413,70 @@ def test_a_model_of_fewer_points_is_checked_on_full_submaps(
     for n in (256, 4096):
         clouds = rng.uniform(-1, 1, (3, n, 3)).astype(np.float32)
         assert _cosines(stored.embed(clouds), original.embed(clouds)).min() >= 0.999
+
+
+def test_a_serving_only_catalogue_embeds_and_answers_as_the_full_one(
+    packaged: pretrained.Entry, catalogue: Path, tmp_path: Path, tiny: Path
+) -> None:
+    """The server image's models: weights left out, ONNX Runtime embeds, and a map indexed with
+    the full model still answers with them (the same identity)."""
+    from pnvlad_service.index.build import list_database_submaps
+    from pnvlad_service.models.runtimes import open_encoder
+
+    x = np.random.default_rng(1).uniform(-1, 1, (8, 256, 3)).astype(np.float32)
+    full = open_encoder("pretrained:bev-test", runtime="onnx", threads=1)
+    want = full.embed(x)
+    full.close()
+    identity = model_identity("pretrained:bev-test")
+    out = tmp_path / "map.index"
+    res = CliRunner().invoke(
+        app, ["index", "build", "-m", "pretrained:bev-test", "-r", str(tiny), "-o", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+
+    directory = catalogue.parent / "bev-test"
+    assert pretrained.make_serving_only() == [directory / "model.safetensors"]
+    assert sorted(p.name for p in directory.iterdir()) == ["model.json", "model.onnx"]
+    assert set(Catalogue.read().get("bev-test").files) == {"model.json", "model.onnx"}
+    assert resolve_model_dir("pretrained:bev-test") == directory  # every listed file verifies
+    # torch is installed here, yet auto takes ONNX Runtime: there are no weights for torch
+    enc = open_encoder("pretrained:bev-test", threads=1)
+    try:
+        assert enc.runtime == "onnx" and np.array_equal(enc.embed(x), want)
+    finally:
+        enc.close()
+    assert model_identity("pretrained:bev-test").weights_sha256 == identity.weights_sha256
+    with pytest.raises(InputError, match="serving-only directory"):
+        open_encoder("pretrained:bev-test", runtime="torch")
+    rec = list_database_submaps(tiny)[5]
+    res = CliRunner().invoke(
+        app,
+        ["localize", str(tiny / rec.path), "--reader", "benchmark", "--index", str(out),
+         "-m", "pretrained:bev-test", "--json"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert len(json.loads(res.stdout)["matches"]) == 5
+    assert pretrained.make_serving_only() == []  # once is enough
+
+
+@pytest.mark.parametrize("case", ["corrupt onnx", "no onnx"])
+def test_serving_only_refuses_a_model_it_cannot_serve_and_changes_nothing(
+    trained: Path, catalogue: Path, case: str
+) -> None:
+    package_model(trained, "good", CARD)
+    if case == "no onnx":
+        package_model(trained, "bad", CARD, onnx=False)
+        named, why = catalogue.parent / "bad", "has no model.onnx"
+    else:
+        package_model(trained, "bad", CARD)
+        named, why = catalogue.parent / "bad" / "model.onnx", "SHA-256 differs"
+        data = bytearray(named.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        named.write_bytes(bytes(data))
+    before = catalogue.read_bytes()
+    with pytest.raises(InputError, match=why) as err:
+        pretrained.make_serving_only()
+    assert err.value.source == str(named)
+    assert catalogue.read_bytes() == before
+    for name in ("good", "bad"):
+        assert (catalogue.parent / name / "model.safetensors").is_file()
