@@ -2,7 +2,8 @@
 with their known scale: how often each verifies, and how often a verified answer is right.
 
     python benchmarks/scale_free_queries.py TREE --index MAP [--model MODEL] [--dataset D]
-        [--run RUN ...] [--splits SPLITS] [--count N] [--sweep N] [--json out.json]
+        [--run RUN ...] [--splits SPLITS] [--count N] [--sweep N] [--stop-score S|none]
+        [--alone-score S|none] [--json out.json]
 
 TREE: a ``pnvlad synth`` tree (its frame sidecars give each query's scale and true pose);
 MAP: a bundle with geometry built from the runs of TREE but the query run. The queries are
@@ -18,6 +19,9 @@ registration only, as verification did before the scale was free).
 
 ``--sweep N``: the candidates the free scale's one factor is fitted to (0: each candidate
 keeps a factor of its own, as verification did before; localization/verify/scale.py).
+
+``--stop-score`` / ``--alone-score``: the verification cascade's (``VerifyConfig``; ``none``
+registers every candidate / never lets a first candidate stand alone).
 
 ``--off-map`` verifies each query once more as if the map did not hold its place (its
 candidates the nearest by descriptor among those over 50 m away, as the threshold's
@@ -51,6 +55,7 @@ from pnvlad_service.io.submap import read_submap
 from pnvlad_service.localization.query.config import LocalizerConfig
 from pnvlad_service.localization.query.localizer import Localizer
 from pnvlad_service.localization.verify.scale import ScaleConfig
+from pnvlad_service.localization.verify.verify import VerifyConfig
 
 RIGHT_M = 25.0
 OFF_MAP_M = 50.0
@@ -179,7 +184,31 @@ def _line(mode: str, f: dict) -> str:
     return text + (f", {f['seconds_median']:.2f} s a query, {f['registered_mean']:.1f} registered")
 
 
-def main() -> int:
+def _score_or_none(text: str) -> float | None:
+    """A score in [0, 1], or ``none``."""
+    if text.lower() == "none":
+        return None
+    value = float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"a score in [0, 1] or none, got {text}")
+    return value
+
+
+def _verify_config(base: VerifyConfig, args: argparse.Namespace) -> VerifyConfig:
+    """``base`` with the command line's cascade and free-scale settings."""
+    free = replace(base, stop_score=args.stop_score, alone_score=args.alone_score)
+    scale = free.scale
+    if args.sweep is not None:
+        scale = replace(scale, sweep_candidates=args.sweep)
+    if args.bounds:
+        lo, hi = (float(f) for f in args.bounds.split(","))
+        scale = replace(scale, bounds=(lo, hi))
+    if args.starts:
+        scale = replace(scale, starts=tuple(float(f) for f in args.starts.split(",")))
+    return replace(free, scale=scale)
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -217,7 +246,25 @@ def main() -> int:
         help="candidates the query's one scale is fitted to (default: the shipped 2; 0: each "
         "candidate keeps its own factor)",
     )
-    args = ap.parse_args()
+    ap.add_argument(
+        "--stop-score",
+        type=_score_or_none,
+        default=VerifyConfig.stop_score,
+        help="the cascade stops at a candidate this sure; none: every candidate registered "
+        f"(default: the shipped {VerifyConfig.stop_score})",
+    )
+    ap.add_argument(
+        "--alone-score",
+        type=_score_or_none,
+        default=VerifyConfig.alone_score,
+        help=f"a first candidate this sure stands alone; none: never (default: the shipped "
+        f"{VerifyConfig.alone_score})",
+    )
+    return ap
+
+
+def main() -> int:
+    args = _parser().parse_args()
     tree = BenchmarkTree(args.root)
     dataset = args.dataset or tree.datasets[0]
     query_runs = args.run or [tree.runs(dataset)[-1]]
@@ -226,17 +273,7 @@ def main() -> int:
     report: dict = {"dataset": dataset, "run": query_runs, "index": str(args.index)}
     modes = [("known", True), ("free", False)] + [("median", False)] * args.median
     with Localizer.load(args.index, args.model, LocalizerConfig()) as loc:
-        free = loc.verify_config
-        if args.starts or args.bounds or args.sweep is not None:
-            scale = free.scale
-            if args.sweep is not None:
-                scale = replace(scale, sweep_candidates=args.sweep)
-            if args.bounds:
-                lo, hi = (float(f) for f in args.bounds.split(","))
-                scale = replace(scale, bounds=(lo, hi))
-            if args.starts:
-                scale = replace(scale, starts=tuple(float(f) for f in args.starts.split(",")))
-            free = replace(free, scale=scale)
+        free = _verify_config(loc.verify_config, args)
         for mode, known in modes:
             fixed = replace(free, scale=ScaleConfig(bounds=(1.0, 1.0), sweep_candidates=0))
             loc.verify_config = fixed if mode == "median" else free

@@ -26,6 +26,38 @@ log = logging.getLogger("pnvlad.localize")
 #: ``--mode``'s values.
 MODES = ("scan", "follow", "per-scan")
 
+# How a single scan is verified (the options of `localize` that a drive does not take).
+VERIFY = typer.Option(
+    None,
+    "--verify/--no-verify",
+    help="Register the top candidates and re-rank them (default: when the bundle carries "
+    "geometry; --verify with a bundle without it exits 2).",
+)
+SCALE = typer.Option(
+    None,
+    "--scale",
+    help="Metres per unit of a preprocessed submap (its frame sidecar's scale), for a "
+    "metric pose; estimated from the candidates when not given.",
+)
+RERANK = typer.Option(None, "--rerank", help="With --index: candidates to verify (default 10).")
+VERIFY_THRESHOLD = typer.Option(
+    None,
+    "--verify-threshold",
+    min=0.0,
+    max=1.0,
+    help="With --index: the confidence (0-1) a best match needs to be verified (default: "
+    "the model's MODEL/verification.json, else 0.09; docs/VERIFY.md).",
+)
+VERIFY_STOP_SCORE = typer.Option(
+    None,
+    "--verify-stop-score",
+    min=0.0,
+    max=1.0,
+    help="With --index: candidates are registered in retrieval order until one scores this "
+    "within 25 m (default 0.25; 0.45 for push-broom maps such as Oxford RobotCar's, "
+    "docs/VERIFY.md; 1 registers all).",
+)
+
 
 def format_matches(answer: dict[str, Any]) -> str:
     """The table `pnvlad localize` prints: rank, submap, run, northing, easting, distance,
@@ -90,7 +122,8 @@ def _localize_here(
     check: dict[str, Any],
 ) -> dict[str, Any]:
     """Search the bundle in this process: the same answer as the server's. ``check``:
-    ``verify``, ``scale`` and ``rerank`` as the command line gave them."""
+    ``verify``, ``scale``, ``rerank``, ``threshold`` and ``stop_score`` as the command line
+    gave them."""
     from pnvlad_service.localization.query.config import LocalizerConfig, VerifySection
     from pnvlad_service.localization.query.limits import Limits
     from pnvlad_service.localization.query.localizer import Localizer
@@ -98,9 +131,9 @@ def _localize_here(
     top_n = max(top_n, 1)
     # A local query is bounded by the bundle, not by the server's request limits.
     limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)), max_top_n=top_n)
-    verify = (
-        VerifySection() if check["rerank"] is None else VerifySection(candidates=check["rerank"])
-    )
+    given = {"candidates": check["rerank"], "threshold": check["threshold"],
+             "stop_score": check["stop_score"]}  # fmt: skip
+    verify = VerifySection(**{k: v for k, v in given.items() if v is not None})
     with Localizer.load(index, model, LocalizerConfig(verify=verify)) as loc:
         answer = loc.localize(
             points,
@@ -111,6 +144,15 @@ def _localize_here(
             scale=check["scale"],
         )
         return {**answer.to_json(), **loc.info.to_json()}
+
+
+def _check_scan_only(threshold: float | None, stop_score: float | None) -> None:
+    """:class:`InputError` for a single scan's verification setting given to a drive."""
+    from pnvlad_service.errors import InputError
+
+    for value, flag in ((threshold, "--verify-threshold"), (stop_score, "--verify-stop-score")):
+        if value is not None:
+            raise InputError("applies to a single scan (a drive registers near its prior)", flag)
 
 
 def localize(
@@ -137,21 +179,11 @@ def localize(
         False, "--preprocess", help="The scan is raw: run the filter G (as the map was) first."
     ),
     top_n: int = typer.Option(5, "--top-n", "-n", help="Matches to print."),
-    verify: bool = typer.Option(
-        None,
-        "--verify/--no-verify",
-        help="Register the top candidates and re-rank them (default: when the bundle carries "
-        "geometry; --verify with a bundle without it exits 2).",
-    ),
-    scale: float = typer.Option(
-        None,
-        "--scale",
-        help="Metres per unit of a preprocessed submap (its frame sidecar's scale), for a "
-        "metric pose; estimated from the candidates when not given.",
-    ),
-    rerank: int = typer.Option(
-        None, "--rerank", help="With --index: candidates to verify (default 10)."
-    ),
+    verify: bool = VERIFY,
+    scale: float = SCALE,
+    rerank: int = RERANK,
+    verify_threshold: float = VERIFY_THRESHOLD,
+    verify_stop_score: float = VERIFY_STOP_SCORE,
     as_json: bool = typer.Option(False, "--json", help="Print the whole answer as JSON."),
     api_key: str = typer.Option(
         None, "--api-key", envvar="PNVLAD_API_KEY", help="Bearer token of the server."
@@ -229,6 +261,7 @@ def localize(
         _check_drive_source(rosbag, kitti, scan, reader, preprocess, as_json)
         mode = resolve_mode(mode, rosbag, kitti, follow)
         if mode != "scan":
+            _check_scan_only(verify_threshold, verify_stop_score)
             _check_drive_options(mode, kitti, window, cloud_topic, pose_topic, tf_frame,
                                  truth_topic, odometry, radius, confirm, failures)  # fmt: skip
             config = replay_options.drive_config(
@@ -256,7 +289,8 @@ def localize(
             max_pose_gap=max_pose_gap, origin=origin, every=every, out=out, map=map_bundle,
             truth_topic=truth_topic, radius=radius, confirm=confirm, failures=failures,
         )  # fmt: skip
-        check = {"verify": verify, "scale": scale, "rerank": rerank}
+        check = {"verify": verify, "scale": scale, "rerank": rerank,
+                 "threshold": verify_threshold, "stop_score": verify_stop_score}  # fmt: skip
         answer = _localize_scan(scan, reader, url, index, model, api_key, preprocess, top_n, check)
     if as_json:
         json.dump(answer, sys.stdout, indent=2)
@@ -382,8 +416,10 @@ def _localize_scan(
         return _localize_here(index, model, points, preprocess, top_n, check)
     from pnvlad_service.client import LocalizeClient
 
-    if check["rerank"] is not None:
-        raise InputError("applies to --index; the server sets its own (--rerank)", "--rerank")
+    for key, flag in (("rerank", "--rerank"), ("threshold", "--verify-threshold"),
+                      ("stop_score", "--verify-stop-score")):  # fmt: skip
+        if check[key] is not None:
+            raise InputError(f"applies to --index; the server sets its own ({flag})", flag)
     with LocalizeClient(url, api_key=api_key) as client:
         return client.localize(
             points, top_n, preprocess, verify=check["verify"], scale=check["scale"]

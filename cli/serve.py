@@ -70,7 +70,8 @@ def serve(
         None,
         "--verify-stop-score",
         help="Candidates are registered in retrieval order, one at a time, and the rest skipped "
-        "once one scores this within the place radius (default 0.25; 1 registers all K).",
+        "once one scores this within the place radius (default 0.25; 0.45 for push-broom maps "
+        "such as Oxford RobotCar's, docs/VERIFY.md; 1 registers all K).",
     ),
     verify_cache: int = typer.Option(
         None,

@@ -98,3 +98,45 @@ def test_mode_scan_is_the_old_spelling(world: dict[str, Path]) -> None:
         answers.append(json.loads(res.stdout))
     old, new = ([(m["submap_id"], m["distance"]) for m in a["matches"]] for a in answers)
     assert old == new and old[0][0] == rec.submap_id
+
+
+def test_the_verification_settings_apply_to_a_local_search(tiny_maps: dict) -> None:
+    """--verify-stop-score and --verify-threshold set the local verification (docs/VERIFY.md:
+    a stricter stop for push-broom maps); a server and a drive refuse them."""
+    tree, run = tiny_maps["tree"], tiny_maps["query_run"]
+    sub = tree.submaps("business", run, "test")[2]
+    scale = abs(tree.frames("business", run, "test")[2].scale)  # one pass, rigid
+    base = ["localize", str(tree.root / sub.path), "--reader", "benchmark", "--json",
+            "--index", str(tiny_maps["map"]), "--scale", f"{scale:.6f}"]  # fmt: skip
+
+    def verification(*more: str) -> dict:
+        res = CliRunner().invoke(app, [*base, *more])
+        assert res.exit_code == 0, res.output
+        return json.loads(res.stdout)["verification"]
+
+    every = verification("--verify-stop-score", "1")
+    first = verification("--verify-stop-score", "0")
+    assert every["registered"] == every["candidates"] == 10  # nothing scores 1: all registered
+    assert first["registered"] < every["registered"]
+    assert verification()["threshold"] == pytest.approx(0.09)
+    strict = verification("--verify-threshold", "0.999")
+    assert strict["threshold"] == pytest.approx(0.999)
+    res = CliRunner().invoke(app, [*base, "--verify-stop-score", "1.5"])
+    assert res.exit_code == 2 and "--verify-stop-score" in res.output
+    url = [
+        "localize",
+        str(tree.root / sub.path),
+        "--reader",
+        "benchmark",
+        "--url",
+        "http://127.0.0.1:9",
+    ]
+    for flag in ("--verify-stop-score", "--verify-threshold"):
+        res = CliRunner().invoke(app, [*url, flag, "0.4"])
+        assert res.exit_code == 2 and f"{flag}: applies to --index" in res.output
+    res = CliRunner().invoke(
+        app,
+        ["localize", "--kitti", str(tree.root), "--index", str(tiny_maps["keys"]),
+         "--verify-stop-score", "0.4"],
+    )  # fmt: skip
+    assert res.exit_code == 2 and "--verify-stop-score: applies to a single scan" in res.output
