@@ -5,7 +5,6 @@ margin than the same network with random weights."""
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -13,22 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+from tests.benchmark_scripts import BENCHMARKS, load
 
 
 @pytest.fixture(scope="module")
 def kf():  # the script as a module
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        spec = importlib.util.spec_from_file_location(
-            "kitti_frames", BENCHMARKS / "kitti_frames.py"
-        )
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        return module
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    return load("kitti_frames")
 
 
 def test_rows_rank_the_place_among_the_other_scans(kf) -> None:

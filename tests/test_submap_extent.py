@@ -3,7 +3,6 @@ tiny synthetic tree (its windows laid again exactly as prepare laid them)."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import subprocess
 import sys
@@ -12,23 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+from tests.benchmark_scripts import BENCHMARKS, load
 
 
 @pytest.fixture(scope="module")
 def se():  # the script as a module
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        spec = importlib.util.spec_from_file_location(
-            "submap_extent", BENCHMARKS / "submap_extent.py"
-        )
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        sys.modules["submap_extent"] = module  # its dataclasses look their module up
-        spec.loader.exec_module(module)
-        return module
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    return load("submap_extent")
 
 
 @pytest.mark.parametrize("turn_deg", [0.0, 30.0, 77.0])

@@ -5,9 +5,7 @@ coordinates, written in the published Oxford layout, with partial runs; ``pnvlad
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +19,7 @@ from pnvlad_service.errors import InputError
 from pnvlad_service.io.submap import read_submap
 from pnvlad_service.synth.generate import generate, part_of_route
 from pnvlad_service.synth.runs import Route
+from tests.benchmark_scripts import load
 
 
 @pytest.fixture(scope="module")
@@ -102,15 +101,7 @@ def test_data_splits_scores_each_run_against_every_other(tree: Path, tmp_path: P
 def test_scale_free_queries_takes_the_evaluation_sets_queries(tree: Path) -> None:
     """benchmarks/scale_free_queries.py --splits: of each run asked, exactly the test submaps
     the splits list as its queries (those inside the published squares), each with its frame."""
-    bench = Path(__file__).resolve().parents[2] / "benchmarks"
-    sys.path.insert(0, str(bench))
-    try:
-        spec = importlib.util.spec_from_file_location("sfq", bench / "scale_free_queries.py")
-        assert spec is not None and spec.loader is not None
-        sfq = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(sfq)
-    finally:
-        sys.path.remove(str(bench))
+    sfq = load("scale_free_queries")
     bt = BenchmarkTree(tree)
     runs = bt.runs("oxford")
     listed = json.loads((tree / "splits.json").read_text())["evaluation"]["oxford"]["queries"]
