@@ -13,7 +13,6 @@ paper's 'plane' ground modes.
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import time
@@ -21,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from entry import run
+from entry import real_scans_default, run
 
 from pnvlad_service.io.readers import read_points
 from pnvlad_service.preprocess import filter_g as g
@@ -105,9 +104,7 @@ def _bench_scan(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=15)
-    default = os.environ.get("PNVLAD_REAL_SCANS") or str(
-        Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real_scans"
-    )
+    default = real_scans_default()
     parser.add_argument("--scans", type=Path, default=Path(default))
     parser.add_argument("--ground", action="store_true", help="also report ground figures")
     args = parser.parse_args()

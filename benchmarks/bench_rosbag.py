@@ -16,7 +16,6 @@ filter G.
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import statistics
 import sys
@@ -25,7 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from entry import run
+from entry import real_scans_default, run
 
 from pnvlad_service.extras import require
 
@@ -51,7 +50,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--repeats", type=int, default=3)
-    default = os.environ.get("PNVLAD_REAL_SCANS") or str(REPO.parent / "shared/data/real_scans")
+    default = real_scans_default()
     parser.add_argument("--scans", type=Path, default=Path(default))
     parser.add_argument("--work", type=Path, default=None, help="scratch folder (default: tmp)")
     args = parser.parse_args()

@@ -24,7 +24,6 @@ Without ``--model``: every pretrained model that ships (``pnvlad model list``).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 from pathlib import Path
@@ -33,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from entry import run
+from entry import real_scans_default, run
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.readers import read_scan
@@ -46,10 +45,8 @@ QUERIES = {4501: 52, 95: 94}
 
 
 def scans_dir(given: Path | None) -> Path:
-    """The real-scan folder: ``given``, ``$PNVLAD_REAL_SCANS``, or ../shared beside the repo."""
-    env = os.environ.get("PNVLAD_REAL_SCANS")
-    repo = Path(__file__).resolve().parents[1]
-    folder = given or (Path(env) if env else repo.parent / "shared" / "data" / "real_scans")
+    """The real-scan folder: ``given``, else :func:`entry.real_scans_default`."""
+    folder = given or Path(real_scans_default())
     missing = [name for name in FILES.values() if not (folder / name).is_file()]
     if missing:
         raise InputError(f"no {missing[0]} here (the real KITTI scans)", folder)

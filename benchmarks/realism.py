@@ -35,7 +35,6 @@ docs/SYNTH.md's; ``--png`` draws the distributions (matplotlib, the ``plot`` ext
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -43,13 +42,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from entry import run
+from entry import real_scans_default, run
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.io.readers import read_points
 from pnvlad_service.synth import realism as rl
 
-REPO = Path(__file__).resolve().parents[1]
 FEATURE = "The realism figure"
 
 
@@ -341,7 +339,7 @@ def ablation(spec: Any, seed: int, reals: dict[str, Any], args: argparse.Namespa
 
 
 def _args() -> argparse.Namespace:
-    default = os.environ.get("PNVLAD_REAL_SCANS") or str(REPO.parent / "shared/data/real_scans")
+    default = real_scans_default()
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from entry import run
+from entry import real_scans_default, run
 
 from pnvlad_service.data.accumulate import accumulate, scan_subset, travelled_distance
 from pnvlad_service.errors import InputError
@@ -49,7 +49,6 @@ from pnvlad_service.preprocess.filter_g import GConfig, apply_g
 from pnvlad_service.preprocess.ground import fit_ground_plane
 from pnvlad_service.synth import realism_cloud as rc
 
-REPO = Path(__file__).resolve().parents[1]
 REAL = ("oxford_lms_front_270.bin", "oxford_lms_front_456.bin")
 
 
@@ -230,7 +229,7 @@ def ablation(real: rc.CloudStats, name: str, args: argparse.Namespace) -> str:
 
 
 def _args() -> argparse.Namespace:
-    default = os.environ.get("PNVLAD_REAL_SCANS") or str(REPO.parent / "shared/data/real_scans")
+    default = real_scans_default()
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

@@ -38,8 +38,8 @@ def choose_runtime(directory: str | Path, runtime: str = "auto") -> str:
     from pnvlad_service.models.store import is_serving_only
 
     has_onnx = (Path(directory) / ONNX_FILE).is_file()
-    serving_only = runtime == "auto" and is_serving_only(directory)
-    if runtime == "torch" or (runtime == "auto" and torch_installed() and not serving_only):
+    auto_torch = runtime == "auto" and torch_installed() and not is_serving_only(directory)
+    if runtime == "torch" or auto_torch:
         if not torch_installed():
             raise MissingDependencyError("torch", "torch", "the torch runtime")
         return "torch"

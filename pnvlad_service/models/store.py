@@ -129,23 +129,29 @@ def weights_sha256(directory: str | Path) -> str:
     path = directory / WEIGHTS_FILE
     if path.is_file():
         return sha256_file(path)
-    if is_serving_only(directory):
-        _, doc = read_model_json(directory)
-        return str(doc["weights_sha256"])
+    recorded = _serving_only_sha256(directory)
+    if recorded is not None:
+        return recorded
     raise InputError(f"no {WEIGHTS_FILE} in this model directory", directory)
 
 
 def is_serving_only(directory: str | Path) -> bool:
     """Whether ``directory`` holds ``model.onnx`` and ``model.json`` (recording the weights'
     SHA-256) but no ``model.safetensors``: it embeds with ONNX Runtime only."""
-    directory = Path(directory)
+    return _serving_only_sha256(Path(directory)) is not None
+
+
+def _serving_only_sha256(directory: Path) -> str | None:
+    """The weights' SHA-256 that a serving-only ``directory``'s ``model.json`` records; None
+    for any other directory."""
     if (directory / WEIGHTS_FILE).exists() or not (directory / ONNX_FILE).is_file():
-        return False
+        return None
     try:
         _, doc = read_model_json(directory)
     except InputError:
-        return False
-    return isinstance(doc.get("weights_sha256"), str)
+        return None
+    recorded = doc.get("weights_sha256")
+    return recorded if isinstance(recorded, str) else None
 
 
 def write_model_files(
