@@ -171,9 +171,11 @@ def measure_edges(
     config: AlignConfig,
     timer: _Timer,
     descriptors: np.ndarray | None = None,
+    fix_only: frozenset[int] = frozenset(),
 ) -> tuple[list[Edge], dict[str, int]]:
     """Stages 3-5: candidates, odometry and closures of ``nodes`` (``descriptors`` float32
-    [N, D] add the retrieved candidates). Returns the edges and the candidates' counts."""
+    [N, D] add the retrieved candidates; ``fix_only``: the indices of the runs with position
+    fixes only). Returns the edges and the candidates' counts."""
     cc = config.candidates
 
     def candidates() -> tuple[list[tuple[int, list[int]]], dict[str, int]]:
@@ -196,7 +198,7 @@ def measure_edges(
 
     def register(on: MapNodes) -> list[Edge]:
         steps = Clouds.for_odometry(on, config.edges)
-        return timer.run("odometry", lambda: odometry_edges(on, steps, config.edges))
+        return timer.run("odometry", lambda: odometry_edges(on, steps, config.edges, fix_only))
 
     recorded = all(r.recorded_motion is not None for r in nodes.runs if sweep_rate(r, config) > 0)
     if recorded:  # every sweep's motion is recorded: de-skew before the one odometry pass
@@ -224,7 +226,8 @@ def align_nodes(
     ``InputError`` naming the runs no closure ties to the others."""
     timer = timer or _Timer()
     fix_runs = fix_runs or []
-    edges, counts = measure_edges(nodes, config, timer, descriptors)
+    fix_only = frozenset(f.run for f in fix_runs)
+    edges, counts = measure_edges(nodes, config, timer, descriptors, fix_only)
     edges = odometry_fallback(nodes, edges, fix_runs, config.fixes)
     edges += extra_edges or []
     alone = check_overlap(nodes, edges)

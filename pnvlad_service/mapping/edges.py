@@ -69,8 +69,11 @@ class EdgeConfig:
     the point-to-plane standard deviations are multiplied by this (1: most edges then sit on
     the floors; on the demo city 1 left the map's p99 error at 0.88 m where 3 left 0.98 and 10
     1.29, the robust kernels taking the tail); ``min_sigma_m`` / ``min_sigma_deg``: floors of
-    the edges' standard deviations (what the odometry's errors against the truth are, median 1
-    cm and 0.03 degree); ``verify``: the verification's settings; ``odometry``: the odometry's
+    a closure's standard deviations, ``odometry_min_sigma_m`` / ``odometry_min_sigma_deg`` of an
+    odometry edge's: about the edges' errors against the truth (odometry median 1 cm and 0.01
+    degree, closures 2 cm and 0.02, docs/results/align.md); the odometry's turn floored at 0.1
+    degree, five times its error, let the GNSS/INS fixes bend a run's last street 1.2 m where
+    they were off together; ``verify``: the verification's settings; ``odometry``: the odometry's
     registration (:data:`ODOMETRY_REGISTRATION`); ``cache_entries``: prepared clouds kept."""
 
     odometry_min_fitness: float = 0.2
@@ -80,9 +83,17 @@ class EdgeConfig:
     sigma_scale: float = 1.0
     min_sigma_m: float = 0.03
     min_sigma_deg: float = 0.1
+    odometry_min_sigma_m: float = 0.01
+    odometry_min_sigma_deg: float = 0.01
     verify: VerifyConfig = field(default_factory=lambda: MAPPING_VERIFY)
     odometry: reg.RegistrationConfig = ODOMETRY_REGISTRATION
     cache_entries: int = 600
+
+    def floors(self, odometry: bool) -> tuple[float, float]:
+        """The floors (metres, degrees) of an odometry edge's or a closure's std."""
+        if odometry:
+            return self.odometry_min_sigma_m, self.odometry_min_sigma_deg
+        return self.min_sigma_m, self.min_sigma_deg
 
 
 @dataclass(frozen=True)
@@ -158,25 +169,33 @@ class Clouds:
 
 
 def edge_covariance(
-    clouds: Clouds, source: int, target: int, transform: np.ndarray, config: EdgeConfig
+    clouds: Clouds,
+    source: int,
+    target: int,
+    transform: np.ndarray,
+    config: EdgeConfig,
+    odometry: bool = False,
 ) -> np.ndarray | None:
-    """The scaled point-to-plane covariance of ``transform`` (source -> target), floored, or
-    ``None`` when too few points overlap."""
+    """The scaled point-to-plane covariance of ``transform`` (source -> target), floored by
+    the odometry's floors or the closures', or ``None`` when too few points overlap."""
     src = clouds.get(source).prepared
     inlier_m = clouds.config.inlier_m
     cov = point_to_plane_covariance(src.points, clouds.get(target), transform, inlier_m)
     if cov is None:
         return None
     cov = cov * config.sigma_scale**2
-    floor = [config.min_sigma_m**2] * 3 + [math.radians(config.min_sigma_deg) ** 2] * 3
-    return cov + np.diag(floor)
+    m, deg = config.floors(odometry)
+    return cov + np.diag([m**2] * 3 + [math.radians(deg) ** 2] * 3)
 
 
-def odometry_edges(nodes: MapNodes, clouds: Clouds, config: EdgeConfig) -> list[Edge]:
+def odometry_edges(
+    nodes: MapNodes, clouds: Clouds, config: EdgeConfig, fix_only: frozenset[int] = frozenset()
+) -> list[Edge]:
     """Each node of each run registered onto the one before it, from the recorded relative
     pose, by ``clouds``' registration (:meth:`Clouds.for_odometry`: ``config.odometry``); an
     edge whose registration fails the fitness or the gate is kept, rejected, with its reason
-    (the report lists it)."""
+    (the report lists it). The steps of the runs ``fix_only`` (indices; position fixes only,
+    no recorded heading to check their turns) take the closures' floors."""
     from pnvlad_service.progress import tqdm
 
     poses = nodes.poses
@@ -199,7 +218,8 @@ def odometry_edges(nodes: MapNodes, clouds: Clouds, config: EdgeConfig) -> list[
             metres > config.odometry_gate_m or degrees > config.odometry_gate_deg
         ):
             reason = f"moved the step {metres:.2f} m, {degrees:.2f} deg from the recorded one"
-        cov = None if reason else edge_covariance(clouds, source, target, r.transform, config)
+        held = int(nodes.run_of[source]) not in fix_only
+        cov = None if reason else edge_covariance(clouds, source, target, r.transform, config, held)
         if reason is None and cov is None:
             reason = "too few points overlap for a covariance"
         edges.append(

@@ -31,7 +31,7 @@ def narrow_and_wide(tiny_aligned: dict) -> dict:
     from pnvlad_service.synth.generate import get_preset, simulated_drive
 
     drive = simulated_drive(get_preset("tiny"), 0, 0, 3)
-    best = None
+    cases = []
     with (
         _loaded(tiny_aligned["keys"], same_run=False, max_submaps=2, retry_submaps=0) as narrow,
         _loaded(tiny_aligned["keys"], same_run=False, max_submaps=8, retry_submaps=0) as wide,
@@ -42,11 +42,12 @@ def narrow_and_wide(tiny_aligned: dict) -> dict:
             scan = drive.scan(i)
             a = narrow.localize(scan, kind="scan", prior=prior).prior
             b = wide.localize(scan, kind="scan", prior=prior).prior
-            if len(b.rows) == 8 and (best is None or b.fitness - a.fitness > best["gain"]):
-                best = {"scan": scan, "prior": prior, "narrow": a, "wide": b, "true": true,
-                        "gain": b.fitness - a.fitness}  # fmt: skip
-    assert best is not None and best["gain"] > RETRY_MARGIN + 0.02, "8 entries fit no better"
-    return best
+            if len(b.rows) == 8:
+                cases.append({"scan": scan, "prior": prior, "narrow": a, "wide": b, "true": true,
+                              "gain": b.fitness - a.fitness})  # fmt: skip
+    cases = sorted((c for c in cases if c["gain"] > RETRY_MARGIN + 0.02), key=lambda c: -c["gain"])
+    assert cases, "8 entries fit no better"
+    return {**cases[0], "cases": cases}
 
 
 def test_a_fit_under_the_threshold_is_verified_against_a_wider_stretch(
@@ -83,27 +84,32 @@ def test_a_wider_fit_short_of_the_margin_leaves_the_first_answer(
 def test_a_wider_fit_that_slides_from_the_prior_leaves_the_first_answer(
     tiny_aligned: dict, narrow_and_wide: dict
 ) -> None:
-    """The same scan from a prior 1.5 m off its truth: the wider fit moves the sensor back by
-    more than the retry may, so the first answer (not verified) stands; with a looser limit the
-    retry verifies it near the truth."""
-    c = narrow_and_wide
-    between = round((c["narrow"].fitness + c["wide"].fitness - RETRY_MARGIN) / 2, 4)
-    p = c["prior"]
-    yaw = math.radians(p.yaw_deg)
-    off = Prior(p.northing + 1.5 * math.sin(yaw), p.easting + 1.5 * math.cos(yaw), p.yaw_deg)
-    rules = {"same_run": False, "max_submaps": 2, "min_fitness": between, "max_sigma": 0.0,
-             "retry_submaps": 8}  # fmt: skip
-    with _loaded(tiny_aligned["keys"], **rules) as loc:
-        got = loc.localize(c["scan"], kind="scan", prior=off).prior
-        assert loc.prior_config.retry_max_correction_m == 1.0
-        loose = replace(loc.prior_config, retry_max_correction_m=3.0)
-        loc.prior_config = loose
-        again = loc.localize(c["scan"], kind="scan", prior=off).prior
-    # The looser limit lets the wider fit move the sensor back to its truth, 1.5 m away.
-    assert again.verified and again.correction_m > 1.0, (again.verified, again.correction_m)
-    true = c["true"]
-    assert math.hypot(again.pose.easting - true[0, 3], again.pose.northing - true[1, 3]) < 1.0
-    assert not got.verified and len(got.rows) == 2  # the 1 m limit kept the first answer
+    """A scan from a prior 1.5 m off its truth, where a looser limit lets the wider fit verify
+    it near the truth: under the 1 m limit that fit moves the sensor back by more than the
+    retry may, so the first answer (not verified) stands. (Of the scans where 8 entries fit
+    better than 2, the first, by that gain, whose wider fit slides back to the truth.)"""
+    found = 0
+    for c in narrow_and_wide["cases"]:
+        between = round((c["narrow"].fitness + c["wide"].fitness - RETRY_MARGIN) / 2, 4)
+        p = c["prior"]
+        yaw = math.radians(p.yaw_deg)
+        off = Prior(p.northing + 1.5 * math.sin(yaw), p.easting + 1.5 * math.cos(yaw), p.yaw_deg)
+        rules = {"same_run": False, "max_submaps": 2, "min_fitness": between, "max_sigma": 0.0,
+                 "retry_submaps": 8}  # fmt: skip
+        with _loaded(tiny_aligned["keys"], **rules) as loc:
+            assert loc.prior_config.retry_max_correction_m == 1.0
+            got = loc.localize(c["scan"], kind="scan", prior=off).prior
+            loc.prior_config = replace(loc.prior_config, retry_max_correction_m=3.0)
+            again = loc.localize(c["scan"], kind="scan", prior=off).prior
+        true = c["true"]
+        back = math.hypot(again.pose.easting - true[0, 3], again.pose.northing - true[1, 3])
+        if not (again.verified and again.correction_m > 1.0 and back < 1.0):
+            continue  # this scan's wider fit does not slide back 1.5 m: no case for the limit
+        found += 1
+        assert not got.verified and len(got.rows) == 2  # the 1 m limit kept the first answer
+        if found == 2:
+            break
+    assert found, "no scan's wider fit slid back to its truth from 1.5 m off"
 
 
 def test_a_fit_over_the_threshold_is_not_tried_again(

@@ -71,3 +71,29 @@ def test_without_robust_kernels_the_same_closures_would_bend_it(tiny: Path) -> N
     bent = solve(nodes, edges + wrong_closures(nodes, count=8, min_apart_m=60.0), gaussian)
     moved = np.linalg.norm(bent.poses[:, :3, 3] - clean.poses[:, :3, 3], axis=1)
     assert moved.max() > 5.0
+
+
+def test_odometry_steps_take_their_own_floor_and_a_fix_only_runs_the_closures(tiny: Path) -> None:
+    """A run with recorded GNSS/INS poses has its steps floored at the odometry's floors; a
+    fix-only run's steps (no recorded heading to check their turns) at the closures'."""
+    from pnvlad_service.mapping.edges import Clouds, EdgeConfig, odometry_edges
+    from pnvlad_service.mapping.nodes import read_tree_nodes
+
+    nodes = read_tree_nodes(tiny)
+    config = EdgeConfig(
+        min_sigma_m=0.5, min_sigma_deg=2.0, odometry_min_sigma_m=0.2, odometry_min_sigma_deg=1.0
+    )
+    edges = odometry_edges(nodes, Clouds.for_odometry(nodes, config), config, frozenset({0}))
+    by_run: dict[int, list[np.ndarray]] = {}
+    for e in edges:
+        if e.accepted:
+            by_run.setdefault(int(nodes.run_of[e.source]), []).append(
+                np.sqrt(np.diag(e.covariance))
+            )
+    assert set(by_run) == set(range(len(nodes.runs)))
+    for run, stds in by_run.items():
+        m, deg = (0.5, 2.0) if run == 0 else (0.2, 1.0)
+        s = np.array(stds)
+        # the registration's own std is millimetres and hundredths of a degree: the floor rules
+        assert np.allclose(np.median(s[:, :3], axis=0), m, atol=0.02), (run, s[:, :3].min())
+        assert np.allclose(np.degrees(np.median(s[:, 3:], axis=0)), deg, atol=0.1), run
