@@ -203,6 +203,7 @@ def localize(
     radius: float = replay_options.RADIUS,
     confirm: int = replay_options.CONFIRM,
     failures: int = replay_options.FAILURES,
+    fuse: bool | None = replay_options.FUSE,
     aligned_map: bool | None = replay_options.ALIGNED_MAP,
     every: int = replay_options.EVERY,
     out: Path = replay_options.OUT,
@@ -263,11 +264,13 @@ def localize(
         if mode != "scan":
             _check_scan_only(verify_threshold, verify_stop_score)
             _check_drive_options(mode, kitti, window, cloud_topic, pose_topic, tf_frame,
-                                 truth_topic, odometry, radius, confirm, failures)  # fmt: skip
+                                 truth_topic, odometry, radius, confirm, failures,
+                                 fuse)  # fmt: skip
             config = replay_options.drive_config(
                 "tracked" if mode == "follow" else "per-scan",
                 every=every, odometry=odometry, window_m=window,
-                tracking={"radius_m": radius, "confirm": confirm, "failures": failures},
+                tracking={"radius_m": radius, "confirm": confirm, "failures": failures,
+                          "fuse": fuse},
                 source={"rosbag": rosbag, "kitti": kitti, "cloud_topic": cloud_topic,
                         "pose_topic": pose_topic, "tf_frame": tf_frame,
                         "truth_topic": truth_topic, "max_pose_gap": max_pose_gap,
@@ -288,6 +291,7 @@ def localize(
             None, cloud_topic=cloud_topic, pose_topic=pose_topic, tf_frame=tf_frame,
             max_pose_gap=max_pose_gap, origin=origin, every=every, out=out, map=map_bundle,
             truth_topic=truth_topic, radius=radius, confirm=confirm, failures=failures,
+            fuse=fuse,
         )  # fmt: skip
         check = {"verify": verify, "scale": scale, "rerank": rerank,
                  "threshold": verify_threshold, "stop_score": verify_stop_score}  # fmt: skip
@@ -323,6 +327,7 @@ def _check_drive_options(
     radius: float | None,
     confirm: int | None,
     failures: int | None,
+    fuse: bool | None = None,
 ) -> None:
     """InputError naming an option that does not go with the drive mode: --window when
     following, an option of following with --per-scan, a bag's topics with --kitti."""
@@ -331,7 +336,8 @@ def _check_drive_options(
     if mode == "follow" and window is not None:
         raise InputError("goes with --per-scan (a drive followed asks scan by scan)", "--window")
     if mode == "per-scan":
-        replay_options.check_per_scan(truth_topic, odometry, radius, confirm, failures, window)
+        replay_options.check_per_scan(truth_topic, odometry, radius, confirm, failures, window,
+                                      fuse)  # fmt: skip
     if kitti is not None:
         bag_options.check_unused(None, cloud_topic=cloud_topic, pose_topic=pose_topic,
                                  tf_frame=tf_frame)  # fmt: skip

@@ -101,6 +101,15 @@ FAILURES = typer.Option(
     help="Following: failed registrations in a row that make the localiser lost (default 3).",
     rich_help_panel=PANEL,
 )
+FUSE = typer.Option(
+    None,
+    "--fuse/--no-fuse",
+    help="Following: weigh each registration against the odometry's prediction by their "
+    "covariances, so that a street the map leaves loose along it keeps the odometry's "
+    "position there (default: with --odometry registered, the pose topic's steps refined by "
+    "the scans; not with the recorded steps alone, which are decimetres off).",
+    rich_help_panel=PANEL,
+)
 ALIGNED_MAP = typer.Option(
     None,
     "--aligned-map/--no-aligned-map",
@@ -186,6 +195,7 @@ def check_per_scan(
     confirm: int | None,
     failures: int | None,
     window: float | None = None,
+    fuse: bool | None = None,
 ) -> None:
     """InputError when an option of following is given with ``--per-scan`` (``--odometry``
     goes with ``--window``: it poses the window; the window's own checks are the config's)."""
@@ -196,6 +206,7 @@ def check_per_scan(
         "--radius": radius,
         "--confirm": confirm,
         "--failures": failures,
+        "--fuse": fuse,
         "--odometry": None if odometry == "auto" or window is not None else odometry,
     }
     for flag, value in given.items():  # fmt: skip
@@ -237,6 +248,7 @@ FLAGS = {
     "tracking.radius_m": "--radius",
     "tracking.confirm": "--confirm",
     "tracking.failures": "--failures",
+    "tracking.fuse": "--fuse",
 }
 
 

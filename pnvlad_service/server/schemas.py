@@ -124,6 +124,12 @@ class PriorOut(BaseModel):
         None, description="How far the registration moved the sensor from the prior, metres."
     )
     correction_yaw_deg: float | None = Field(None, description="... and turned it, degrees.")
+    registered: PoseOut | None = Field(
+        None,
+        description="The registration's pose and covariance when it is not verified (too "
+        "uncertain along a direction, or fitting under the threshold): what a tracker weighs "
+        "against its odometry; null else (a verified one is the answer's pose).",
+    )
 
 
 #: ``Timings.to_json``: milliseconds per stage.

@@ -146,6 +146,7 @@ def test_follow_here_and_the_options_refused(tiny_maps: dict, bag: dict, tmp_pat
         ([*base, "--confirm", "0"], "--confirm: confirm and failures must be at least 1"),
         ([*base, "--radius", "-2"], "--radius: radius_m must be > 0"),
         ([*base, "--per-scan", "--radius", "5"], "--radius: applies to following"),
+        ([*base, "--per-scan", "--no-fuse"], "--fuse: applies to following"),
         ([*base, "--kitti", str(tmp_path)], "--kitti: give --rosbag or --kitti, not both"),
         ([*kitti, "--cloud-topic", "/points"], "--cloud-topic: applies to --rosbag only"),
         (kitti, "no velodyne/*.bin scans found"),

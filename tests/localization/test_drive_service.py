@@ -15,6 +15,7 @@ import pytest
 
 from pnvlad_service.client import LocalizeClient
 from pnvlad_service.localization.drive.service import Reply, http_ask, local_ask
+from pnvlad_service.localization.query.config import LocalizerConfig, PriorSection
 from pnvlad_service.localization.query.limits import Limits
 from pnvlad_service.localization.query.localizer import Localizer
 from pnvlad_service.localization.verify.prior import Prior
@@ -35,7 +36,7 @@ def assert_same(a: Reply, b: Reply) -> None:
     """Field by field; floats to 1e-9 (a registration's last digits vary between runs)."""
     for f in dataclasses.fields(Reply):
         x, y = getattr(a, f.name), getattr(b, f.name)
-        if f.name in ("pose", "covariance"):
+        if f.name in ("pose", "covariance", "fit_pose", "fit_covariance"):
             assert (x is None) == (y is None)
             if x is not None:
                 np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9)
@@ -73,8 +74,34 @@ def test_the_typed_answer_and_its_json_are_one_reply(tiny_maps: dict, drive) -> 
     assert n.correction_m == near.prior.correction_m and n.sigma_m == near.prior.sigma_m
     assert math.dist(n.pose[:2, 3], true[:2, 3]) < 1.0
     np.testing.assert_array_equal(n.verified_pose, near.prior.pose.transform)
+    np.testing.assert_array_equal(n.fit_pose, n.pose)
+    np.testing.assert_array_equal(n.fit_covariance, n.covariance)
     # A bundle without geometry does not verify: no verdict, no confidence, no pose.
     assert (p.verified, p.confidence, p.pose, p.verified_pose) == (None, None, None, None)
+    assert (s.fit_pose, p.fit_pose) == (None, None)
+
+
+def test_an_uncertain_registration_carries_its_pose_on_both_paths(tiny_maps: dict, drive) -> None:
+    """A registration that fits but is too loose to verify (here: any standard deviation over
+    1 mm) is not the answer's pose, but its pose and covariance reach the drive (a tracker
+    weighs them against its odometry), through the typed answer and its JSON alike."""
+    points = drive.scan(SCAN)
+    limits = Limits(max_raw_points=max(Limits.max_raw_points, len(points)))
+    prior = Prior.of_matrix(drive.true_poses[SCAN])
+    strict = LocalizerConfig(prior=PriorSection(max_sigma=1e-3))
+    with Localizer.load(tiny_maps["keys"]) as loc:
+        firm = Reply.of_answer(loc.localize(points, kind="scan", limits=limits, prior=prior))
+    with Localizer.load(tiny_maps["keys"], config=strict) as loc:
+        answer = loc.localize(points, kind="scan", limits=limits, prior=prior)
+    loose = Reply.of_answer(answer)
+    assert_same(loose, wire(answer))
+    assert (loose.verified, loose.uncertain, loose.pose, loose.covariance) == (
+        False, True, None, None,
+    )  # fmt: skip
+    assert loose.reason.startswith("position uncertain along a direction")
+    # The same registration as the verified one of the default rules.
+    np.testing.assert_allclose(loose.fit_pose, firm.pose, atol=1e-6)
+    np.testing.assert_allclose(loose.fit_covariance, firm.covariance, rtol=1e-6)
 
 
 @pytest.fixture(scope="module")
@@ -98,3 +125,24 @@ def test_a_server_and_a_local_bundle_reply_alike(tiny_maps: dict, drive, url: st
             untimed = [dataclasses.replace(r, timings_ms={}) for r in (a, b)]
             assert_same(*untimed)
         assert here(points, prior).mode == "prior" and there(points).mode == "search"
+
+
+def test_a_server_gives_an_uncertain_registration_as_a_bundle_does(tiny_maps: dict, drive) -> None:
+    """The same strict rule (PNVLAD_PRIOR_MAX_SIGMA 1 mm) on a real server and in this
+    process: the unverified registration's pose and covariance reach the drive alike."""
+    points = drive.scan(SCAN)
+    prior = Prior.of_matrix(drive.true_poses[SCAN])
+    port = free_port()
+    proc = start_server(tiny_maps["keys"], port, env={"PNVLAD_PRIOR_MAX_SIGMA": "0.001"})
+    strict = LocalizerConfig(prior=PriorSection(max_sigma=1e-3))
+    try:
+        with (
+            Localizer.load(tiny_maps["keys"], config=strict) as loc,
+            LocalizeClient(f"http://127.0.0.1:{port}") as client,
+        ):
+            a, b = local_ask(loc)(points, prior), http_ask(client)(points, prior)
+    finally:
+        stop_server(proc)
+    assert a.uncertain and b.uncertain and a.pose is None and b.pose is None
+    assert a.fit_pose is not None and a.fit_covariance is not None
+    assert_same(*(dataclasses.replace(r, timings_ms={}) for r in (a, b)))

@@ -175,6 +175,11 @@ class _Tracked:
             from pnvlad_service.data.sources.odometry import LidarOdometry
 
             self.lidar = LidarOdometry()
+        config = config or TrackerConfig()
+        if config.fuse is None:
+            # Weighed against the odometry only where its steps are the refined ones (a few
+            # millimetres off): a GNSS/INS step is decimetres off (docs/TRACKING.md).
+            config = config.model_copy(update={"fuse": odometry == "registered"})
         self.localizer = DriveLocalizer(ask, config, initial_pose=initial_pose)
         self.points: np.ndarray | None = None
         self.covariance: np.ndarray | None = None
@@ -228,10 +233,9 @@ class _Tracked:
         self.points = points
         t2 = time.perf_counter()
         step = self.step = self.localizer.step(DriveScan(i, row.timestamp, points, odo))
-        # A registered pose's covariance is its registration's; a fix found by search and a
-        # pose carried on by the odometry have none.
-        registered = step.how == "registered" and step.reply is not None
-        self.covariance = step.reply.covariance if registered else None
+        # A registered pose's covariance is its registration's (weighed with the odometry's);
+        # a fix found by search and a pose carried on by the odometry have none.
+        self.covariance = step.covariance if step.how == "registered" else None
         row.state, row.verified, row.how = step.state, step.verified, step.how
         row.event = step.event
         row.fitness, row.sigma_m, row.confidence = step.fitness, step.sigma_m, step.confidence

@@ -49,8 +49,10 @@ class Reply:
     registration moved the prior) and ``uncertain``: a prior answer's registration;
     ``timings_ms``: the service's stages, milliseconds; ``covariance``: float64 [6, 6] of a
     verified prior answer's pose (the registration's point-to-plane covariance: x, y, z, then
-    rotations about them; metres and radians, UTM axes), else ``None``. ``==`` compares every
-    field but the ``pose`` and the ``covariance`` (arrays)."""
+    rotations about them; metres and radians, UTM axes), else ``None``; ``fit_pose`` and
+    ``fit_covariance``: a prior answer's registration whether verified or not (too loose along
+    a direction, or fitting under the threshold), what a tracker weighs against its odometry.
+    ``==`` compares every field but the arrays."""
 
     mode: str = "search"
     verified: bool | None = None
@@ -64,6 +66,8 @@ class Reply:
     uncertain: bool = False
     timings_ms: Mapping[str, float] = field(default_factory=dict)
     covariance: np.ndarray | None = field(default=None, compare=False)
+    fit_pose: np.ndarray | None = field(default=None, compare=False)
+    fit_covariance: np.ndarray | None = field(default=None, compare=False)
 
     @property
     def verified_pose(self) -> np.ndarray | None:
@@ -97,6 +101,12 @@ class Reply:
                 covariance=None
                 if pose is None or fit.covariance is None
                 else np.asarray(fit.covariance, dtype=np.float64),
+                fit_pose=None
+                if fit.pose is None
+                else np.asarray(fit.pose.transform, dtype=np.float64),
+                fit_covariance=None
+                if fit.covariance is None
+                else np.asarray(fit.covariance, dtype=np.float64),
             )
         v = answer.verification
         pose = None if v is None or v.pose is None else v.pose.transform
@@ -123,6 +133,7 @@ class Reply:
         pose = doc.get("pose")
         v = doc.get("verification") or {}
         fit = doc.get("prior") or {}
+        fitted = pose if fit and doc.get("verified") else fit.get("registered")
         return cls(
             mode=doc.get("mode", "search"),
             verified=doc.get("verified"),
@@ -136,6 +147,8 @@ class Reply:
             uncertain=bool(fit.get("uncertain")),
             timings_ms=dict(doc.get("timings_ms") or {}),
             covariance=_matrix(pose.get("covariance")) if pose else None,
+            fit_pose=np.asarray(fitted["transform"], dtype=np.float64) if fitted else None,
+            fit_covariance=_matrix(fitted.get("covariance")) if fitted else None,
         )
 
 

@@ -55,6 +55,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
 
 from pnvlad_service.errors import InputError
+from pnvlad_service.localization.drive.fusion import OdometryNoise, PlanarFilter, with_block
 from pnvlad_service.localization.drive.service import Ask, Reply
 from pnvlad_service.localization.verify.prior import DEFAULT_RADIUS_M, Prior
 
@@ -79,7 +80,14 @@ class TrackerConfig(BaseModel):
     ``far_confirm_m`` metres before it is a fix; ``gate_m`` / ``gate_deg``: a registration
     that moves the prediction by more is a failure; ``max_gap_s``: a longer gap between two
     scans starts a search; ``max_speed_mps`` / ``max_turn_dps``: odometry moving faster
-    jumped (a search starts, and its motion is not used). A value out of range is a
+    jumped (a search starts, and its motion is not used); ``fuse``: each registration weighed
+    against the odometry's prediction by their covariances (:mod:`.fusion`), the odometry's
+    error a step ``odometry_sigma_m`` + ``odometry_share`` of the distance and
+    ``odometry_sigma_deg`` + ``odometry_turn_share`` of the turn; a registration the service
+    did not verify (too loose along a direction, or fitting under its threshold) that fits at
+    ``fuse_min_fitness`` or more, within the gates and as the odometry expects it, is then
+    verified when the weighed pose's largest horizontal standard deviation is at most
+    ``max_sigma_m``. A value out of range is a
     ``ValueError`` (pydantic's ``ValidationError``) naming the field.
     """
 
@@ -100,6 +108,13 @@ class TrackerConfig(BaseModel):
     max_gap_s: float = 2.0
     max_speed_mps: float = 50.0
     max_turn_dps: float = 180.0
+    fuse: bool = True
+    odometry_sigma_m: float = 0.02
+    odometry_share: float = 0.02
+    odometry_sigma_deg: float = 0.05
+    odometry_turn_share: float = 0.02
+    max_sigma_m: float = 1.0
+    fuse_min_fitness: float = 0.3
 
     @field_validator("confirm", "failures")
     @classmethod
@@ -117,12 +132,17 @@ class TrackerConfig(BaseModel):
             raise ValueError(f"{info.field_name} must be > 0, got {value}")
         return value
 
-    @field_validator("reach_share")
+    @field_validator("reach_share", "odometry_sigma_m", "odometry_share", "odometry_sigma_deg",
+                     "odometry_turn_share", "max_sigma_m", "fuse_min_fitness")  # fmt: skip
     @classmethod
-    def _not_negative(cls, value: float) -> float:
+    def _not_negative(cls, value: float, info: Any) -> float:
         if not value >= 0:
-            raise ValueError(f"reach_share must be >= 0, got {value}")
+            raise ValueError(f"{info.field_name} must be >= 0, got {value}")
         return value
+
+    def odometry_noise(self) -> OdometryNoise:
+        return OdometryNoise(self.odometry_sigma_m, self.odometry_share,
+                             self.odometry_sigma_deg, self.odometry_turn_share)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -151,7 +171,9 @@ class Step:
     ``relocalised`` (a later fix), ``lost`` or ``reset`` (bad input: searching again);
     ``reason``: why the state changed or why the scan has no verified pose; ``reply``: the
     service's :class:`~.service.Reply` (its timings), ``None`` when none was asked;
-    ``seconds``: wall time.
+    ``covariance``: float64 [6, 6] of a registered pose (x, y, z, then rotations about them;
+    the x, y and heading block the weighed one when the registration was weighed against the
+    odometry), else ``None``; ``seconds``: wall time.
     """
 
     scan: int
@@ -167,6 +189,7 @@ class Step:
     event: str | None = None
     reason: str | None = None
     reply: Reply | None = field(default=None, repr=False)
+    covariance: np.ndarray | None = field(default=None, repr=False)
     seconds: float = 0.0
 
 
@@ -254,6 +277,7 @@ class DriveLocalizer:
         self._reckoning: _Reckoning | None = None  # the last verified pose, kept over a loss
         self._hypothesis: _Hypothesis | None = None  # a far answer being checked
         self.fixes = 0  # fixes accepted (the first and each relocalisation)
+        self._filter = PlanarFilter(self.config.odometry_noise()) if self.config.fuse else None
         if initial_pose is not None:
             self.state = TRACKING
             self._pose = np.asarray(initial_pose, dtype=np.float64)
@@ -324,6 +348,8 @@ class DriveLocalizer:
         self._run = None
         self._candidates.clear()
         self._hypothesis = None
+        if self._filter is not None:
+            self._filter.clear()
         if forget:
             self._reckoning = None
 
@@ -396,9 +422,19 @@ class DriveLocalizer:
 
     def _track(self, scan: DriveScan, motion: np.ndarray | None) -> Step:
         cfg = self.config
+        fil = self._filter
+        if fil is not None:
+            if motion is None or self._pose is None:
+                fil.clear()  # a constant-velocity guess: the registration alone
+            else:
+                fil.predict(self._pose, motion)
         predicted = self._predict(scan.timestamp, motion)
         step, pose, why = self._register(scan, predicted, self._run, TRACKING)
         reply = step.reply
+        if pose is not None and reply is not None:
+            step.covariance = reply.covariance
+        if fil is not None and reply is not None:
+            pose, why = self._weigh(step, predicted, pose, why)
         if pose is not None:
             self._failures = 0
             self._verified(scan.timestamp, pose)
@@ -424,6 +460,37 @@ class DriveLocalizer:
         else:
             step.reason = f"tracking failure {self._failures} of {cfg.failures}: {why}"
         return step
+
+    def _weigh(
+        self, step: Step, predicted: np.ndarray, pose: np.ndarray | None, why: str | None
+    ) -> tuple[np.ndarray | None, str | None]:
+        """The registration weighed against the prediction (:mod:`.fusion`): a verified one
+        becomes the weighed pose; one the service did not verify but that fits at
+        ``fuse_min_fitness`` within the gates is verified when the odometry expects it (the
+        Mahalanobis gate) and the weighed pose is precise enough. Returns the pose (``None``:
+        not verified) and why."""
+        cfg, fil, reply = self.config, self._filter, step.reply
+        assert fil is not None and reply is not None
+        reg, cov = reply.fit_pose, reply.fit_covariance
+        if reg is None or cov is None:
+            return pose, why
+        if pose is None:
+            weak = reply.fitness is None or reply.fitness < cfg.fuse_min_fitness
+            if weak or not fil.ready:
+                return None, why
+            off = float(np.linalg.norm(reg[:2, 3] - predicted[:2, 3]))
+            turn = abs(wrap_deg(yaw_of(reg) - yaw_of(predicted)))
+            if off > cfg.gate_m or turn > cfg.gate_deg:
+                return None, why
+            fused = fil.weigh(predicted, reg, cov)
+            if not fused.fused or fused.sigma_m > cfg.max_sigma_m:
+                return None, why
+        else:
+            fused = fil.weigh(predicted, pose, cov)
+        fil.commit(fused)
+        step.sigma_m = fused.sigma_m
+        step.covariance = with_block(cov, fused.P)
+        return fused.pose, None
 
     # -- searching -----------------------------------------------------------------------------
 
@@ -486,6 +553,8 @@ class DriveLocalizer:
         self._hypothesis = None
         self._before = None
         self._verified(step.timestamp, pose)
+        if self._filter is not None:
+            self._filter.start(None)
         step.state, step.verified, step.pose, step.how = TRACKING, True, pose, "fix"
         step.anchor = anchor
         self._run = _group(anchor)

@@ -174,6 +174,9 @@ def prior_json(fit: PriorFit) -> dict[str, Any]:
         "sigma_m": fit.sigma_m,
         "correction_m": fit.correction_m,
         "correction_yaw_deg": fit.correction_yaw_deg,
+        "registered": pose_json(fit.pose, fit)
+        if not fit.verified and fit.pose is not None
+        else None,
     }
 
 
