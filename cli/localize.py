@@ -291,7 +291,7 @@ def localize(
             None, cloud_topic=cloud_topic, pose_topic=pose_topic, tf_frame=tf_frame,
             max_pose_gap=max_pose_gap, origin=origin, every=every, out=out, map=map_bundle,
             truth_topic=truth_topic, radius=radius, confirm=confirm, failures=failures,
-            fuse=fuse,
+            fuse=fuse is not None,  # --no-fuse is given too
         )  # fmt: skip
         check = {"verify": verify, "scale": scale, "rerank": rerank,
                  "threshold": verify_threshold, "stop_score": verify_stop_score}  # fmt: skip

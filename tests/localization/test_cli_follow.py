@@ -157,6 +157,11 @@ def test_follow_here_and_the_options_refused(tiny_maps: dict, bag: dict, tmp_pat
         errors = [line for line in res.output.splitlines() if line.startswith("error: ")]
         assert len(errors) == 1 and message in errors[0], (args, res.output)
     assert not list(tmp_path.glob("bad*"))
+    # A single scan is not followed: --no-fuse is refused as --fuse is.
+    for flag in ("--fuse", "--no-fuse"):
+        res = CliRunner().invoke(app, ["localize", str(tmp_path / "scan.bin"), "--index",
+                                       str(tiny_maps["keys"]), flag])  # fmt: skip
+        assert res.exit_code == 2 and "error: --fuse: applies to --rosbag only" in res.output
 
 
 def same_rows(a: list[dict[str, str]], b: list[dict[str, str]]) -> bool:

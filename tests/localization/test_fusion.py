@@ -131,3 +131,26 @@ def test_the_heading_is_weighed_across_the_wrap() -> None:
     f = started(0.1, 0.1, 1.0)
     w = f.weigh(pose(0.0, 0.0, 179.0), pose(0.0, 0.0, -179.0), cov6(0.1, 0.1, 1.0))
     assert w.fused and abs(abs(math.degrees(planar(w.pose)[2])) - 180.0) < 1e-9
+
+
+def test_a_covariance_that_is_not_finite_is_a_direction_nothing_measured() -> None:
+    f = started(0.1, 0.1, 0.5)
+    cov = cov6(0.1, 0.1, 0.5)
+    cov[0, 0] = math.nan  # along x: nothing
+    cov[0, 1] = cov[1, 0] = math.inf
+    w = f.weigh(pose(0.0, 0.0, 0.0), pose(2.0, 0.05, 0.0), cov)
+    assert w.fused and np.all(np.isfinite(w.P))
+    assert abs(w.pose[0, 3]) < 1e-5  # along x the prediction's
+    assert w.pose[1, 3] == pytest.approx(0.025, abs=1e-9)  # across: halfway
+    f.commit(w)
+    f.predict(pose(0.0, 0.0, 0.0), pose(2.5, 0.0, 0.0))
+    assert np.all(np.isfinite(f.P))
+
+
+def test_a_singular_sum_is_the_registration_alone_not_an_error() -> None:
+    f = PlanarFilter()
+    f.P = np.zeros((3, 3))
+    registered = pose(1.0, 0.0, 0.0)
+    w = f.weigh(pose(0.0, 0.0, 0.0), registered, np.zeros((6, 6)))
+    assert not w.fused
+    np.testing.assert_array_equal(w.pose, registered)

@@ -6,11 +6,20 @@ stand-in's odometry is exact, so the truth is what a weighed pose must stay at."
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
+import pytest
 
-from pnvlad_service.localization.drive.tracking import TRACKING, DriveScan, TrackerConfig, follow
+from pnvlad_service.localization.drive.runner import tracker_config
+from pnvlad_service.localization.drive.tracking import (
+    TRACKING,
+    DriveLocalizer,
+    DriveScan,
+    TrackerConfig,
+    follow,
+)
 from tests.localization.stand_in import DT_US, Service, answer, cloud, odometry, truth
 
 LOOSE = np.diag([0.9**2, 0.05**2, 0.01, 1e-5, 1e-5, math.radians(0.2) ** 2])  # along x
@@ -159,3 +168,37 @@ def test_a_fit_under_the_threshold_is_verified_only_where_the_odometry_expects_i
     assert alone[6].reason == "tracking failure 1 of 3: fitness 0.35 < 0.4"
     assert alone[7].reason == "tracking failure 2 of 3: fitness 0.25 < 0.4"
     assert all(s.verified for s in fused[8:]) and all(a.verified for a in alone[8:])
+
+
+def test_a_drive_weighs_the_pose_only_with_the_refined_steps_unless_told() -> None:
+    for source, fused in (("registered", True), ("poses", False), ("kiss-icp", False),
+                          ("none", False)):  # fmt: skip
+        assert tracker_config(None, source).fuse is fused, source
+        assert tracker_config(TrackerConfig(fuse=True), source).fuse is True
+        assert tracker_config(TrackerConfig(fuse=False), source).fuse is False
+    # The localiser itself weighs unless told not to (its caller knows its odometry).
+    assert DriveLocalizer(StreetService(set(), set()))._filter is not None
+    assert DriveLocalizer(StreetService(set(), set()), TrackerConfig(fuse=False))._filter is None
+
+
+def test_the_odometry_noise_must_be_a_positive_finite_number() -> None:
+    for field, value in (("odometry_sigma_m", 0.0), ("odometry_sigma_deg", -1.0),
+                         ("odometry_share", math.inf), ("fuse_min_fitness", -0.1),
+                         ("max_sigma_m", 0.0)):  # fmt: skip
+        with pytest.raises(ValueError, match=field):
+            TrackerConfig(**{field: value})
+
+
+def test_a_verified_registration_without_covariance_restarts_the_filter() -> None:
+    class NoCovariance(StreetService):
+        def __call__(self, points, prior=None, kind="scan"):
+            reply = super().__call__(points, prior, kind)
+            if prior is not None and int(points[0, 0]) == 5:
+                return dataclasses.replace(reply, fit_covariance=None)
+            return reply
+
+    loc = DriveLocalizer(NoCovariance(set(), set()))
+    steps = [loc.step(s) for s in drive(6)]
+    assert steps[5].verified and steps[5].covariance is None
+    P = loc._filter.P
+    np.testing.assert_allclose(np.diag(P), [0.25, 0.25, math.radians(1.0) ** 2])

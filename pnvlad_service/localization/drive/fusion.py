@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pnvlad_service.localization.verify.prior import UNCONSTRAINED
+
 #: The x, y and yaw rows of a registration's covariance (x, y, z, roll, pitch, yaw).
 XY_YAW = (0, 1, 5)
 
@@ -104,7 +106,7 @@ class PlanarFilter:
               default_sigma_deg: float = 1.0) -> None:  # fmt: skip
         """Start from a pose whose covariance is ``covariance`` ([6, 6] as a registration's,
         or ``None``: ``default_sigma_m`` and ``default_sigma_deg``)."""
-        if covariance is None or not np.all(np.isfinite(covariance)):
+        if covariance is None:
             s, y = default_sigma_m, math.radians(default_sigma_deg)
             self.P = np.diag([s * s, s * s, y * y])
         else:
@@ -133,11 +135,16 @@ class PlanarFilter:
         nu = z - x
         nu[2] = _wrap(float(nu[2]))
         S = self.P + R
-        d2 = float(nu @ np.linalg.solve(S, nu))
+        try:
+            S_inv = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            return Fused(alone, R, _sigma(R), False, math.nan)
+        d2 = float(nu @ S_inv @ nu)
         if not math.isfinite(d2) or d2 > self.gate:
             return Fused(alone, R, _sigma(R), False, d2)
-        K = self.P @ np.linalg.inv(S)
-        P = (np.eye(3) - K) @ self.P
+        K = self.P @ S_inv
+        I_K = np.eye(3) - K
+        P = I_K @ self.P @ I_K.T + K @ R @ K.T  # Joseph's form: stays positive
         P = (P + P.T) / 2
         return Fused(with_planar(registered, x + K @ nu), P, _sigma(P), True, d2)
 
@@ -160,7 +167,13 @@ def with_block(covariance: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 
 def _block(covariance: np.ndarray) -> np.ndarray:
-    c = np.asarray(covariance, dtype=np.float64)[np.ix_(XY_YAW, XY_YAW)]
+    """The x, y, yaw block of a [6, 6] covariance; a value that is not finite is a direction
+    nothing measured (:data:`UNCONSTRAINED`, as the registration gives one)."""
+    c = np.asarray(covariance, dtype=np.float64)[np.ix_(XY_YAW, XY_YAW)].copy()
+    bad = ~np.isfinite(c)
+    if bad.any():
+        c[bad] = 0.0
+        c[np.diag_indices(3)] = np.where(bad.diagonal(), UNCONSTRAINED, c.diagonal())
     return (c + c.T) / 2
 
 

@@ -152,6 +152,17 @@ class _PerScan:
         pass
 
 
+def tracker_config(config: TrackerConfig | None, odometry: str) -> TrackerConfig:
+    """The tracker's rules for a drive followed with ``odometry``: ``fuse`` unset is on only
+    with the recorded steps refined by the scans (``registered``, millimetres off a step); the
+    recorded GNSS/INS steps alone are decimetres off, KISS-ICP's scans drift, and without
+    odometry there is nothing to weigh against (docs/TRACKING.md)."""
+    config = config or TrackerConfig()
+    if config.fuse is None:
+        config = config.model_copy(update={"fuse": odometry == "registered"})
+    return config
+
+
 class _Tracked:
     """Every scan to the drive localiser, with the odometry chosen."""
 
@@ -175,11 +186,7 @@ class _Tracked:
             from pnvlad_service.data.sources.odometry import LidarOdometry
 
             self.lidar = LidarOdometry()
-        config = config or TrackerConfig()
-        if config.fuse is None:
-            # Weighed against the odometry only where its steps are the refined ones (a few
-            # millimetres off): a GNSS/INS step is decimetres off (docs/TRACKING.md).
-            config = config.model_copy(update={"fuse": odometry == "registered"})
+        config = tracker_config(config, odometry)
         self.localizer = DriveLocalizer(ask, config, initial_pose=initial_pose)
         self.points: np.ndarray | None = None
         self.covariance: np.ndarray | None = None

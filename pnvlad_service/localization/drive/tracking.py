@@ -108,7 +108,7 @@ class TrackerConfig(BaseModel):
     max_gap_s: float = 2.0
     max_speed_mps: float = 50.0
     max_turn_dps: float = 180.0
-    fuse: bool = True
+    fuse: bool | None = None
     odometry_sigma_m: float = 0.02
     odometry_share: float = 0.02
     odometry_sigma_deg: float = 0.05
@@ -125,18 +125,18 @@ class TrackerConfig(BaseModel):
 
     @field_validator("radius_m", "agree_m", "agree_deg", "gate_m", "gate_deg", "max_gap_s",
                      "max_speed_mps", "max_turn_dps", "confirm_within_s", "reach_m",
-                     "far_confirm_m")  # fmt: skip
+                     "far_confirm_m", "odometry_sigma_m", "odometry_sigma_deg",
+                     "max_sigma_m")  # fmt: skip
     @classmethod
     def _positive(cls, value: float, info: Any) -> float:
         if not value > 0:
             raise ValueError(f"{info.field_name} must be > 0, got {value}")
         return value
 
-    @field_validator("reach_share", "odometry_sigma_m", "odometry_share", "odometry_sigma_deg",
-                     "odometry_turn_share", "max_sigma_m", "fuse_min_fitness")  # fmt: skip
+    @field_validator("reach_share", "odometry_share", "odometry_turn_share", "fuse_min_fitness")
     @classmethod
     def _not_negative(cls, value: float, info: Any) -> float:
-        if not value >= 0:
+        if not 0 <= value < math.inf:
             raise ValueError(f"{info.field_name} must be >= 0, got {value}")
         return value
 
@@ -277,7 +277,8 @@ class DriveLocalizer:
         self._reckoning: _Reckoning | None = None  # the last verified pose, kept over a loss
         self._hypothesis: _Hypothesis | None = None  # a far answer being checked
         self.fixes = 0  # fixes accepted (the first and each relocalisation)
-        self._filter = PlanarFilter(self.config.odometry_noise()) if self.config.fuse else None
+        fuse = self.config.fuse is not False
+        self._filter = PlanarFilter(self.config.odometry_noise()) if fuse else None
         if initial_pose is not None:
             self.state = TRACKING
             self._pose = np.asarray(initial_pose, dtype=np.float64)
@@ -465,14 +466,18 @@ class DriveLocalizer:
         self, step: Step, predicted: np.ndarray, pose: np.ndarray | None, why: str | None
     ) -> tuple[np.ndarray | None, str | None]:
         """The registration weighed against the prediction (:mod:`.fusion`): a verified one
-        becomes the weighed pose; one the service did not verify but that fits at
-        ``fuse_min_fitness`` within the gates is verified when the odometry expects it (the
-        Mahalanobis gate) and the weighed pose is precise enough. Returns the pose (``None``:
-        not verified) and why."""
+        becomes the weighed pose; one the service did not verify (too loose along a direction,
+        fitting under its threshold, or moved farther than its own limit) but that fits at
+        ``fuse_min_fitness`` within the tracker's gates is verified when the odometry expects
+        it (the Mahalanobis gate) and the weighed pose is precise enough. A verified one
+        without a covariance is taken alone and the filter starts again from it. Returns the
+        pose (``None``: not verified) and why."""
         cfg, fil, reply = self.config, self._filter, step.reply
         assert fil is not None and reply is not None
         reg, cov = reply.fit_pose, reply.fit_covariance
         if reg is None or cov is None:
+            if pose is not None:
+                fil.start(None)
             return pose, why
         if pose is None:
             weak = reply.fitness is None or reply.fitness < cfg.fuse_min_fitness
