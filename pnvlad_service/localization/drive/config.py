@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.localization.drive.rows import TRACKED, Policy
-from pnvlad_service.localization.drive.tracking import TrackerConfig
+from pnvlad_service.localization.drive.rules import TrackerConfig
 
 
 class _Section(BaseModel):
