@@ -86,6 +86,7 @@ class Reply:
         fit = answer.prior
         if fit is not None:
             pose = fit.pose.transform if fit.verified and fit.pose is not None else None
+            fit_cov = None if fit.covariance is None else np.asarray(fit.covariance, np.float64)
             return cls(
                 mode="prior",
                 verified=bool(fit.verified),
@@ -98,15 +99,11 @@ class Reply:
                 correction_m=_number(fit.correction_m),
                 uncertain=bool(fit.uncertain),
                 timings_ms=answer.timings.to_json(),
-                covariance=None
-                if pose is None or fit.covariance is None
-                else np.asarray(fit.covariance, dtype=np.float64),
+                covariance=None if pose is None else fit_cov,
                 fit_pose=None
                 if fit.pose is None
                 else np.asarray(fit.pose.transform, dtype=np.float64),
-                fit_covariance=None
-                if fit.covariance is None
-                else np.asarray(fit.covariance, dtype=np.float64),
+                fit_covariance=fit_cov,
             )
         v = answer.verification
         pose = None if v is None or v.pose is None else v.pose.transform

@@ -336,15 +336,23 @@ class DriveLocalizer:
         if reply is not None and pose is None:
             why = reply.reason or "not verified"
         elif pose is not None:
-            off = float(np.linalg.norm(pose[:2, 3] - predicted[:2, 3]))
-            turn = abs(wrap_deg(yaw_of(pose) - yaw_of(predicted)))
-            if off > cfg.gate_m or turn > cfg.gate_deg:
-                why = (
-                    f"the registration moved the prediction {off:.1f} m and {turn:.1f} deg "
-                    f"(more than {cfg.gate_m:g} m or {cfg.gate_deg:g} deg)"
-                )
+            why = self._beyond_gates(pose, predicted)
+            if why is not None:
                 pose = None
         return step, pose, why
+
+    def _beyond_gates(self, pose: np.ndarray, predicted: np.ndarray) -> str | None:
+        """Why ``pose`` moved ``predicted`` by more than ``gate_m`` or ``gate_deg``; ``None``
+        when within both."""
+        cfg = self.config
+        off = float(np.linalg.norm(pose[:2, 3] - predicted[:2, 3]))
+        turn = abs(wrap_deg(yaw_of(pose) - yaw_of(predicted)))
+        if off > cfg.gate_m or turn > cfg.gate_deg:
+            return (
+                f"the registration moved the prediction {off:.1f} m and {turn:.1f} deg "
+                f"(more than {cfg.gate_m:g} m or {cfg.gate_deg:g} deg)"
+            )
+        return None
 
     def _track(self, scan: DriveScan, motion: np.ndarray | None) -> Step:
         cfg = self.config
@@ -408,9 +416,7 @@ class DriveLocalizer:
             weak = reply.fitness is None or reply.fitness < cfg.fuse_min_fitness
             if weak or not fil.ready:
                 return None, why
-            off = float(np.linalg.norm(reg[:2, 3] - predicted[:2, 3]))
-            turn = abs(wrap_deg(yaw_of(reg) - yaw_of(predicted)))
-            if off > cfg.gate_m or turn > cfg.gate_deg:
+            if self._beyond_gates(reg, predicted) is not None:
                 return None, why
             fused = fil.weigh(predicted, reg, cov)
             if not fused.fused or fused.sigma_m > cfg.max_sigma_m:
