@@ -2,8 +2,9 @@
 with their known scale: how often each verifies, and how often a verified answer is right.
 
     python benchmarks/scale_free_queries.py TREE --index MAP [--model MODEL] [--dataset D]
-        [--run RUN ...] [--splits SPLITS] [--count N] [--sweep N] [--stop-score S|none]
-        [--alone-score S|none] [--json out.json]
+        [--run RUN ...] [--splits SPLITS] [--count N] [--sweep N] [--bounds LO,HI]
+        [--sweep-bounds LO,HI,STEPS] [--stop-score S|none] [--alone-score S|none]
+        [--json out.json]
 
 TREE: a ``pnvlad synth`` tree (its frame sidecars give each query's scale and true pose);
 MAP: a bundle with geometry built from the runs of TREE but the query run. The queries are
@@ -18,7 +19,9 @@ pass, ``median``: no scale given and the candidates' median scale taken as it is
 registration only, as verification did before the scale was free).
 
 ``--sweep N``: the candidates the free scale's one factor is fitted to (0: each candidate
-keeps a factor of its own, as verification did before; localization/verify/scale.py).
+keeps a factor of its own, as verification did before; localization/verify/scale.py);
+``--bounds`` the range each candidate's own factor is held to, ``--sweep-bounds`` the
+factors the one factor is chosen from (``ScaleConfig``), both relative to the starting scale.
 
 ``--stop-score`` / ``--alone-score``: the verification cascade's (``VerifyConfig``; ``none``
 registers every candidate / never lets a first candidate stand alone).
@@ -205,6 +208,9 @@ def _verify_config(base: VerifyConfig, args: argparse.Namespace) -> VerifyConfig
         scale = replace(scale, bounds=(lo, hi))
     if args.starts:
         scale = replace(scale, starts=tuple(float(f) for f in args.starts.split(",")))
+    if args.sweep_bounds:
+        lo, hi, steps = args.sweep_bounds.split(",")
+        scale = replace(scale, sweep_bounds=(float(lo), float(hi)), sweep_steps=int(steps))
     return replace(free, scale=scale)
 
 
@@ -239,6 +245,11 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--bounds",
         help="the free scale's factor bounds LO,HI (default: the shipped 0.7,1.4)",
+    )
+    ap.add_argument(
+        "--sweep-bounds",
+        help="the factors the query's one scale is swept over, LO,HI,STEPS (default: the "
+        "shipped 0.7,1.5,7)",
     )
     ap.add_argument(
         "--sweep",
