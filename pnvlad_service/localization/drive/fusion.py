@@ -51,9 +51,14 @@ class OdometryNoise:
         return np.diag([s * s, s * s, y * y])
 
 
+def heading(pose: np.ndarray) -> float:
+    """The heading of a pose's (float [4, 4]) x axis, radians counter-clockwise from east."""
+    return math.atan2(pose[1, 0], pose[0, 0])
+
+
 def planar(pose: np.ndarray) -> np.ndarray:
     """float64 [3]: a pose's (x, y, yaw)."""
-    return np.array([pose[0, 3], pose[1, 3], math.atan2(pose[1, 0], pose[0, 0])])
+    return np.array([pose[0, 3], pose[1, 3], heading(pose)])
 
 
 def _wrap(a: float) -> float:
@@ -63,7 +68,7 @@ def _wrap(a: float) -> float:
 def with_planar(pose: np.ndarray, state: np.ndarray) -> np.ndarray:
     """``pose`` (float [4, 4]) moved to the horizontal position and heading ``state``: turned
     about the vertical axis, its height, roll and pitch kept."""
-    d = _wrap(float(state[2]) - math.atan2(pose[1, 0], pose[0, 0]))
+    d = _wrap(float(state[2]) - heading(pose))
     c, s = math.cos(d), math.sin(d)
     turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     out = np.array(pose, dtype=np.float64, copy=True)

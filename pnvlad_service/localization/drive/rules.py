@@ -57,10 +57,10 @@ class TrackerConfig(BaseModel):
     max_speed_mps: float = 50.0
     max_turn_dps: float = 180.0
     fuse: bool | None = None
-    odometry_sigma_m: float = 0.02
-    odometry_share: float = 0.02
-    odometry_sigma_deg: float = 0.05
-    odometry_turn_share: float = 0.02
+    odometry_sigma_m: float = OdometryNoise.sigma_m
+    odometry_share: float = OdometryNoise.share
+    odometry_sigma_deg: float = OdometryNoise.sigma_deg
+    odometry_turn_share: float = OdometryNoise.turn_share
     max_sigma_m: float = 1.0
     fuse_min_fitness: float = 0.3
 

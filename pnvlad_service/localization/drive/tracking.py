@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.localization.drive.fusion import PlanarFilter, with_block
+from pnvlad_service.localization.drive.fusion import PlanarFilter, heading, with_block
 from pnvlad_service.localization.drive.rules import TrackerConfig
 from pnvlad_service.localization.drive.service import Ask, Reply
 from pnvlad_service.localization.verify.prior import Prior
@@ -157,7 +157,7 @@ class _Hypothesis:
 
 def yaw_of(pose: np.ndarray) -> float:
     """Heading of a pose's x axis, degrees counter-clockwise from east."""
-    return math.degrees(math.atan2(pose[1, 0], pose[0, 0]))
+    return math.degrees(heading(pose))
 
 
 def wrap_deg(a: float) -> float:
