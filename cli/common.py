@@ -123,3 +123,29 @@ def splits_option(panel: str | None = None) -> Any:
 def pickles_option(help: str, panel: str | None = None) -> Any:
     """``--pickles``: the published pickles instead of ``--splits``."""
     return typer.Option(None, "--pickles", help=help, rich_help_panel=panel)
+
+
+def smooth_option(panel: str | None = None) -> Any:
+    """``--smooth R``: blend each map entry with its drive's entries within R metres."""
+    return typer.Option(
+        None,
+        "--smooth",
+        metavar="METRES",
+        help="Smooth the map along its drives: each entry's descriptor blended with the mean of "
+        "its own drive's entries within this many metres (25 suits maps of 10-20 m spacing; "
+        "docs/SERVICE.md). Queries are embedded as they are. Default: off.",
+        rich_help_panel=panel,
+    )
+
+
+def smooth_weight_option(panel: str | None = None) -> Any:
+    """``--smooth-weight W``: the share of the neighbours' mean in a smoothed entry."""
+    from pnvlad_service.index.smoothing import DEFAULT_WEIGHT
+
+    return typer.Option(
+        DEFAULT_WEIGHT,
+        "--smooth-weight",
+        help="With --smooth: the neighbours' mean is added at this weight to each entry's own "
+        "descriptor (1: as much say as the entry).",
+        rich_help_panel=panel,
+    )

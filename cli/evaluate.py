@@ -15,6 +15,8 @@ from pnvlad_cli.common import (
     pickles_option,
     progress_option,
     root_option,
+    smooth_option,
+    smooth_weight_option,
     splits_option,
     user_errors,
 )
@@ -150,6 +152,8 @@ def evaluate(
     figures: Path = _FIGURES,
     plot: list[Path] = _PLOT,
     num_points: int = _NUM_POINTS,
+    smooth: float | None = smooth_option(panel=_WHAT),
+    smooth_weight: float = smooth_weight_option(panel=_WHAT),
     rerank: int = _RERANK,
     verify_threshold: float = _THRESHOLD,
     calibration_queries: int | None = _CAL_QUERIES,
@@ -185,6 +189,8 @@ def evaluate(
       pnvlad eval -m runs/a --root city/ --splits city/splits.json --rerank 10 --save-threshold
 
       pnvlad eval -m runs/s --root city/ --splits city/splits_keyframes.json --queries scans
+
+      pnvlad eval -m runs/a --root city/ --splits city/splits.json --smooth 25
     """
     if rerank is not None:
         # Before torch, faiss and small_gicp load their OpenMP runtimes: registration's two
@@ -194,6 +200,7 @@ def evaluate(
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     with user_errors(), contextlib.ExitStack() as stack:
         from pnvlad_service.evaluation import evaluate as ev
+        from pnvlad_service.index.smoothing import Smoothing
 
         others = [(p.stem, ev.read_report(p)) for p in (plot or [])]
         if model is None and not baseline:
@@ -212,6 +219,7 @@ def evaluate(
             save_threshold=save_threshold,
             dtype=dtype,
         )
+        smoothing = Smoothing.of(smooth, smooth_weight)
         enc = ev.baseline_encoder() if baseline else ev.model_encoder(model, device, dtype)
         points = enc.num_points if num_points is None else num_points
         scan_set, runs = _query_runs(
@@ -224,16 +232,7 @@ def evaluate(
             progress,
             (window_poses, window_m),
         )
-        n_unique, db_desc, q_desc = ev.embed_runs(enc.embed, runs, points, workers, progress)
-        rep = ev.evaluate_embedded(
-            runs,
-            db_desc,
-            q_desc,
-            joint=joint,
-            encoder_info=enc.info,
-            num_points=points,
-            n_unique=n_unique,
-        )
+        rep, db_desc, q_desc = _report(enc, runs, points, workers, progress, joint, smoothing)
         if scan_set is not None:
             from pnvlad_service.evaluation import scan_queries
 
@@ -263,6 +262,29 @@ def evaluate(
         if save_threshold:
             _save_threshold(rep, enc.info, rerank)
         _show(enc.label, rep, out, figures, others)
+
+
+def _report(
+    enc: Any, runs: list, points: int, workers: int, progress: bool, joint: bool, smoothing: Any
+) -> tuple[dict[str, Any], list, list]:
+    """(the recall report, each run's database and query descriptors): every unique submap
+    embedded once, the databases smoothed along their runs with ``smoothing``."""
+    from pnvlad_service.evaluation import evaluate as ev
+
+    n_unique, db_desc, q_desc = ev.embed_runs(
+        enc.embed, runs, points, workers, progress, smoothing=smoothing
+    )
+    rep = ev.evaluate_embedded(
+        runs,
+        db_desc,
+        q_desc,
+        joint=joint,
+        encoder_info=enc.info,
+        num_points=points,
+        n_unique=n_unique,
+        smoothing=smoothing,
+    )
+    return rep, db_desc, q_desc
 
 
 def _plot_only(others: list, figures: Path | None) -> None:

@@ -12,7 +12,14 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from pnvlad_cli.common import model_option, progress_option, root_option, user_errors
+from pnvlad_cli.common import (
+    model_option,
+    progress_option,
+    root_option,
+    smooth_option,
+    smooth_weight_option,
+    user_errors,
+)
 
 if TYPE_CHECKING:
     from pnvlad_service.index.manifest import Manifest
@@ -106,6 +113,8 @@ def build(
         help="UTM zone of the tree's coordinates (30U, 32N, 17S, 17 south), carried by every "
         "answer (default: the one the runs were prepared with, else unknown).",
     ),
+    smooth: float | None = smooth_option(),
+    smooth_weight: float = smooth_weight_option(),
     progress: bool = progress_option(),
 ) -> None:
     """Embed every database submap of a benchmark tree and write an index bundle.
@@ -120,6 +129,7 @@ def build(
     Example: pnvlad index build -m runs/model -r benchmark_datasets -d oxford -o map.index
     """
     from pnvlad_service.index.build import build_bundle
+    from pnvlad_service.index.smoothing import Smoothing
 
     budget = parse_size(memory_budget)
     with user_errors():
@@ -138,6 +148,7 @@ def build(
             geometry=geometry,
             progress=progress,
             utm_zone=utm_zone,
+            smoothing=Smoothing.of(smooth, smooth_weight),
         )
     if rep.path is None:  # a non-zero torchrun rank
         return
@@ -178,7 +189,8 @@ def add(
     already in the bundle are refused. A bundle with geometry keeps it: runs without a frame
     sidecar are refused unless --geometry off drops it. A map is in one UTM zone: runs that
     record one (data prepare --utm-zone) give it to a bundle built without one, every entry
-    of it; runs of another zone than the bundle's are refused.
+    of it; runs of another zone than the bundle's are refused. A map smoothed along its drives
+    (build --smooth) takes whole new runs, smoothed among themselves.
 
     Example: pnvlad index add map.index -m runs/model -r benchmark_datasets \
       --run 2015-02-03-08-45-10
@@ -300,7 +312,11 @@ def _map_text(manifest: Manifest) -> str:
         if record.alignment
         else "not aligned: a prior registers to one drive's entries"
     )
-    return f"{record.kind}s ({record.layout}), {aligned}"
+    sm = record.smoothing
+    smoothed = (
+        f"; smoothed along its drives ({sm.radius_m:g} m, weight {sm.weight:g})" if sm else ""
+    )
+    return f"{record.kind}s ({record.layout}), {aligned}{smoothed}"
 
 
 def _info_rows(bundle: Path, manifest: Manifest, checks: dict[str, bool]) -> list[tuple[str, str]]:

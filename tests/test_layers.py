@@ -19,7 +19,7 @@ ALLOWED: dict[str, set[str]] = {
     "models": set(),
     "index": {"io", "preprocess", "data", "models"},
     "localization": {"io", "preprocess", "data", "models", "index"},
-    "evaluation": {"io", "preprocess", "data", "models", "localization"},
+    "evaluation": {"io", "preprocess", "data", "models", "index", "localization"},
     "training": {"io", "data", "models", "evaluation"},
     "server": {"io", "localization"},
     "mapping": {"io", "preprocess", "data", "models", "index", "localization"},

@@ -31,6 +31,7 @@ from pnvlad_service.data.dataset import EvalRun, load_clouds
 from pnvlad_service.errors import InputError
 from pnvlad_service.evaluation import metrics
 from pnvlad_service.fileio import atomic_open, atomic_write_text
+from pnvlad_service.index.smoothing import Smoothing
 from pnvlad_service.io.submap import SUBMAP_POINTS
 from pnvlad_service.models.embedding import EmbedFn, embed_in_chunks
 from pnvlad_service.models.local_shape import shape_feature_fn
@@ -249,6 +250,7 @@ def evaluate_runs(
     progress: bool = True,
     encoder_info: dict[str, Any] | None = None,
     shape_k: int = 0,
+    smoothing: Smoothing | None = None,
 ) -> dict[str, Any]:
     """Evaluate an embedder on evaluation runs; returns the JSON-ready report.
 
@@ -256,11 +258,15 @@ def evaluate_runs(
     every scored pair of runs of the same area; ``per_area`` holds each area's figures;
     ``queries`` lists each run's query positions (UTM northing, easting) with the share of run
     pairs where its top-1 was right (for the map figure); ``joint`` the one-database figures.
+    ``smoothing``: each run's database smoothed along the run (:mod:`~pnvlad_service.index.
+    smoothing`), as ``pnvlad index build --smooth`` makes the map; recorded in the report.
     """
     if len(runs) < 2:
         raise InputError(f"need at least 2 runs to evaluate, got {len(runs)}", "evaluation set")
     t0 = time.monotonic()
-    n_unique, db_desc, q_desc = embed_runs(embed, runs, num_points, workers, progress, shape_k)
+    n_unique, db_desc, q_desc = embed_runs(
+        embed, runs, num_points, workers, progress, shape_k, smoothing
+    )
     return evaluate_embedded(
         runs,
         db_desc,
@@ -271,6 +277,7 @@ def evaluate_runs(
         num_points=num_points,
         n_unique=n_unique,
         seconds_embedding=time.monotonic() - t0,
+        smoothing=smoothing,
     )
 
 
@@ -285,8 +292,10 @@ def evaluate_embedded(
     num_points: int = SUBMAP_POINTS,
     n_unique: int = 0,
     seconds_embedding: float = 0.0,
+    smoothing: Smoothing | None = None,
 ) -> dict[str, Any]:
-    """:func:`evaluate_runs` from descriptors already made (:func:`embed_runs`)."""
+    """:func:`evaluate_runs` from descriptors already made (:func:`embed_runs`; ``smoothing``
+    the one they were made with, recorded in the report)."""
     t0 = time.monotonic() - seconds_embedding
     t_embed = seconds_embedding
     query_hits = [np.zeros(len(r.query_paths)) for r in runs]
@@ -323,6 +332,7 @@ def evaluate_embedded(
         "per_pair": pairs,
         "queries": _query_records(runs, query_hits, query_counts),
         "seconds_embedding": round(t_embed, 3),
+        "map_smoothing": None if smoothing is None else smoothing.to_json(),
     }
     if joint:
         report["joint"] = _joint_report(runs, db_desc, q_desc, thresholds)
@@ -337,11 +347,13 @@ def embed_runs(
     workers: int,
     progress: bool,
     shape_k: int = 0,
+    smoothing: Smoothing | None = None,
 ) -> tuple[int, list[np.ndarray], list[np.ndarray]]:
     """Embed every unique submap of the runs once (a query is also in its run's database):
     (unique submaps, each run's database descriptors, each run's query descriptors). An
     ``embed`` with ``turns`` (:func:`~pnvlad_service.models.embedding.turned_embedder`) gives
-    database rows of every heading and queries as they are."""
+    database rows of every heading and queries as they are. ``smoothing``: each run's database
+    smoothed along the run (:func:`smooth_databases`)."""
     unique: dict[str, int] = {}
     for r in runs:
         for p in [*r.db_paths, *r.query_paths]:
@@ -354,7 +366,20 @@ def embed_runs(
     width = desc.shape[1] // getattr(embed, "turns", 1)
     db_desc = [desc[[unique[str(p)] for p in r.db_paths]] for r in runs]
     q_desc = [desc[[unique[str(p)] for p in r.query_paths], :width] for r in runs]
+    if smoothing is not None:
+        db_desc = smooth_databases(runs, db_desc, width, smoothing)
     return len(paths), db_desc, q_desc
+
+
+def smooth_databases(
+    runs: list[EvalRun], db_desc: list[np.ndarray], dim: int, smoothing: Smoothing
+) -> list[np.ndarray]:
+    """Each run's database descriptors [M, turns * dim] smoothed along the run by its
+    submaps' positions, as ``pnvlad index build --smooth`` smooths a map of those runs."""
+    return [
+        smoothing.apply(d, dim, np.zeros(len(d), dtype=np.int64), r.db_positions)
+        for r, d in zip(runs, db_desc, strict=True)
+    ]
 
 
 def _overall(per_area: dict[str, dict[str, Any]]) -> tuple[np.ndarray, float, list[float]]:

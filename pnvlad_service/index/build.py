@@ -26,7 +26,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.fileio import sha256_file
 from pnvlad_service.index.bundle import IndexBundle, Metadata, now, write_bundle
 from pnvlad_service.index.geometry import database_frames, geometry_writer
 from pnvlad_service.index.keys import (
@@ -39,6 +38,13 @@ from pnvlad_service.index.keys import (
     recall_at_1,
 )
 from pnvlad_service.index.manifest import Manifest, MapRecord, ModelRecord
+from pnvlad_service.index.smoothing import Smoothing
+from pnvlad_service.index.tree_records import (
+    tree_accumulation,
+    tree_alignment,
+    tree_preprocess_config,
+    tree_utm_zone,
+)
 from pnvlad_service.io.readers import read_points
 from pnvlad_service.models.config import map_turns
 from pnvlad_service.models.embedding import Embedder, embed_in_chunks, turned_embedder
@@ -126,107 +132,6 @@ def embed_submaps(
         embed, len(records), load, chunk=batch_size, progress=progress, desc="embedding"
     )
     return desc.reshape(len(records) * turns, -1)
-
-
-def default_preprocess_config(layout: str = "test") -> dict[str, Any]:
-    """The default filter G configuration as JSON (what raw scans go through): G with the
-    single-scan range crop for keyframe maps, plain G for submaps."""
-    from pnvlad_service.preprocess.filter_g import GConfig, scan_config
-
-    return (scan_config() if layout == "keyframe" else GConfig()).model_dump(mode="json")
-
-
-def _recorded_by_runs(
-    root: Path, records: Sequence[Submap], read: Any
-) -> tuple[dict[str, Any] | None, str | None]:
-    """What ``read(run_dir, folder)`` finds in the prepare records of the runs indexed: the
-    value the runs that record one agree on (``None`` where none does) and the first run that
-    records another (``None`` where they all agree)."""
-    found: dict[str, Any] | None = None
-    folder = records[0].path.rsplit("/", 2)[1]
-    for run in dict.fromkeys(r.path.rsplit("/", 2)[0] for r in records):
-        value = read(root.joinpath(*run.split("/")), folder)
-        if value is not None and found is not None and value != found:
-            return found, run
-        found = value if value is not None else found
-    return found, None
-
-
-def tree_preprocess_config(root: Path, records: Sequence[Submap]) -> dict[str, Any]:
-    """The G that the records' map entries went through, as the tree's prepare records say
-    (so that a raw query meets its own kind), else the layout's default. :class:`InputError`
-    when the runs indexed record different settings."""
-    from pnvlad_service.data.run_folder import recorded_g_config
-
-    found, differs = _recorded_by_runs(root, records, recorded_g_config)
-    if differs is not None:
-        raise InputError(
-            f"the runs indexed went through different filter G settings ({differs} differs); "
-            "index them into separate bundles",
-            root,
-        )
-    return found if found is not None else default_preprocess_config(records[0].kind)
-
-
-def tree_accumulation(root: Path, records: Sequence[Submap]) -> dict[str, Any] | None:
-    """How the runs' windows laid each scan (their prepare records), for accumulated queries
-    to do the same; ``None`` where the tree recorded nothing (made elsewhere) or where the runs
-    laid theirs differently (a warning: the bundle then cannot say how to lay a window)."""
-    from pnvlad_service.data.run_folder import recorded_accumulation
-
-    found, differs = _recorded_by_runs(root, records, recorded_accumulation)
-    if differs is not None:
-        log.warning(
-            "the runs indexed laid their windows' scans differently (%s differs): the bundle "
-            "records none, and accumulated queries keep their scans whole",
-            differs,
-        )
-        return None
-    return found
-
-
-def tree_utm_zone(root: Path, records: Sequence[Submap], given: str | None = None) -> str:
-    """The UTM zone of the records' coordinates: ``given`` (``--utm-zone``) or the one the
-    runs' prepare records agree on; ``""`` where neither says. :class:`InputError` when the
-    runs record different zones, or one other than ``given``, or a zone is malformed."""
-    from pnvlad_service.data.run_folder import recorded_utm_zone
-    from pnvlad_service.io.utm import normalize_zone
-
-    zone = normalize_zone(given, "--utm-zone")
-    found, differs = _recorded_by_runs(root, records, recorded_utm_zone)
-    if differs is not None:
-        raise InputError(
-            f"run {differs} records another UTM zone than {found}: a map is in one zone",
-            "utm_zone",
-        )
-    if zone and found and zone != found:
-        raise InputError(f"{zone} given, but the runs were prepared in {found}", "--utm-zone")
-    return zone or found or ""
-
-
-#: What ``pnvlad map align`` writes into its tree (``mapping.align.REPORT`` and
-#: ``mapping.relay.ALIGNED_POSES``; this stage may not import that one).
-ALIGN_REPORT = "align_report.json"
-ALIGNED_POSES = "aligned_poses.csv"
-
-
-def tree_alignment(root: Path, records: Sequence[Submap]) -> str | None:
-    """The sha256 of ``root``'s ``align_report.json`` when ``pnvlad map align`` wrote the tree
-    and every run of ``records`` is of it (has its ``aligned_poses.csv``): the map's drives
-    agree. ``None`` otherwise (a warning naming a run the alignment lacks)."""
-    report = root / ALIGN_REPORT
-    if not report.is_file():
-        return None
-    for run in dict.fromkeys(r.path.rsplit("/", 2)[0] for r in records):
-        if not root.joinpath(*run.split("/"), ALIGNED_POSES).is_file():
-            log.warning(
-                "run %s has no %s: it was not aligned with the others, so the bundle is not "
-                "recorded as aligned (priors register to one drive at a time)",
-                run,
-                ALIGNED_POSES,
-            )
-            return None
-    return sha256_file(report)
 
 
 def with_zone(records: Sequence[Submap], zone: str) -> list[Submap]:
@@ -338,6 +243,7 @@ def build_bundle(
     preprocess: dict[str, Any] | None = None,
     geometry: str = "auto",
     utm_zone: str | None = None,
+    smoothing: Smoothing | None = None,
 ) -> BuildReport:
     """Embed every ``layout`` submap of the tree at ``root`` and write a bundle to ``out``.
 
@@ -349,6 +255,7 @@ def build_bundle(
     model's, ``preprocess`` to the default filter G config. ``geometry`` (see the module
     docstring): rank 0 writes it from the tree, never from the shards. ``utm_zone``: the zone
     of the tree's coordinates, which every answer carries (:func:`tree_utm_zone`).
+    ``smoothing``: blend each entry with its drive's neighbours (:mod:`.smoothing`).
     """
     out = Path(out)
     root = Path(root)
@@ -368,6 +275,8 @@ def build_bundle(
         if desc is None:
             return BuildReport(None, len(records), index_key, t_embed, 0.0, 0.0, None)
         t1 = time.perf_counter()
+        if smoothing is not None:
+            desc = smoothing.apply_to_entries(desc, records)
         index, index_key, params = _index_of(desc, index_key, memory_budget)
         t_index = time.perf_counter() - t1
         recall = None if is_exact(index_key) else recall_at_1(index, desc, recall_sample)
@@ -388,17 +297,20 @@ def build_bundle(
             overwrite=overwrite,
             build={"processes": world, "embed_seconds": round(t_embed, 3)},
             geometry=None if frames is None else geometry_writer(root, records, frames),
-            map_record=MapRecord(
-                LAYOUT_KINDS[layout],
-                layout,
-                turns,
-                # windows go to submap maps only (a keyframe map refuses them)
-                tree_accumulation(root, records) if LAYOUT_KINDS[layout] == "submap" else None,
-                tree_alignment(root, records),
-            ),
+            map_record=_map_record(root, layout, records, turns, smoothing),
         )
     rate = len(records) / t_embed if t_embed > 0 else float("inf")
     return BuildReport(out, len(records), index_key, t_embed, t_index, rate, recall, manifest)
+
+
+def _map_record(
+    root: Path, layout: str, records: Sequence[Submap], turns: int, smoothing: Smoothing | None
+) -> MapRecord:
+    """The manifest's ``map`` entry of a new bundle of ``records``."""
+    kind = LAYOUT_KINDS[layout]
+    # windows go to submap maps only (a keyframe map refuses them)
+    accumulation = tree_accumulation(root, records) if kind == "submap" else None
+    return MapRecord(kind, layout, turns, accumulation, tree_alignment(root, records), smoothing)
 
 
 def _frames_for(
@@ -503,6 +415,21 @@ def _added_alignment(record: MapRecord | None, added: str | None) -> MapRecord |
     return replace(record, alignment=None)
 
 
+def _check_new(bundle: IndexBundle, records: Sequence[Submap], source: Path) -> None:
+    """:class:`InputError` naming ``source`` for submaps already in the bundle, and for a
+    smoothed map's drives it already holds (their entries were blended without these)."""
+    present = set(bundle.metadata.submap_id.tolist())
+    dup = [r.submap_id for r in records if r.submap_id in present]
+    if dup:
+        raise InputError(
+            f"{len(dup)} submaps are already in the bundle, e.g. {dup[0]}", source=source
+        )
+    smoothing = bundle.manifest.map_record.smoothing
+    if smoothing is not None:
+        have = zip(bundle.metadata.dataset, bundle.metadata.run, strict=True)
+        smoothing.check_new_drives({f"{d}/{r}" for d, r in have}, records, source)
+
+
 def add_to_bundle(
     bundle_dir: str | Path,
     model: str | Path,
@@ -540,12 +467,9 @@ def add_to_bundle(
     records = list_database_submaps(root, datasets, runs, layout)
     zone = _bundle_zone(bundle, tree_utm_zone(root, records))
     records = with_zone(records, zone)
-    present = set(bundle.metadata.submap_id.tolist())
-    dup = [r.submap_id for r in records if r.submap_id in present]
-    if dup:
-        raise InputError(
-            f"{len(dup)} submaps are already in the bundle, e.g. {dup[0]}", source=bundle_dir
-        )
+    _check_new(bundle, records, bundle_dir)
+    m = bundle.manifest
+    smoothing = m.map_record.smoothing
     base = bundle.geometry
     frames = _frames_for(root, records, geometry, has_geometry=base is not None)
     if geometry == "off" and base is not None:
@@ -555,9 +479,10 @@ def add_to_bundle(
     desc = embed_submaps(enc, root, records, batch_size, progress, bundle.turns)
     t_embed = time.perf_counter() - t0
     t1 = time.perf_counter()
+    if smoothing is not None:
+        desc = smoothing.apply_to_entries(desc, records)
     bundle.index.add(np.ascontiguousarray(desc, dtype=np.float32))
     t_index = time.perf_counter() - t1
-    m = bundle.manifest
     manifest = write_bundle(
         bundle_dir,
         bundle.index,

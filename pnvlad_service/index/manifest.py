@@ -21,6 +21,7 @@ from typing import Any
 
 from pnvlad_service.errors import InputError
 from pnvlad_service.fileio import sha256_file
+from pnvlad_service.index.smoothing import Smoothing
 from pnvlad_service.models.store import WEIGHTS_FILE, ModelIdentity
 
 FORMAT = "pnvlad-index"
@@ -195,13 +196,17 @@ class MapRecord:
     follow (:meth:`~pnvlad_service.data.accumulate.WindowAccumulator.for_map`); ``None`` where
     the tree recorded none. ``alignment``: the sha256 of the ``align_report.json`` of the tree
     that ``pnvlad map align`` wrote, when every run indexed is of it (the map's drives agree,
-    and a prior registers to any of them: docs/TRACKING.md); ``None`` otherwise."""
+    and a prior registers to any of them: docs/TRACKING.md); ``None`` otherwise.
+    ``smoothing``: how the entries' descriptors were blended along their drives
+    (:mod:`~pnvlad_service.index.smoothing`, ``pnvlad index build --smooth``); ``None`` for
+    none."""
 
     kind: str = "submap"
     layout: str = "test"
     turns: int = 1
     accumulation: Mapping[str, Any] | None = None
     alignment: str | None = None
+    smoothing: Smoothing | None = None
 
     @property
     def aligned(self) -> bool:
@@ -231,12 +236,14 @@ class MapRecord:
             and all(c in "0123456789abcdef" for c in alignment)
         ):
             raise InputError("manifest's map alignment must be a sha256 (64 hex digits)", source)
+        smoothing = doc.get("smoothing")
         return cls(
             str(doc["kind"]),
             str(doc.get("layout", "test")),
             int(turns),
             None if acc is None else MappingProxyType(dict(acc)),
             alignment,
+            None if smoothing is None else Smoothing.from_json(smoothing, source),
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -245,6 +252,8 @@ class MapRecord:
             out["accumulation"] = dict(self.accumulation)
         if self.alignment is not None:
             out["alignment"] = self.alignment
+        if self.smoothing is not None:
+            out["smoothing"] = self.smoothing.to_json()
         return out
 
     def accepts(self, query_kind: str) -> bool:

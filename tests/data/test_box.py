@@ -20,8 +20,8 @@ from pnvlad_service.data.cuts import submap_cuts
 from pnvlad_service.data.prepare import laid_window, prepare_drive
 from pnvlad_service.data.run_folder import recorded_accumulation
 from pnvlad_service.errors import InputError
-from pnvlad_service.index.build import tree_accumulation
 from pnvlad_service.index.manifest import MapRecord
+from pnvlad_service.index.tree_records import tree_accumulation
 from pnvlad_service.preprocess.filter_g import GConfig
 from tests.data.helpers import ListDrive, tree_bytes
 

@@ -460,3 +460,31 @@ def test_exact_search_over_a_map_of_turns_counts_each_entry_once() -> None:
     d = np.linalg.norm(db[None] - q[:, None, None], axis=-1).min(axis=2)
     np.testing.assert_array_equal(nn, np.argsort(d, axis=1, kind="stable"))
     assert first_rows(np.array([[3, 3, 1, -1, 2]]), 4).tolist() == [[3, 1, 2, -1]]
+
+
+def test_a_smoothed_map_is_each_runs_database_blended_along_the_run(tmp_path: Path) -> None:
+    from pnvlad_service.index.smoothing import Smoothing
+
+    runs, desc = hand_case(tmp_path)
+    sm = Smoothing(25.0, 0.5)
+    rep = evaluate.evaluate_runs(mean_embedder, runs, 64, progress=False, smoothing=sm)
+    assert rep["map_smoothing"] == {"radius_m": 25.0, "weight": 0.5}
+    # by hand: each database entry plus half the mean of its run's entries 20 m either side,
+    # unit length; the queries as they are
+    _, raw_db, q = evaluate.embed_runs(mean_embedder, runs, 64, 1, False)
+    db = []
+    for r in range(3):
+        raw = raw_db[r].astype(np.float64)
+        np.testing.assert_allclose(raw, [desc[(r, k)] for k in range(10)], atol=1e-6)
+        out = []
+        for k in range(10):
+            near = [j for j in (k - 1, k + 1) if 0 <= j < 10]
+            v = raw[k] + 0.5 * raw[near].mean(axis=0)
+            out.append(v / np.linalg.norm(v))
+        db.append(np.array(out, dtype=np.float32))
+    _, got_db, got_q = evaluate.embed_runs(mean_embedder, runs, 64, 1, False, smoothing=sm)
+    for r in range(3):
+        np.testing.assert_allclose(got_db[r], db[r], atol=1e-6)
+        np.testing.assert_array_equal(got_q[r], q[r])
+    plain = evaluate.evaluate_runs(mean_embedder, runs, 64, progress=False)
+    assert plain["map_smoothing"] is None and plain["recall_at_n"] != rep["recall_at_n"]

@@ -13,13 +13,9 @@ from pathlib import Path
 import pytest
 
 from pnvlad_service.errors import InputError
-from pnvlad_service.index.build import (
-    ALIGN_REPORT,
-    ALIGNED_POSES,
-    add_to_bundle,
-    build_bundle,
-)
+from pnvlad_service.index.build import add_to_bundle, build_bundle
 from pnvlad_service.index.manifest import Manifest, MapRecord
+from pnvlad_service.index.tree_records import ALIGN_REPORT, ALIGNED_POSES
 
 
 def _sha256(path: Path) -> str:

@@ -331,7 +331,7 @@ def test_a_tree_says_how_its_windows_laid_scans_only_where_its_runs_agree(
     from types import SimpleNamespace
 
     from pnvlad_service.errors import InputError
-    from pnvlad_service.index.build import tree_accumulation, tree_preprocess_config
+    from pnvlad_service.index.tree_records import tree_accumulation, tree_preprocess_config
 
     def record(run: str, points: int, g: dict) -> SimpleNamespace:
         d = tmp_path / "area" / run

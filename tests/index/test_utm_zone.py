@@ -16,8 +16,9 @@ from typer.testing import CliRunner
 from pnvlad_cli.main import app
 from pnvlad_service.data.prepare import prepare_drive
 from pnvlad_service.errors import InputError
-from pnvlad_service.index.build import add_to_bundle, build_bundle, tree_utm_zone
+from pnvlad_service.index.build import add_to_bundle, build_bundle
 from pnvlad_service.index.bundle import IndexBundle
+from pnvlad_service.index.tree_records import tree_utm_zone
 from pnvlad_service.localization.query.answers import match_json
 from tests.data.helpers import ListDrive
 from tests.index.helpers import make_checkpoint

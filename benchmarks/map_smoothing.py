@@ -1,0 +1,138 @@
+"""Smoothing the map along its drives, swept: recall@1 / recall@1% at each radius and weight.
+
+    python benchmarks/map_smoothing.py -m MODEL --root TREE --splits SPLITS \
+        [--radius 15 --radius 25 ...] [--weight 0.3 --weight 0.5 ...] [--db-layout train]
+        [--json out.json]
+
+Embeds the evaluation runs of SPLITS once with MODEL (as ``pnvlad eval``), then evaluates the
+queries against each run's database smoothed along the run (``pnvlad index build --smooth R
+--smooth-weight W``; pnvlad_service/index/smoothing.py) for every radius and weight given, and
+without smoothing. Printed per setting: recall@1 and recall@1% over all run pairs, each area's
+recall@1, and the change against no smoothing.
+
+``--db-layout train``: each run's database is its training-layout submaps (every 10 m, the
+published ``pointcloud_20m_10overlap``) instead of its test-layout ones (every 20 m), the truth
+recomputed at 25 m: whether a setting holds on a map twice as dense.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from entry import run
+
+from pnvlad_service.data.dataset import load_eval_runs
+from pnvlad_service.data.tree import BenchmarkTree
+from pnvlad_service.evaluation.evaluate import (
+    embed_runs,
+    evaluate_embedded,
+    model_encoder,
+    smooth_databases,
+)
+from pnvlad_service.index.smoothing import Smoothing
+
+TRUTH_M = 25.0
+
+
+def train_layout_databases(root: Path, runs: list) -> list:
+    """``runs`` with each database replaced by the run's training-layout submaps and the truth
+    recomputed (database submaps within 25 m of each query, in every other run)."""
+    tree = BenchmarkTree(root)
+    by_run = {
+        run: tree.submaps(dataset, run, "train")
+        for dataset in tree.datasets
+        for run in tree.runs(dataset)
+    }
+    out = []
+    for r in runs:
+        name = r.name.split("/")[-1]
+        subs = by_run.get(name)
+        if not subs:
+            raise SystemExit(f"run {r.name}: no training-layout submaps in {root}")
+        out.append(
+            replace(
+                r,
+                db_paths=[root / s.path for s in subs],
+                db_positions=np.array([[s.northing, s.easting] for s in subs]),
+            )
+        )
+    for j, q in enumerate(out):
+        truth = []
+        for pos in q.query_positions:
+            t = {}
+            for i, d in enumerate(out):
+                if i != j and d.area == q.area:
+                    near = np.flatnonzero(np.linalg.norm(d.db_positions - pos, axis=1) <= TRUTH_M)
+                    if len(near):
+                        t[i] = near.astype(np.int64)
+            truth.append(t)
+        out[j] = replace(q, truth=truth)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("-m", "--model", required=True)
+    ap.add_argument("--root", type=Path, required=True)
+    ap.add_argument("--splits", type=Path, required=True)
+    ap.add_argument("--radius", type=float, action="append", default=None)
+    ap.add_argument("--weight", type=float, action="append", default=None)
+    ap.add_argument("--db-layout", choices=("test", "train"), default="test")
+    ap.add_argument("--workers", type=int, default=4)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    enc = model_encoder(args.model, None, "float32")
+    runs = load_eval_runs(args.root, args.splits, None, None)
+    if args.db_layout == "train":
+        runs = train_layout_databases(args.root, runs)
+    spacing = [
+        float(np.median(np.linalg.norm(np.diff(r.db_positions, axis=0), axis=1))) for r in runs
+    ]
+    print(f"{len(runs)} runs; median database spacing {np.median(spacing):.1f} m")
+    _, db, q = embed_runs(enc.embed, runs, 4096, args.workers, True)
+    dim = q[0].shape[1]
+    base = evaluate_embedded(runs, db, q)
+    rows = [{"radius_m": None, "weight": None, **_figures(base)}]
+    print(_line("none", rows[0], rows[0]))
+    for radius in args.radius or [15.0, 25.0, 35.0]:
+        for weight in args.weight or [0.3, 0.5, 0.7, 1.0]:
+            sm = Smoothing(radius, weight)
+            rep = evaluate_embedded(runs, smooth_databases(runs, db, dim, sm), q)
+            rows.append({**sm.to_json(), **_figures(rep)})
+            print(_line(f"R {radius:g} m, w {weight:g}", rows[-1], rows[0]))
+    if args.json:
+        args.json.write_text(json.dumps({"db_layout": args.db_layout, "rows": rows}, indent=1))
+    return 0
+
+
+def _figures(rep: dict) -> dict:
+    return {
+        "recall_at_1": rep["recall_at_1"],
+        "recall_at_1pct": rep["recall_at_1pct"],
+        "per_area": {a: v["recall_at_1"] for a, v in rep["per_area"].items()},
+    }
+
+
+def _line(label: str, row: dict, base: dict) -> str:
+    areas = (
+        "  ".join(f"{a} {v:.2f}" for a, v in row["per_area"].items())
+        if len(row["per_area"]) > 1
+        else ""
+    )
+    return (
+        f"{label:<18} recall@1 {row['recall_at_1']:6.2f} "
+        f"({row['recall_at_1'] - base['recall_at_1']:+.2f})  "
+        f"recall@1% {row['recall_at_1pct']:6.2f}  {areas}"
+    )
+
+
+if __name__ == "__main__":
+    run(main)

@@ -1,0 +1,160 @@
+"""Smoothing a map along its drives: each entry's descriptor blended with its neighbours'.
+
+A query recorded between two map entries of a drive sees part of what each of them holds; two
+drives of one street also see its far content differently (a crown, a side street one drive
+records and the other does not). Blending each map entry's descriptor with the mean of its own
+drive's entries within ``radius_m`` metres (``weight`` times the mean, then unit length again)
+lets an entry stand for the stretch of street around it rather than for one cut of it. Only the
+map changes: queries are embedded as they are, and the index search is unchanged.
+
+The blend is a mean, not a sum, so a map whose entries lie every few metres and one whose
+entries lie every 20 m blend the same stretch of street with the same weight. Entries of
+different drives are never blended (their positions carry each drive's GNSS error, and a
+drive's own entries are what the mean stands for). An entry with no neighbour within the radius
+is left as it is.
+
+Descriptors with ``turns`` headings (:class:`~pnvlad_service.index.manifest.MapRecord`) blend
+heading by heading: each ``dim``-wide block with the same block of its neighbours.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from pnvlad_service.errors import InputError
+
+if TYPE_CHECKING:
+    from pnvlad_service.data.tree import Submap
+
+
+@dataclass(frozen=True)
+class Smoothing:
+    """``radius_m``: metres within which a drive's entries blend (> 0); ``weight``: the share
+    of their mean added to each entry's own descriptor (> 0; 1 gives the neighbours as much
+    say as the entry)."""
+
+    radius_m: float
+    weight: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.radius_m) and self.radius_m > 0):
+            raise InputError(
+                f"smoothing radius must be a positive number of metres, got {self.radius_m!r}",
+                "smooth",
+            )
+        if not (math.isfinite(self.weight) and self.weight > 0):
+            raise InputError(
+                f"smoothing weight must be a positive number, got {self.weight!r}",
+                "smooth-weight",
+            )
+
+    @classmethod
+    def of(cls, radius_m: float | None, weight: float) -> Smoothing | None:
+        """``None`` for no radius (smoothing off), else the checked setting."""
+        return None if radius_m is None else cls(float(radius_m), float(weight))
+
+    @classmethod
+    def from_json(cls, doc: Any, source: Any = None) -> Smoothing:
+        """Parse a manifest's ``smoothing`` entry; :class:`InputError` naming ``source``."""
+        if not isinstance(doc, Mapping) or not all(
+            isinstance(doc.get(k), (int, float)) and not isinstance(doc.get(k), bool)
+            for k in ("radius_m", "weight")
+        ):
+            raise InputError("manifest's map smoothing needs numbers radius_m and weight", source)
+        try:
+            return cls(float(doc["radius_m"]), float(doc["weight"]))
+        except InputError as exc:
+            raise InputError(f"manifest's map {exc.detail}", source) from None
+
+    def to_json(self) -> dict[str, float]:
+        return {"radius_m": self.radius_m, "weight": self.weight}
+
+    def apply(
+        self, desc: np.ndarray, dim: int, drives: np.ndarray, positions: np.ndarray
+    ) -> np.ndarray:
+        """:func:`smooth_along_drives` with this setting."""
+        return smooth_along_drives(desc, dim, drives, positions, self.radius_m, self.weight)
+
+    def apply_to_entries(self, desc: np.ndarray, records: Sequence[Submap]) -> np.ndarray:
+        """A bundle's index rows float32 [len(records) * turns, dim] (each record's headings
+        one after another) smoothed along the records' drives (dataset and run)."""
+        n = len(records)
+        if n == 0:
+            return desc
+        dim = desc.shape[1]
+        drives = np.array([f"{r.dataset}/{r.run}" for r in records])
+        positions = np.array([[r.northing, r.easting] for r in records], dtype=np.float64)
+        rows = self.apply(desc.reshape(n, -1), dim, drives, positions)
+        return rows.reshape(-1, dim)
+
+    def check_new_drives(self, have: set[str], records: Sequence[Submap], source: Any) -> None:
+        """:class:`InputError` naming ``source`` when ``records`` (to be added to a map smoothed
+        this way) extend a drive the map holds (``have``: ``dataset/run`` of its entries): the
+        map's entries were blended with their drive's, so a smoothed map takes whole drives."""
+        old = sorted({f"{r.dataset}/{r.run}" for r in records} & have)
+        if old:
+            raise InputError(
+                f"the map is smoothed along its drives and already holds {old[0]}: add whole "
+                "new runs, or build the map again",
+                source,
+            )
+
+
+#: The setting ``pnvlad index build --smooth`` and ``pnvlad eval --smooth`` default to.
+DEFAULT_WEIGHT = 0.5
+
+
+def neighbours(drives: np.ndarray, positions: np.ndarray, radius_m: float) -> Any:
+    """Sparse CSR [N, N] of 1 where entries ``i != j`` are of the same drive and lie within
+    ``radius_m`` metres of each other (``positions`` float64 [N, 2], metres)."""
+    from scipy import sparse
+    from scipy.spatial import cKDTree
+
+    n = len(positions)
+    rows: list[np.ndarray] = []
+    cols: list[np.ndarray] = []
+    drives = np.asarray(drives)
+    for drive in np.unique(drives):
+        members = np.flatnonzero(drives == drive)
+        if len(members) < 2:
+            continue
+        pairs = cKDTree(positions[members]).query_pairs(radius_m, output_type="ndarray")
+        if len(pairs):
+            a, b = members[pairs[:, 0]], members[pairs[:, 1]]
+            rows += [a, b]
+            cols += [b, a]
+    if not rows:
+        return sparse.csr_matrix((n, n), dtype=np.float32)
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    return sparse.csr_matrix((np.ones(len(r), dtype=np.float32), (r, c)), shape=(n, n))
+
+
+def smooth_along_drives(
+    desc: np.ndarray,
+    dim: int,
+    drives: np.ndarray,
+    positions: np.ndarray,
+    radius_m: float,
+    weight: float,
+) -> np.ndarray:
+    """float32 [N, W]: each row of ``desc`` [N, W] (``W // dim`` unit blocks, one a heading)
+    plus ``weight`` times the mean of its drive's rows within ``radius_m`` metres, each block
+    brought back to unit length. ``drives`` [N] names each row's drive, ``positions`` [N, 2]
+    its place in metres. Rows without a neighbour come back unchanged (renormalised)."""
+    desc = np.asarray(desc, dtype=np.float32)
+    n, width = desc.shape
+    if width % dim:
+        raise ValueError(f"descriptor width {width} is not a multiple of {dim}")
+    if len(drives) != n or len(positions) != n:
+        raise ValueError(f"{n} descriptors but {len(drives)} drives and {len(positions)} places")
+    adj = neighbours(drives, np.asarray(positions, dtype=np.float64), radius_m)
+    counts = np.asarray(adj.sum(axis=1)).reshape(-1, 1)
+    mean = np.asarray(adj @ desc) / np.maximum(counts, 1.0)
+    out = (desc + np.float32(weight) * mean.astype(np.float32)).reshape(n, -1, dim)
+    norm = np.linalg.norm(out, axis=2, keepdims=True)
+    return (out / np.maximum(norm, 1e-12)).reshape(n, width).astype(np.float32)
