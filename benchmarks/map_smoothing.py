@@ -13,6 +13,11 @@ recall@1, and the change against no smoothing.
 ``--db-layout train``: each run's database is its training-layout submaps (every 10 m, the
 published ``pointcloud_20m_10overlap``) instead of its test-layout ones (every 20 m), the truth
 recomputed at 25 m: whether a setting holds on a map twice as dense.
+
+``--joint-map``: the map a service holds instead of the benchmark's pairs: each run's queries
+against one database of every other run of its area (right: a map entry within 25 m), the map
+smoothed along each drive and across the drives (``pnvlad index build --smooth R
+--smooth-across-drives``).
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from pnvlad_service.data.tree import BenchmarkTree
 from pnvlad_service.evaluation.evaluate import (
     embed_runs,
     evaluate_embedded,
+    exact_search,
     model_encoder,
     smooth_databases,
 )
@@ -86,6 +92,7 @@ def main() -> int:
     ap.add_argument("--radius", type=float, action="append", default=None)
     ap.add_argument("--weight", type=float, action="append", default=None)
     ap.add_argument("--db-layout", choices=("test", "train"), default="test")
+    ap.add_argument("--joint-map", action="store_true")
     ap.add_argument("--workers", type=int, default=4)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
@@ -99,6 +106,8 @@ def main() -> int:
     print(f"{len(runs)} runs; median database spacing {np.median(spacing):.1f} m")
     _, db, q = embed_runs(enc.embed, runs, 4096, args.workers, True)
     dim = q[0].shape[1]
+    if args.joint_map:
+        return joint_map(args, runs, db, q, dim)
     base = evaluate_embedded(runs, db, q)
     rows = [{"radius_m": None, "weight": None, **_figures(base)}]
     print(_line("none", rows[0], rows[0]))
@@ -111,6 +120,50 @@ def main() -> int:
     if args.json:
         args.json.write_text(json.dumps({"db_layout": args.db_layout, "rows": rows}, indent=1))
     return 0
+
+
+def joint_map(args: argparse.Namespace, runs: list, db: list, q: list, dim: int) -> int:
+    """``--joint-map``: recall@1 and @10 of each run's queries against one map of the other
+    runs of its area, plain, smoothed along each drive and across the drives."""
+    areas: dict[str, list[int]] = {}
+    for k, r in enumerate(runs):
+        areas.setdefault(r.area, []).append(k)
+    rows = []
+    for label, sm in _settings(args):
+        hits = np.zeros(2)
+        n = 0
+        for j, qrun in enumerate(runs):
+            mapped = [i for i in areas[qrun.area] if i != j]
+            desc = np.concatenate([db[i] for i in mapped])
+            pos = np.concatenate([runs[i].db_positions for i in mapped])
+            drives = np.concatenate([np.full(len(db[i]), i) for i in mapped])
+            if sm is not None:
+                desc = sm.apply(
+                    desc, dim, np.zeros_like(drives) if sm.across_drives else drives, pos
+                )
+            nn = exact_search(desc, q[j], 10)
+            off = np.linalg.norm(pos[nn] - qrun.query_positions[:, None], axis=2)
+            right = off <= TRUTH_M
+            hits += [right[:, 0].sum(), right.any(axis=1).sum()]
+            n += len(right)
+        rows.append(
+            {"setting": label, "recall_at_1": 100 * hits[0] / n, "recall_at_10": 100 * hits[1] / n}
+        )
+        r1, r10 = rows[-1]["recall_at_1"], rows[-1]["recall_at_10"]
+        print(f"{label:<34} recall@1 {r1:6.2f}  recall@10 {r10:6.2f}  ({n} queries)")
+    if args.json:
+        args.json.write_text(json.dumps({"joint_map": True, "rows": rows}, indent=1))
+    return 0
+
+
+def _settings(args: argparse.Namespace) -> list:
+    out: list = [("none", None)]
+    for radius in args.radius or [15.0, 25.0, 35.0]:
+        for weight in args.weight or [0.3, 0.5, 0.7, 1.0]:
+            for across in (False, True):
+                label = f"R {radius:g} m, w {weight:g}{', across drives' if across else ''}"
+                out.append((label, Smoothing(radius, weight, across)))
+    return out
 
 
 def _figures(rep: dict) -> dict:

@@ -149,3 +149,16 @@ def smooth_weight_option(panel: str | None = None) -> Any:
         "descriptor (1: as much say as the entry).",
         rich_help_panel=panel,
     )
+
+
+def smooth_across_option(panel: str | None = None) -> Any:
+    """``--smooth-across-drives``: blend the entries of every drive, not only the entry's own."""
+    return typer.Option(
+        False,
+        "--smooth-across-drives",
+        help="With --smooth: blend the entries of every drive within the radius, not only the "
+        "entry's own: each entry stands for what all the drives saw there. For a map whose "
+        "drives agree on positions (good GNSS/INS, or pnvlad map align); index add then "
+        "refuses the map (build it again).",
+        rich_help_panel=panel,
+    )

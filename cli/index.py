@@ -16,6 +16,7 @@ from pnvlad_cli.common import (
     model_option,
     progress_option,
     root_option,
+    smooth_across_option,
     smooth_option,
     smooth_weight_option,
     user_errors,
@@ -115,6 +116,7 @@ def build(
     ),
     smooth: float | None = smooth_option(),
     smooth_weight: float = smooth_weight_option(),
+    smooth_across_drives: bool = smooth_across_option(),
     progress: bool = progress_option(),
 ) -> None:
     """Embed every database submap of a benchmark tree and write an index bundle.
@@ -131,7 +133,6 @@ def build(
     from pnvlad_service.index.build import build_bundle
     from pnvlad_service.index.smoothing import Smoothing
 
-    budget = parse_size(memory_budget)
     with user_errors():
         rep = build_bundle(
             out,
@@ -141,14 +142,14 @@ def build(
             runs=run or None,
             layout=layout,
             index_key=index_key,
-            memory_budget=budget,
+            memory_budget=parse_size(memory_budget),
             batch_size=batch_size,
             recall_sample=recall_sample,
             overwrite=overwrite,
             geometry=geometry,
             progress=progress,
             utm_zone=utm_zone,
-            smoothing=Smoothing.of(smooth, smooth_weight),
+            smoothing=Smoothing.of(smooth, smooth_weight, smooth_across_drives),
         )
     if rep.path is None:  # a non-zero torchrun rank
         return

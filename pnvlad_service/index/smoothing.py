@@ -36,10 +36,13 @@ if TYPE_CHECKING:
 class Smoothing:
     """``radius_m``: metres within which a drive's entries blend (> 0); ``weight``: the share
     of their mean added to each entry's own descriptor (> 0; 1 gives the neighbours as much
-    say as the entry)."""
+    say as the entry); ``across_drives``: blend the entries of every drive within the radius,
+    not only the entry's own (a map whose drives agree on positions: each entry then stands
+    for what all the drives saw there)."""
 
     radius_m: float
     weight: float
+    across_drives: bool = False
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.radius_m) and self.radius_m > 0):
@@ -54,9 +57,17 @@ class Smoothing:
             )
 
     @classmethod
-    def of(cls, radius_m: float | None, weight: float) -> Smoothing | None:
+    def of(
+        cls, radius_m: float | None, weight: float, across_drives: bool = False
+    ) -> Smoothing | None:
         """``None`` for no radius (smoothing off), else the checked setting."""
-        return None if radius_m is None else cls(float(radius_m), float(weight))
+        if radius_m is None:
+            if across_drives:
+                raise InputError(
+                    "needs --smooth R, the radius to blend within", "smooth-across-drives"
+                )
+            return None
+        return cls(float(radius_m), float(weight), bool(across_drives))
 
     @classmethod
     def from_json(cls, doc: Any, source: Any = None) -> Smoothing:
@@ -66,13 +77,19 @@ class Smoothing:
             for k in ("radius_m", "weight")
         ):
             raise InputError("manifest's map smoothing needs numbers radius_m and weight", source)
+        across = doc.get("across_drives", False)
+        if not isinstance(across, bool):
+            raise InputError("manifest's map smoothing across_drives must be true or false", source)
         try:
-            return cls(float(doc["radius_m"]), float(doc["weight"]))
+            return cls(float(doc["radius_m"]), float(doc["weight"]), across)
         except InputError as exc:
             raise InputError(f"manifest's map {exc.detail}", source) from None
 
-    def to_json(self) -> dict[str, float]:
-        return {"radius_m": self.radius_m, "weight": self.weight}
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"radius_m": self.radius_m, "weight": self.weight}
+        if self.across_drives:
+            out["across_drives"] = True
+        return out
 
     def apply(
         self, desc: np.ndarray, dim: int, drives: np.ndarray, positions: np.ndarray
@@ -87,7 +104,9 @@ class Smoothing:
         if n == 0:
             return desc
         dim = desc.shape[1]
-        drives = np.array([f"{r.dataset}/{r.run}" for r in records])
+        drives = np.array(
+            [r.dataset if self.across_drives else f"{r.dataset}/{r.run}" for r in records]
+        )
         positions = np.array([[r.northing, r.easting] for r in records], dtype=np.float64)
         rows = self.apply(desc.reshape(n, -1), dim, drives, positions)
         return rows.reshape(-1, dim)
@@ -95,7 +114,13 @@ class Smoothing:
     def check_new_drives(self, have: set[str], records: Sequence[Submap], source: Any) -> None:
         """:class:`InputError` naming ``source`` when ``records`` (to be added to a map smoothed
         this way) extend a drive the map holds (``have``: ``dataset/run`` of its entries): the
-        map's entries were blended with their drive's, so a smoothed map takes whole drives."""
+        map's entries were blended with their drive's, so a smoothed map takes whole drives;
+        a map smoothed across its drives takes none (every entry would change)."""
+        if self.across_drives and have:
+            raise InputError(
+                "the map is smoothed across its drives: build it again with the new runs",
+                source,
+            )
         old = sorted({f"{r.dataset}/{r.run}" for r in records} & have)
         if old:
             raise InputError(

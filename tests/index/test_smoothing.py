@@ -93,6 +93,20 @@ def test_a_denser_map_blends_with_the_same_weight() -> None:
         np.testing.assert_allclose(got[0], expected, atol=1e-6)
 
 
+def test_across_drives_every_drive_within_the_radius_blends() -> None:
+    rng = np.random.default_rng(4)
+    desc = _unit(rng.normal(size=(5, 8))).astype(np.float32)
+    pos = np.array([[0, 0], [3, 0], [20, 0], [0, 2], [60, 0]], dtype=np.float64)
+    drives = np.array(["a", "a", "a", "b", "b"])
+    across = np.zeros(5)
+    got = smooth_along_drives(desc, 8, across, pos, 25.0, 0.5)
+    np.testing.assert_allclose(got, _direct(desc, 8, across, pos, 25.0, 0.5), atol=1e-6)
+    # entry 0 blends drive b's entry 3 (2 m away) too, unlike along its own drive only
+    np.testing.assert_allclose(got[0], _unit(desc[0] + 0.5 * desc[[1, 2, 3]].mean(0)), atol=1e-6)
+    own = smooth_along_drives(desc, 8, drives, pos, 25.0, 0.5)
+    np.testing.assert_allclose(own[0], _unit(desc[0] + 0.5 * desc[[1, 2]].mean(0)), atol=1e-6)
+
+
 @pytest.mark.parametrize(
     ("radius", "weight", "field"),
     [(0.0, 0.5, "smooth"), (-3.0, 0.5, "smooth"), (float("nan"), 0.5, "smooth"),
@@ -109,6 +123,16 @@ def test_the_manifest_round_trips_and_refuses_a_malformed_entry() -> None:
     assert MapRecord.from_json(rec.to_json()) == rec
     assert rec.to_json()["smoothing"] == {"radius_m": 25.0, "weight": 0.5}
     assert "smoothing" not in MapRecord().to_json()
+    across = MapRecord(smoothing=Smoothing(30.0, 1.0, across_drives=True))
+    assert across.to_json()["smoothing"]["across_drives"] is True
+    assert MapRecord.from_json(across.to_json()) == across
+    with pytest.raises(InputError, match="across_drives must be true or false"):
+        MapRecord.from_json({"kind": "submap", "smoothing": {"radius_m": 3, "weight": 1,
+                                                             "across_drives": "yes"}})  # fmt: skip
+    with pytest.raises(InputError) as err:
+        Smoothing.of(None, 0.5, across_drives=True)
+    assert err.value.source == "smooth-across-drives"
+    assert Smoothing.of(None, 0.5) is None
     for bad in (
         {"radius_m": "25", "weight": 0.5},
         {"radius_m": 25.0},
@@ -166,6 +190,24 @@ def test_adding_to_a_smoothed_bundle_takes_whole_new_runs(world, tmp_path: Path)
     assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
 
 
+def test_a_map_smoothed_across_drives_blends_them_and_takes_no_more(world, tmp_path) -> None:
+    sm = Smoothing(25.0, 0.5, across_drives=True)
+    out = tmp_path / "across"
+    ib.build_bundle(out, world["ckpt"], world["tree"], runs=[RUNS[0]], smoothing=sm, progress=False)
+    ib.build_bundle(tmp_path / "both", world["ckpt"], world["tree"], smoothing=sm, progress=False)
+    plain = IndexBundle.load(world["bundle"])
+    raw = plain.index.reconstruct_n(0, plain.count)
+    md = plain.metadata
+    one_drive = np.zeros(plain.count)
+    expected = _direct(raw, raw.shape[1], one_drive, np.c_[md.northing, md.easting], 25.0, 0.5)
+    got = IndexBundle.load(tmp_path / "both").index.reconstruct_n(0, plain.count)
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    with pytest.raises(InputError, match="smoothed across its drives: build it again"):
+        ib.add_to_bundle(out, world["ckpt"], world["tree"], runs=[RUNS[1]], progress=False)
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+
+
 def test_commands_take_and_check_the_setting(world, tmp_path: Path) -> None:
     def pnvlad(*args: str) -> subprocess.CompletedProcess:
         return subprocess.run(
@@ -184,3 +226,7 @@ def test_commands_take_and_check_the_setting(world, tmp_path: Path) -> None:
     assert "smoothed along its drives (30 m, weight 0.4)" in info.stdout
     doc = json.loads((out / "manifest.json").read_text())
     assert doc["map"]["smoothing"] == {"radius_m": 30.0, "weight": 0.4}
+    lone = pnvlad("index", "build", "-m", str(world["ckpt"]), "-r", str(world["tree"]), "-o",
+                  str(tmp_path / "lone"), "--smooth-across-drives", "--no-progress")  # fmt: skip
+    assert lone.returncode == 2 and "--smooth R" in lone.stderr
+    assert not (tmp_path / "lone").exists()
