@@ -314,8 +314,9 @@ def _map_text(manifest: Manifest) -> str:
         else "not aligned: a prior registers to one drive's entries"
     )
     sm = record.smoothing
+    how = "across" if sm and sm.across_drives else "along"
     smoothed = (
-        f"; smoothed along its drives ({sm.radius_m:g} m, weight {sm.weight:g})" if sm else ""
+        f"; smoothed {how} its drives ({sm.radius_m:g} m, weight {sm.weight:g})" if sm else ""
     )
     return f"{record.kind}s ({record.layout}), {aligned}{smoothed}"
 

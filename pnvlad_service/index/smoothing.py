@@ -1,4 +1,4 @@
-"""Smoothing a map along its drives: each entry's descriptor blended with its neighbours'.
+"""Smoothing a map: each entry's descriptor blended with its neighbours' along its drive.
 
 A query recorded between two map entries of a drive sees part of what each of them holds; two
 drives of one street also see its far content differently (a crown, a side street one drive
@@ -8,10 +8,12 @@ lets an entry stand for the stretch of street around it rather than for one cut 
 map changes: queries are embedded as they are, and the index search is unchanged.
 
 The blend is a mean, not a sum, so a map whose entries lie every few metres and one whose
-entries lie every 20 m blend the same stretch of street with the same weight. Entries of
-different drives are never blended (their positions carry each drive's GNSS error, and a
-drive's own entries are what the mean stands for). An entry with no neighbour within the radius
-is left as it is.
+entries lie every 20 m blend with the same weight. By default entries of different drives are
+not blended (their positions carry each drive's GNSS error): on the benchmark's protocol, one
+drive a database, that is all there is. On a service's map of several drives that agree on
+positions, ``across_drives`` blends every drive's entries within the radius, so an entry holds
+what each drive saw there; along one drive only gains nothing on such a map (docs/SERVICE.md).
+An entry with no neighbour within the radius is left as it is.
 
 Descriptors with ``turns`` headings (:class:`~pnvlad_service.index.manifest.MapRecord`) blend
 heading by heading: each ``dim``-wide block with the same block of its neighbours.

@@ -230,3 +230,9 @@ def test_commands_take_and_check_the_setting(world, tmp_path: Path) -> None:
                   str(tmp_path / "lone"), "--smooth-across-drives", "--no-progress")  # fmt: skip
     assert lone.returncode == 2 and "--smooth R" in lone.stderr
     assert not (tmp_path / "lone").exists()
+    across = pnvlad("index", "build", "-m", str(world["ckpt"]), "-r", str(world["tree"]), "-o",
+                    str(tmp_path / "across"), "--smooth", "25", "--smooth-across-drives",
+                    "--no-progress")  # fmt: skip
+    assert across.returncode == 0, across.stderr
+    info = pnvlad("index", "info", str(tmp_path / "across"))
+    assert "smoothed across its drives (25 m, weight 0.5)" in info.stdout
