@@ -161,6 +161,31 @@ def test_a_smoothed_bundle_holds_the_smoothed_descriptors(world, tmp_path: Path)
     assert np.abs(got - raw).max() > 1e-4  # it blended (the random model varies little)
 
 
+def test_a_map_of_four_headings_blends_heading_by_heading(world, tmp_path: Path) -> None:
+    """A model that turns clouds to their own heading: each entry's four vectors (index rows
+    4i..4i+3) blend each with the same heading of the neighbours."""
+    from tests.index.helpers import make_checkpoint
+
+    ckpt = make_checkpoint(tmp_path / "heading", canonical_heading=True)
+    plain = IndexBundle.load(
+        ib.build_bundle(tmp_path / "p", ckpt, world["tree"], runs=[RUNS[0]], progress=False).path
+    )
+    sm = Smoothing(25.0, 0.5)
+    rep = ib.build_bundle(
+        tmp_path / "s", ckpt, world["tree"], runs=[RUNS[0]], smoothing=sm, progress=False
+    )
+    smoothed = IndexBundle.load(rep.path)
+    assert smoothed.turns == 4 and smoothed.index.ntotal == 4 * PER_RUN
+    raw = plain.index.reconstruct_n(0, 4 * PER_RUN)
+    dim = raw.shape[1]
+    md = plain.metadata
+    expected = _direct(
+        raw.reshape(PER_RUN, 4 * dim), dim, md.run, np.c_[md.northing, md.easting], 25.0, 0.5
+    )
+    got = smoothed.index.reconstruct_n(0, 4 * PER_RUN).reshape(PER_RUN, 4 * dim)
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+
+
 def test_adding_to_a_smoothed_bundle_takes_whole_new_runs(world, tmp_path: Path) -> None:
     sm = Smoothing(25.0, 0.5)
     out = tmp_path / "grow"
