@@ -35,7 +35,10 @@ class TrackerConfig(BaseModel):
     did not verify (too loose along a direction, or fitting under its threshold) that fits at
     ``fuse_min_fitness`` or more, within the gates and as the odometry expects it, is then
     verified when the weighed pose's largest horizontal standard deviation is at most
-    ``max_sigma_m``. A value out of range is a
+    ``max_sigma_m``. ``fuse`` unset (``None``) is on here; ``pnvlad localize --follow`` sets
+    it from the odometry (:func:`~.runner.tracker_config`: on only with ``--odometry
+    registered``), so a library caller whose odometry is a recorded GNSS/INS stream passes
+    ``fuse=False`` to follow as that command does. A value out of range is a
     ``ValueError`` (pydantic's ``ValidationError``) naming the field.
     """
 
