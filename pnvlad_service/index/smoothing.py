@@ -64,6 +64,8 @@ class Smoothing:
     ) -> Smoothing | None:
         """``None`` for no radius (smoothing off), else the checked setting."""
         if radius_m is None:
+            if weight != DEFAULT_WEIGHT:
+                raise InputError("needs --smooth R, the radius to blend within", "smooth-weight")
             if across_drives:
                 raise InputError(
                     "needs --smooth R, the radius to blend within", "smooth-across-drives"

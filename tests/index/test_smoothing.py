@@ -133,6 +133,9 @@ def test_the_manifest_round_trips_and_refuses_a_malformed_entry() -> None:
         Smoothing.of(None, 0.5, across_drives=True)
     assert err.value.source == "smooth-across-drives"
     assert Smoothing.of(None, 0.5) is None
+    with pytest.raises(InputError) as err:
+        Smoothing.of(None, 0.8)
+    assert err.value.source == "smooth-weight"
     for bad in (
         {"radius_m": "25", "weight": 0.5},
         {"radius_m": 25.0},
