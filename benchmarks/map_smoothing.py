@@ -2,7 +2,7 @@
 
     python benchmarks/map_smoothing.py -m MODEL --root TREE --splits SPLITS \
         [--radius 15 --radius 25 ...] [--weight 0.3 --weight 0.5 ...] [--db-layout train]
-        [--json out.json]
+        [--joint-map] [--num-points N] [--json out.json]
 
 Embeds the evaluation runs of SPLITS once with MODEL (as ``pnvlad eval``), then evaluates the
 queries against each run's database smoothed along the run (``pnvlad index build --smooth R
@@ -53,14 +53,14 @@ def train_layout_databases(root: Path, runs: list) -> list:
     recomputed (database submaps within 25 m of each query, in every other run)."""
     tree = BenchmarkTree(root)
     by_run = {
-        run: tree.submaps(dataset, run, "train")
+        (dataset, run): tree.submaps(dataset, run, "train")
         for dataset in tree.datasets
         for run in tree.runs(dataset)
     }
     out = []
     for r in runs:
         name = r.name.split("/")[-1]
-        subs = by_run.get(name)
+        subs = by_run.get((r.area, name))
         if not subs:
             raise SystemExit(f"run {r.name}: no training-layout submaps in {root}")
         out.append(
@@ -94,6 +94,7 @@ def main() -> int:
     ap.add_argument("--db-layout", choices=("test", "train"), default="test")
     ap.add_argument("--joint-map", action="store_true")
     ap.add_argument("--workers", type=int, default=4)
+    ap.add_argument("--num-points", type=int, help="points a submap (default: the model's)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     enc = model_encoder(args.model, None, "float32")
@@ -104,7 +105,7 @@ def main() -> int:
         float(np.median(np.linalg.norm(np.diff(r.db_positions, axis=0), axis=1))) for r in runs
     ]
     print(f"{len(runs)} runs; median database spacing {np.median(spacing):.1f} m")
-    _, db, q = embed_runs(enc.embed, runs, 4096, args.workers, True)
+    _, db, q = embed_runs(enc.embed, runs, args.num_points or enc.num_points, args.workers, True)
     dim = q[0].shape[1]
     if args.joint_map:
         return joint_map(args, runs, db, q, dim)
@@ -143,7 +144,7 @@ def joint_map(args: argparse.Namespace, runs: list, db: list, q: list, dim: int)
                 )
             nn = exact_search(desc, q[j], 10)
             off = np.linalg.norm(pos[nn] - qrun.query_positions[:, None], axis=2)
-            right = off <= TRUTH_M
+            right = (off <= TRUTH_M) & (nn >= 0)  # -1: fewer entries than asked for
             hits += [right[:, 0].sum(), right.any(axis=1).sum()]
             n += len(right)
         rows.append(

@@ -133,20 +133,18 @@ def smooth_option(panel: str | None = None) -> Any:
         metavar="METRES",
         help="Smooth the map along its drives: each entry's descriptor blended with the mean of "
         "its own drive's entries within this many metres (25 suits maps of 10-20 m spacing; "
-        "docs/SERVICE.md). Queries are embedded as they are. Default: off.",
+        "docs/SERVICE.md; at most 100). Queries are embedded as they are. Default: off.",
         rich_help_panel=panel,
     )
 
 
 def smooth_weight_option(panel: str | None = None) -> Any:
     """``--smooth-weight W``: the share of the neighbours' mean in a smoothed entry."""
-    from pnvlad_service.index.smoothing import DEFAULT_WEIGHT
-
     return typer.Option(
-        DEFAULT_WEIGHT,
+        None,
         "--smooth-weight",
         help="With --smooth: the neighbours' mean is added at this weight to each entry's own "
-        "descriptor (1: as much say as the entry).",
+        "descriptor (1: as much say as the entry). Default: 0.5.",
         rich_help_panel=panel,
     )
 

@@ -153,7 +153,7 @@ def evaluate(
     plot: list[Path] = _PLOT,
     num_points: int = _NUM_POINTS,
     smooth: float | None = smooth_option(panel=_WHAT),
-    smooth_weight: float = smooth_weight_option(panel=_WHAT),
+    smooth_weight: float | None = smooth_weight_option(panel=_WHAT),
     rerank: int = _RERANK,
     verify_threshold: float = _THRESHOLD,
     calibration_queries: int | None = _CAL_QUERIES,
@@ -258,6 +258,7 @@ def evaluate(
                 query_frames=None
                 if scan_set is None
                 else scan_queries.query_frames(scan_set, runs),
+                smoothing=smoothing,
             )
         if save_threshold:
             _save_threshold(rep, enc.info, rerank)

@@ -115,7 +115,7 @@ def build(
         "answer (default: the one the runs were prepared with, else unknown).",
     ),
     smooth: float | None = smooth_option(),
-    smooth_weight: float = smooth_weight_option(),
+    smooth_weight: float | None = smooth_weight_option(),
     smooth_across_drives: bool = smooth_across_option(),
     progress: bool = progress_option(),
 ) -> None:
@@ -191,7 +191,8 @@ def add(
     sidecar are refused unless --geometry off drops it. A map is in one UTM zone: runs that
     record one (data prepare --utm-zone) give it to a bundle built without one, every entry
     of it; runs of another zone than the bundle's are refused. A map smoothed along its drives
-    (build --smooth) takes whole new runs, smoothed among themselves.
+    (build --smooth) takes whole new runs, smoothed among themselves; one smoothed across its
+    drives (--smooth-across-drives) takes none: build it again.
 
     Example: pnvlad index add map.index -m runs/model -r benchmark_datasets \
       --run 2015-02-03-08-45-10

@@ -417,9 +417,11 @@ def _query_records(
 def summary_lines(label: str, report: dict[str, Any]) -> list[str]:
     """The report in a few lines: ``label``'s recall over all run pairs, then each area's (when
     there are several) and the joint database's (when evaluated)."""
+    sm = report.get("map_smoothing")
+    smoothed = f", map smoothed ({sm['radius_m']:g} m, weight {sm['weight']:g})" if sm else ""
     lines = [
         f"{label}: {_fmt(report)} over {report['n_pairs']} run pairs "
-        f"({report['n_queries_evaluated']} queries)"
+        f"({report['n_queries_evaluated']} queries{smoothed})"
     ]
     if len(report["per_area"]) > 1:
         lines += [f"  {area}: {_fmt(a)}" for area, a in report["per_area"].items()]

@@ -61,6 +61,7 @@ from pnvlad_service.evaluation.rerank_figures import (
     threshold_on_curve,
     verified_figures,
 )
+from pnvlad_service.index.smoothing import Smoothing
 from pnvlad_service.localization.verify.verify import Candidate, QueryCloud, VerifyConfig, verify
 
 log = logging.getLogger(__name__)
@@ -400,6 +401,7 @@ def evaluate_rerank(
     workers: int = 4,
     progress: bool = False,
     query_frames: dict[str, Any] | None = None,
+    smoothing: Smoothing | None = None,
 ) -> dict[str, Any]:
     """The ``rerank`` section of ``pnvlad eval --rerank K``: ``query_frames`` (absolute path
     -> :class:`SubmapFrame`) for queries that are not the tree's submaps (raw scans through G,
@@ -407,8 +409,8 @@ def evaluate_rerank(
     chosen on ``calibration_queries`` (None: :data:`CALIBRATION_QUERIES`) training-layout
     queries a run of each dataset of ``training``, with :data:`OFF_MAP_QUERIES` a run
     verified as if off the map weighing in as ``off_map_share`` of the queries (None:
-    :data:`OFF_MAP_SHARE`; 0: none)),
-    then :func:`rerank_report` on the evaluation runs."""
+    :data:`OFF_MAP_SHARE`; 0: none); the calibration's maps smoothed as the evaluation's
+    with ``smoothing``), then :func:`rerank_report` on the evaluation runs."""
     from pnvlad_service.data.tree import BenchmarkTree
 
     frames = BenchmarkTree(root).frames_by_path() | (query_frames or {})
@@ -429,7 +431,7 @@ def evaluate_rerank(
             off_runs += subsample_queries(layout, min(per_run, OFF_MAP_QUERIES), seed=1)
 
         def embed_cal(rs: list[EvalRun]) -> tuple[list[np.ndarray], list[np.ndarray]]:
-            _, db, q = embed_runs(embed, rs, num_points, workers, progress)
+            _, db, q = embed_runs(embed, rs, num_points, workers, progress, smoothing=smoothing)
             return db, q
 
         embed_cal.turns = getattr(embed, "turns", 1)  # type: ignore[attr-defined]

@@ -276,6 +276,8 @@ def build_bundle(
             return BuildReport(None, len(records), index_key, t_embed, 0.0, 0.0, None)
         t1 = time.perf_counter()
         if smoothing is not None:
+            if layout == "keyframe":
+                log.warning("smoothing a keyframe map: single scans gained nothing from it")
             desc = smoothing.apply_to_entries(desc, records)
         index, index_key, params = _index_of(desc, index_key, memory_budget)
         t_index = time.perf_counter() - t1

@@ -47,31 +47,33 @@ class Smoothing:
     across_drives: bool = False
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.radius_m) and self.radius_m > 0):
+        if not (math.isfinite(self.radius_m) and 0 < self.radius_m <= MAX_RADIUS_M):
             raise InputError(
-                f"smoothing radius must be a positive number of metres, got {self.radius_m!r}",
-                "smooth",
+                f"smoothing radius must be more than 0 and at most {MAX_RADIUS_M:g} m, got "
+                f"{self.radius_m!r} (beyond 45 m it blends other places in and loses)",
+                "--smooth",
             )
         if not (math.isfinite(self.weight) and self.weight > 0):
             raise InputError(
                 f"smoothing weight must be a positive number, got {self.weight!r}",
-                "smooth-weight",
+                "--smooth-weight",
             )
 
     @classmethod
     def of(
-        cls, radius_m: float | None, weight: float, across_drives: bool = False
+        cls, radius_m: float | None, weight: float | None = None, across_drives: bool = False
     ) -> Smoothing | None:
-        """``None`` for no radius (smoothing off), else the checked setting."""
+        """``None`` for no radius (smoothing off), else the checked setting (``weight``
+        ``None``: :data:`DEFAULT_WEIGHT`). A weight or ``across_drives`` given without a
+        radius is refused rather than ignored."""
         if radius_m is None:
-            if weight != DEFAULT_WEIGHT:
-                raise InputError("needs --smooth R, the radius to blend within", "smooth-weight")
-            if across_drives:
-                raise InputError(
-                    "needs --smooth R, the radius to blend within", "smooth-across-drives"
-                )
+            for given, option in ((weight is not None, "--smooth-weight"),
+                                  (across_drives, "--smooth-across-drives")):  # fmt: skip
+                if given:
+                    raise InputError("needs --smooth R, the radius to blend within", option)
             return None
-        return cls(float(radius_m), float(weight), bool(across_drives))
+        w = DEFAULT_WEIGHT if weight is None else float(weight)
+        return cls(float(radius_m), w, bool(across_drives))
 
     @classmethod
     def from_json(cls, doc: Any, source: Any = None) -> Smoothing:
@@ -98,7 +100,10 @@ class Smoothing:
     def apply(
         self, desc: np.ndarray, dim: int, drives: np.ndarray, positions: np.ndarray
     ) -> np.ndarray:
-        """:func:`smooth_along_drives` with this setting."""
+        """:func:`smooth_along_drives` with this setting, on the entries of one area (with
+        ``across_drives`` every drive's entries blend, ``drives`` then unused)."""
+        if self.across_drives:
+            drives = np.zeros(len(desc), dtype=np.int64)
         return smooth_along_drives(desc, dim, drives, positions, self.radius_m, self.weight)
 
     def apply_to_entries(self, desc: np.ndarray, records: Sequence[Submap]) -> np.ndarray:
@@ -112,7 +117,9 @@ class Smoothing:
             [r.dataset if self.across_drives else f"{r.dataset}/{r.run}" for r in records]
         )
         positions = np.array([[r.northing, r.easting] for r in records], dtype=np.float64)
-        rows = self.apply(desc.reshape(n, -1), dim, drives, positions)
+        rows = smooth_along_drives(
+            desc.reshape(n, -1), dim, drives, positions, self.radius_m, self.weight
+        )
         return rows.reshape(-1, dim)
 
     def check_new_drives(self, have: set[str], records: Sequence[Submap], source: Any) -> None:
@@ -134,8 +141,11 @@ class Smoothing:
             )
 
 
-#: The setting ``pnvlad index build --smooth`` and ``pnvlad eval --smooth`` default to.
+#: The weight ``pnvlad index build --smooth`` and ``pnvlad eval --smooth`` default to.
 DEFAULT_WEIGHT = 0.5
+#: The largest radius taken: the neighbours a radius finds grow with its square (and with the
+#: map's density), and on 20 m submaps 45 m already blends other places in.
+MAX_RADIUS_M = 100.0
 
 
 def neighbours(drives: np.ndarray, positions: np.ndarray, radius_m: float) -> Any:

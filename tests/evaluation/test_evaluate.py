@@ -486,5 +486,34 @@ def test_a_smoothed_map_is_each_runs_database_blended_along_the_run(tmp_path: Pa
     for r in range(3):
         np.testing.assert_allclose(got_db[r], db[r], atol=1e-6)
         np.testing.assert_array_equal(got_q[r], q[r])
-    plain = evaluate.evaluate_runs(mean_embedder, runs, 64, progress=False)
-    assert plain["map_smoothing"] is None and plain["recall_at_n"] != rep["recall_at_n"]
+    assert "map smoothed (25 m, weight 0.5)" in evaluate.summary_lines("m", rep)[0]
+
+    # with unit descriptors, a vanishing weight is the plain map
+    def unit_embedder(points: np.ndarray) -> np.ndarray:
+        d = mean_embedder(points) + np.array([0.0, 0.0, 1.0], dtype=np.float32)
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    plain = evaluate.evaluate_runs(unit_embedder, runs, 64, progress=False)
+    faint = evaluate.evaluate_runs(
+        unit_embedder, runs, 64, progress=False, smoothing=Smoothing(25.0, 1e-9)
+    )
+    assert plain["map_smoothing"] is None
+    assert faint["recall_at_n"] == plain["recall_at_n"]
+
+
+def test_cli_eval_smoothed_map(trained: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pnvlad_cli.main import app
+
+    root, splits, run = trained
+    base = ["-q", "eval", "-m", str(run), "--root", str(root), "--splits", str(splits)]
+    out = tmp_path / "rep.json"
+    res = CliRunner().invoke(
+        app, [*base, "--smooth", "25", "--smooth-weight", "0.7", "-o", str(out), "--no-progress"]
+    )
+    assert res.exit_code == 0, res.output
+    assert evaluate.read_report(out)["map_smoothing"] == {"radius_m": 25.0, "weight": 0.7}
+    assert "map smoothed (25 m, weight 0.7)" in res.output
+    bad = CliRunner().invoke(app, [*base, "--smooth-weight", "0.7", "--no-progress"])
+    assert bad.exit_code == 2 and "--smooth-weight" in bad.output

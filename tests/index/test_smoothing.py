@@ -109,8 +109,9 @@ def test_across_drives_every_drive_within_the_radius_blends() -> None:
 
 @pytest.mark.parametrize(
     ("radius", "weight", "field"),
-    [(0.0, 0.5, "smooth"), (-3.0, 0.5, "smooth"), (float("nan"), 0.5, "smooth"),
-     (25.0, 0.0, "smooth-weight"), (25.0, float("inf"), "smooth-weight")],
+    [(0.0, 0.5, "--smooth"), (-3.0, 0.5, "--smooth"), (float("nan"), 0.5, "--smooth"),
+     (150.0, 0.5, "--smooth"), (25.0, 0.0, "--smooth-weight"),
+     (25.0, float("inf"), "--smooth-weight")],
 )  # fmt: skip
 def test_impossible_settings_name_their_option(radius, weight, field) -> None:
     with pytest.raises(InputError) as err:
@@ -129,13 +130,14 @@ def test_the_manifest_round_trips_and_refuses_a_malformed_entry() -> None:
     with pytest.raises(InputError, match="across_drives must be true or false"):
         MapRecord.from_json({"kind": "submap", "smoothing": {"radius_m": 3, "weight": 1,
                                                              "across_drives": "yes"}})  # fmt: skip
-    with pytest.raises(InputError) as err:
-        Smoothing.of(None, 0.5, across_drives=True)
-    assert err.value.source == "smooth-across-drives"
-    assert Smoothing.of(None, 0.5) is None
-    with pytest.raises(InputError) as err:
-        Smoothing.of(None, 0.8)
-    assert err.value.source == "smooth-weight"
+    # a weight or across_drives without a radius is refused, not ignored (the default too)
+    for weight, across, option in ((None, True, "--smooth-across-drives"),
+                                   (0.5, False, "--smooth-weight")):  # fmt: skip
+        with pytest.raises(InputError) as err:
+            Smoothing.of(None, weight, across_drives=across)
+        assert err.value.source == option
+    assert Smoothing.of(None) is None
+    assert Smoothing.of(30.0) == Smoothing(30.0, 0.5)
     for bad in (
         {"radius_m": "25", "weight": 0.5},
         {"radius_m": 25.0},
