@@ -112,12 +112,10 @@ def main() -> int:
     base = evaluate_embedded(runs, db, q)
     rows = [{"radius_m": None, "weight": None, **_figures(base)}]
     print(_line("none", rows[0], rows[0]))
-    for radius in args.radius or [15.0, 25.0, 35.0]:
-        for weight in args.weight or [0.3, 0.5, 0.7, 1.0]:
-            sm = Smoothing(radius, weight)
-            rep = evaluate_embedded(runs, smooth_databases(runs, db, dim, sm), q)
-            rows.append({**sm.to_json(), **_figures(rep)})
-            print(_line(f"R {radius:g} m, w {weight:g}", rows[-1], rows[0]))
+    for label, sm in _settings(args, across=(False,))[1:]:
+        rep = evaluate_embedded(runs, smooth_databases(runs, db, dim, sm), q)
+        rows.append({**sm.to_json(), **_figures(rep)})
+        print(_line(label, rows[-1], rows[0]))
     if args.json:
         args.json.write_text(json.dumps({"db_layout": args.db_layout, "rows": rows}, indent=1))
     return 0
@@ -139,9 +137,7 @@ def joint_map(args: argparse.Namespace, runs: list, db: list, q: list, dim: int)
             pos = np.concatenate([runs[i].db_positions for i in mapped])
             drives = np.concatenate([np.full(len(db[i]), i) for i in mapped])
             if sm is not None:
-                desc = sm.apply(
-                    desc, dim, np.zeros_like(drives) if sm.across_drives else drives, pos
-                )
+                desc = sm.apply(desc, dim, drives, pos)  # across_drives: every drive blends
             nn = exact_search(desc, q[j], 10)
             off = np.linalg.norm(pos[nn] - qrun.query_positions[:, None], axis=2)
             right = (off <= TRUTH_M) & (nn >= 0)  # -1: fewer entries than asked for
@@ -157,13 +153,20 @@ def joint_map(args: argparse.Namespace, runs: list, db: list, q: list, dim: int)
     return 0
 
 
-def _settings(args: argparse.Namespace) -> list:
+def _settings(args: argparse.Namespace, across: tuple[bool, ...] = (False, True)) -> list:
+    """("none", None), then (label, setting) for each radius and weight asked for (by default
+    15, 25, 35 m and 0.3, 0.5, 0.7, 1), along each drive and, in ``across``, across them."""
     out: list = [("none", None)]
     for radius in args.radius or [15.0, 25.0, 35.0]:
         for weight in args.weight or [0.3, 0.5, 0.7, 1.0]:
-            for across in (False, True):
-                label = f"R {radius:g} m, w {weight:g}{', across drives' if across else ''}"
-                out.append((label, Smoothing(radius, weight, across)))
+            for across_drives in across:
+                what = ", across drives" if across_drives else ""
+                out.append(
+                    (
+                        f"R {radius:g} m, w {weight:g}{what}",
+                        Smoothing(radius, weight, across_drives),
+                    )
+                )
     return out
 
 

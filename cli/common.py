@@ -140,11 +140,13 @@ def smooth_option(panel: str | None = None) -> Any:
 
 def smooth_weight_option(panel: str | None = None) -> Any:
     """``--smooth-weight W``: the share of the neighbours' mean in a smoothed entry."""
+    from pnvlad_service.index.smoothing import DEFAULT_WEIGHT
+
     return typer.Option(
         None,
         "--smooth-weight",
         help="With --smooth: the neighbours' mean is added at this weight to each entry's own "
-        "descriptor (1: as much say as the entry). Default: 0.5.",
+        f"descriptor (1: as much say as the entry). Default: {DEFAULT_WEIGHT:g}.",
         rich_help_panel=panel,
     )
 
