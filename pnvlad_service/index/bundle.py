@@ -44,11 +44,11 @@ from pnvlad_service.index.manifest import (
     INDEX_FILE,
     MANIFEST_FILE,
     METADATA_FILE,
-    VERSION,
     GeometryRecord,
     Manifest,
     MapRecord,
     ModelRecord,
+    format_version,
 )
 
 if TYPE_CHECKING:
@@ -355,7 +355,7 @@ def write_bundle(
             raise PnvladError(f"geometry has {geo.count} rows, the metadata {len(metadata)}")
         manifest = Manifest(
             format=FORMAT,
-            version=VERSION,
+            version=format_version(map_record),
             dim=int(index.d),
             metric="l2",
             distance="euclidean",

@@ -25,7 +25,13 @@ from pnvlad_service.index.smoothing import Smoothing
 from pnvlad_service.models.store import WEIGHTS_FILE, ModelIdentity
 
 FORMAT = "pnvlad-index"
+#: The bundle format a manifest declares: 1, or 2 for a map whose descriptors were smoothed
+#: (``map.smoothing``). A reader that predates smoothing refuses version 2 rather than read
+#: the bundle as a plain map (its ``index add`` would append unsmoothed entries and drop the
+#: record).
 VERSION = 1
+SMOOTHED_VERSION = 2
+VERSIONS = (VERSION, SMOOTHED_VERSION)
 INDEX_FILE = "index.faiss"
 METADATA_FILE = "metadata.npz"
 MANIFEST_FILE = "manifest.json"
@@ -320,9 +326,10 @@ class Manifest:
             raise InputError(f"manifest is not valid JSON: {exc}", source=mpath) from exc
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise InputError(f"not a {FORMAT} manifest", source=mpath)
-        if doc.get("version") != VERSION:
+        if doc.get("version") not in VERSIONS or isinstance(doc.get("version"), bool):
             raise InputError(
-                f"bundle format version {doc.get('version')} is not supported (want {VERSION})",
+                f"bundle format version {doc.get('version')} is not supported "
+                f"(this pnvlad reads {', '.join(map(str, VERSIONS))})",
                 source=mpath,
             )
         return cls.from_json(doc, path)
@@ -418,3 +425,9 @@ def _check_types(doc: Mapping[str, Any], source: Path | None) -> None:
     ]
     if wrong:
         raise InputError(f"manifest keys of the wrong type: {wrong}", source=source)
+
+
+def format_version(map_record: MapRecord | None) -> int:
+    """The format version a bundle of ``map_record`` declares (:data:`VERSIONS`)."""
+    smoothed = map_record is not None and map_record.smoothing is not None
+    return SMOOTHED_VERSION if smoothed else VERSION

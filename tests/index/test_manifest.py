@@ -121,7 +121,8 @@ def test_read_refuses_what_is_not_a_manifest(world: dict[str, Path], tmp_path: P
     cases = [
         ("{not json", "not valid JSON"),
         (json.dumps({**doc, "format": "other"}), "not a pnvlad-index manifest"),
-        (json.dumps({**doc, "version": 2}), "version 2 is not supported"),
+        (json.dumps({**doc, "version": 3}), "version 3 is not supported"),
+        (json.dumps({**doc, "version": True}), "version True is not supported"),
         (json.dumps({k: v for k, v in doc.items() if k != "count"}), r"lacks the keys \['count'\]"),
         (json.dumps({**doc, "dim": "16"}), r"wrong type: \['dim'\]"),
         (json.dumps({**doc, "model": {"checkpoint": None}}), "model entry lacks the keys"),

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from pnvlad_service.errors import InputError
 from pnvlad_service.index import build as ib
 from pnvlad_service.index.bundle import IndexBundle
-from pnvlad_service.index.manifest import MapRecord
+from pnvlad_service.index.manifest import MANIFEST_FILE, MapRecord
 from pnvlad_service.index.smoothing import Smoothing, smooth_along_drives
 from tests.index.helpers import PER_RUN, RUNS
 
@@ -157,6 +157,9 @@ def test_a_smoothed_bundle_holds_the_smoothed_descriptors(world, tmp_path: Path)
         tmp_path / "s", world["ckpt"], world["tree"], smoothing=sm, progress=False
     )
     assert rep.manifest is not None and rep.manifest.map_record.smoothing == sm
+    # a reader that predates smoothing must refuse the bundle, not read it as a plain map
+    assert json.loads((rep.path / MANIFEST_FILE).read_text())["version"] == 2
+    assert json.loads((world["bundle"] / MANIFEST_FILE).read_text())["version"] == 1
     plain = IndexBundle.load(world["bundle"])
     raw = plain.index.reconstruct_n(0, plain.count)
     md = plain.metadata
@@ -198,7 +201,7 @@ def test_adding_to_a_smoothed_bundle_takes_whole_new_runs(world, tmp_path: Path)
     ib.add_to_bundle(out, world["ckpt"], world["tree"], runs=[RUNS[1]], progress=False)
     ib.build_bundle(tmp_path / "both", world["ckpt"], world["tree"], smoothing=sm, progress=False)
     grown, both = IndexBundle.load(out), IndexBundle.load(tmp_path / "both")
-    assert grown.manifest.map_record.smoothing == sm
+    assert grown.manifest.map_record.smoothing == sm and grown.manifest.version == 2
     np.testing.assert_allclose(
         grown.index.reconstruct_n(0, 2 * PER_RUN),
         both.index.reconstruct_n(0, 2 * PER_RUN),
