@@ -138,9 +138,7 @@ def off_map(loc: Localizer, tree: BenchmarkTree, queries, known: bool) -> dict:
         prepared = loc.prepare(cloud, False, frame.scale if known else None)
         ids = loc.submit(prepared, loc.bundle.count).result().ids
         far = np.linalg.norm(where[ids] - [sub.northing, sub.easting], axis=1) > OFF_MAP_M
-        far_ids = [int(i) for i in ids[far][:k]]
-        query = prepared.query([loc.bundle.geometry.scale(i) for i in far_ids])
-        verified += loc.verifier.verify(query, far_ids, loc.verify_config).verified
+        verified += loc.verify_ids(prepared, [int(i) for i in ids[far][:k]]).verified
     return {"queries": len(queries), "verified": verified}
 
 

@@ -50,12 +50,13 @@ from pnvlad_service.localization.query.run import INLINE, run, run_inline
 from pnvlad_service.localization.query.threads import faiss_threads_here, set_threads
 from pnvlad_service.localization.verify.prior import (
     MapPositions,
-    PositionsOnce,
+    Once,
     Prior,
     PriorConfig,
     PriorFit,
     no_map_near,
 )
+from pnvlad_service.localization.verify.scale import map_tracks, track_scales
 from pnvlad_service.localization.verify.verifier import open_verifier
 from pnvlad_service.localization.verify.verify import PreparedCloud, Verification, VerifyConfig
 from pnvlad_service.models.embedding import Embedder
@@ -131,7 +132,9 @@ class Localizer:
         self.aligned_map = config.prior.aligned(bundle.manifest.map_record.aligned)
         self.prior_config = config.prior.config(aligned=self.aligned_map)
         # The map's positions for a prior's range search, made on the first prior.
-        self._positions = PositionsOnce(lambda: MapPositions.of_metadata(bundle.metadata))
+        self._positions = Once(lambda: MapPositions.of_metadata(bundle.metadata))
+        # Each entry's direction of travel, for the scale of a query without one: map_tracks.
+        self._tracks: Once[np.ndarray | None] = Once(self._map_tracks)
         # Verifications in flight: with another one, or the encoder busy, small_gicp runs on
         # VerifyConfig.crowded_threads (the cores are taken).
         self._verifying = 0
@@ -379,15 +382,40 @@ class Localizer:
 
     def verify(self, prepared: PreparedCloud, result: BatchResult) -> Verification:
         """Register the query to its nearest ``verify_config.candidates`` and re-rank them."""
+        k = self.verify_config.candidates
+        return self.verify_ids(prepared, [int(i) for i in result.ids[:k] if i >= 0])
+
+    def _map_tracks(self) -> np.ndarray | None:
+        geometry = self.bundle.geometry
+        if geometry is None:
+            return None
+        spread = self.verify_config.scale.track_spread
+        return map_tracks(self.bundle.metadata, geometry.metres, spread)
+
+    def verify_ids(self, prepared: PreparedCloud, ids: list[int]) -> Verification:
+        """Register the query to the map entries ``ids`` (best first) and re-rank them. A
+        query without a scale starts from the metres per unit its extent along the
+        candidates' drives gives (:func:`~..verify.scale.track_scales`), its factor then held
+        to ``ScaleConfig.track_bounds``, on a map whose submaps span alike along their drives
+        (:func:`~..verify.scale.map_tracks`); else from the candidates' median scale."""
         geometry = self.bundle.geometry
         if geometry is None or self.verifier is None:
             raise InputError("the bundle carries no geometry", "verify")
-        k = self.verify_config.candidates
-        ids = [int(i) for i in result.ids[:k] if i >= 0]
-        query = prepared.query([geometry.scale(i) for i in ids])
+        scales = [geometry.scale(i) for i in ids]
+        config = self.verify_config
+        tracks = self._tracks.get() if prepared.scale is None and ids else None
+        if tracks is not None:
+            tracked = track_scales(
+                prepared.cloud,
+                scales,
+                [functools.partial(geometry.metres, i) for i in ids],
+                tracks[ids],
+            )
+            if tracked is not None:
+                scales, config = tracked, replace(config, scale=config.scale.tracked())
+        query = prepared.query(scales)
         with self._registering() as crowded:
-            config = self.verify_config.crowded() if crowded else self.verify_config
-            return self.verifier.verify(query, ids, config)
+            return self.verifier.verify(query, ids, config.crowded() if crowded else config)
 
     # a query with a prior pose ---------------------------------------------------------
     def check_prior(self, field: str = "prior") -> None:

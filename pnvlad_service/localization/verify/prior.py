@@ -32,12 +32,15 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
 from pnvlad_service.localization.verify import registration as reg
+from pnvlad_service.localization.verify.scale import drive_groups
 from pnvlad_service.localization.verify.verify import Candidate, Check, Pose, QueryCloud
+
+T = TypeVar("T")
 
 #: Prepared targets near priors a localiser keeps (apart from verification's cache of single
 #: candidates): a tracked robot's target changes every few metres and is not asked for again
@@ -207,11 +210,7 @@ class MapPositions:
     @classmethod
     def of_metadata(cls, metadata: Any) -> MapPositions:
         """The positions of a bundle's metadata, grouped by dataset and run."""
-        groups = np.char.add(
-            np.char.add(np.asarray(metadata.dataset, dtype=str), "/"),
-            np.asarray(metadata.run, dtype=str),
-        )
-        return cls(metadata.northing, metadata.easting, groups)
+        return cls(metadata.northing, metadata.easting, drive_groups(metadata))
 
     def __len__(self) -> int:
         return int(self._tree.n)
@@ -465,17 +464,19 @@ def register_near(
     )
 
 
-class PositionsOnce:
-    """A :class:`MapPositions` made on first use (thread-safe): a server that never gets a
-    prior never builds it."""
+class Once(Generic[T]):
+    """A value made on first use (thread-safe): a server that never gets a prior never
+    builds the map's :class:`MapPositions`, nor one never asked a query without a scale its
+    drives' directions."""
 
-    def __init__(self, make: Callable[[], MapPositions]) -> None:
+    def __init__(self, make: Callable[[], T]) -> None:
         self._make = make
         self._lock = threading.Lock()
-        self._value: MapPositions | None = None
+        self._made = False
+        self._value: T
 
-    def get(self) -> MapPositions:
+    def get(self) -> T:
         with self._lock:
-            if self._value is None:
-                self._value = self._make()
+            if not self._made:
+                self._value, self._made = self._make(), True
             return self._value
