@@ -73,9 +73,9 @@ class ScaleConfig:
     within 24 %);
     ``track_spread``: the drives give the start only on a map whose submaps' extents along
     their drives are steady, the 90th percentile at most this times the 10th
-    (:func:`along_drive_spread`; push-broom ``oxford`` maps 1.13-1.15, where a submap is what
-    20 m of driving swept; the spinning ``demo`` city 1.86, where it reaches as far as the
-    sensor sees along the street).
+    (:func:`along_drive_spread`; push-broom ``oxford`` maps 1.12-1.17, where a submap is what
+    20 m of driving swept; the spinning ``benchmark`` 1.62 and ``demo`` 1.86, where it reaches
+    as far as the sensor sees along the street).
     """
 
     distances: tuple[float, ...] = (12.0, 8.0, 5.0, 3.0, 2.0, 1.0, 0.75)
