@@ -308,19 +308,19 @@ def track_directions(
     does not matter to an extent."""
     xy = np.c_[np.asarray(easting, np.float64), np.asarray(northing, np.float64)]
     out = np.full((len(xy), 2), np.nan)
-    groups = np.asarray(groups)
-    for g in np.unique(groups):
-        idx = np.flatnonzero(groups == g)
-        idx = idx[np.argsort(np.asarray(timestamp)[idx], kind="stable")]
-        p = xy[idx]
-        step = np.diff(p, axis=0)
-        ok = np.hypot(*step.T) <= max_gap_m
-        before = np.vstack([np.zeros((1, 2)), step * ok[:, None]])
-        after = np.vstack([step * ok[:, None], np.zeros((1, 2))])
-        d = before + after
-        length = np.hypot(*d.T)
-        good = length > 1e-6
-        out[idx[good]] = d[good] / length[good, None]
+    if not len(xy):
+        return out
+    _, drive = np.unique(np.asarray(groups), return_inverse=True)
+    order = np.lexsort((np.asarray(timestamp), drive))  # by drive, then time (stable)
+    step = np.diff(xy[order], axis=0)
+    same = drive[order][1:] == drive[order][:-1]
+    step *= (same & (np.hypot(*step.T) <= max_gap_m))[:, None]
+    d = np.zeros_like(xy)
+    d[1:] += step  # from the entry before
+    d[:-1] += step  # to the entry after
+    length = np.hypot(*d.T)
+    good = length > 1e-6
+    out[order[good]] = d[good] / length[good, None]
     return out
 
 
