@@ -284,7 +284,8 @@ def main() -> int:
     with Localizer.load(args.index, args.model, LocalizerConfig()) as loc:
         free = _verify_config(loc.verify_config, args)
         for mode, known in modes:
-            fixed = replace(free, scale=ScaleConfig(bounds=(1.0, 1.0), sweep_candidates=0))
+            rigid = ScaleConfig(bounds=(1.0, 1.0), sweep_candidates=0, track_spread=None)
+            fixed = replace(free, scale=rigid)
             loc.verify_config = fixed if mode == "median" else free
             records = localise_all(loc, tree, queries, known)
             figs = summary(records)

@@ -6,6 +6,7 @@ tiny spinning city."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -108,12 +109,14 @@ def test_only_a_map_whose_submaps_span_alike_along_their_drives_gives_tracks() -
         northing=np.zeros(n),
     )
     swept = [_swept(rng, 0.0, far=bool(i % 2)) for i in range(n)]
-    d = map_tracks(meta, lambda i: swept[i], 1.3)
-    assert d is not None and np.allclose(d, [1.0, 0.0])
+    config = ScaleConfig(track_spread=1.3)
+    steady = map_tracks(meta, lambda i: swept[i])
+    assert config.takes_tracks(steady) and np.allclose(steady.directions, [1.0, 0.0])
+    assert not ScaleConfig(track_spread=None).takes_tracks(steady)
     # a spinning sensor's submaps reach as far along the street as it sees: 40-160 m
     reach = rng.uniform(20.0, 80.0, n)
     spun = [s * [r / 10.0, 1.0, 1.0] for s, r in zip(swept, reach, strict=True)]
-    assert map_tracks(meta, lambda i: spun[i], 1.3) is None
+    assert not config.takes_tracks(map_tracks(meta, lambda i: spun[i]))
     assert along_drive_spread(np.full((n, 2), np.nan), lambda i: swept[i]) == np.inf
 
 
@@ -160,10 +163,17 @@ def test_a_map_of_steady_drives_starts_from_them(tiny_maps: dict) -> None:
     the factor found stays within the tracked bounds."""
     cloud, _ = _query(tiny_maps)
     with Localizer.load(tiny_maps["map"]) as loc:
-        scale = ScaleConfig(track_spread=100.0)
-        loc.verify_config = VerifyConfig(candidates=4, threshold=0.0, stop_score=None, scale=scale)
         prepared = loc.prepare(cloud, False, None)
         ids = [int(i) for i in loc.submit(prepared, 4).result().ids]
+        # the map's drives are made once, on this first query without a scale; each call's
+        # own config then decides whether a query starts from them
+        loc.verify_config = VerifyConfig(candidates=4, threshold=0.0, stop_score=None)
+        median = loc.verify_ids(prepared, ids)
+        assert abs(median.pose.metres_per_unit / median.checks[0].scale) == pytest.approx(
+            float(np.median([abs(loc.bundle.geometry.scale(i)) for i in ids])), rel=1e-9
+        )
+        scale = ScaleConfig(track_spread=100.0)
+        loc.verify_config = replace(loc.verify_config, scale=scale)
         v = loc.verify_ids(prepared, ids)
         meta, geo = loc.bundle.metadata, loc.bundle.geometry
         expected = []

@@ -56,7 +56,7 @@ from pnvlad_service.localization.verify.prior import (
     PriorFit,
     no_map_near,
 )
-from pnvlad_service.localization.verify.scale import map_tracks, track_scales
+from pnvlad_service.localization.verify.scale import DriveTracks, map_tracks, track_scales
 from pnvlad_service.localization.verify.verifier import open_verifier
 from pnvlad_service.localization.verify.verify import PreparedCloud, Verification, VerifyConfig
 from pnvlad_service.models.embedding import Embedder
@@ -133,8 +133,8 @@ class Localizer:
         self.prior_config = config.prior.config(aligned=self.aligned_map)
         # The map's positions for a prior's range search, made on the first prior.
         self._positions = Once(lambda: MapPositions.of_metadata(bundle.metadata))
-        # Each entry's direction of travel, for the scale of a query without one: map_tracks.
-        self._tracks: Once[np.ndarray | None] = Once(self._map_tracks)
+        # The map's drives, for the scale of a query without one (verify_ids).
+        self._tracks: Once[DriveTracks | None] = Once(self._map_tracks)
         # Verifications in flight: with another one, or the encoder busy, small_gicp runs on
         # VerifyConfig.crowded_threads (the cores are taken).
         self._verifying = 0
@@ -385,12 +385,20 @@ class Localizer:
         k = self.verify_config.candidates
         return self.verify_ids(prepared, [int(i) for i in result.ids[:k] if i >= 0])
 
-    def _map_tracks(self) -> np.ndarray | None:
+    def _map_tracks(self) -> DriveTracks | None:
         geometry = self.bundle.geometry
         if geometry is None:
             return None
-        spread = self.verify_config.scale.track_spread
-        return map_tracks(self.bundle.metadata, geometry.metres, spread)
+        tracks = map_tracks(self.bundle.metadata, geometry.metres)
+        steady = self.verify_config.scale.takes_tracks(tracks)
+        log.info(
+            "queries without a scale start from %s (the submaps' extents along their drives: "
+            "90th percentile %.2f times the 10th; track_spread %s)",
+            "the extent along the candidates' drives" if steady else "the candidates' median scale",
+            tracks.spread,
+            self.verify_config.scale.track_spread,
+        )
+        return tracks
 
     def verify_ids(self, prepared: PreparedCloud, ids: list[int]) -> Verification:
         """Register the query to the map entries ``ids`` (best first) and re-rank them. A
@@ -404,12 +412,12 @@ class Localizer:
         scales = [geometry.scale(i) for i in ids]
         config = self.verify_config
         tracks = self._tracks.get() if prepared.scale is None and ids else None
-        if tracks is not None:
+        if tracks is not None and config.scale.takes_tracks(tracks):
             tracked = track_scales(
                 prepared.cloud,
                 scales,
                 [functools.partial(geometry.metres, i) for i in ids],
-                tracks[ids],
+                tracks.directions[ids],
             )
             if tracked is not None:
                 scales, config = tracked, replace(config, scale=config.scale.tracked())

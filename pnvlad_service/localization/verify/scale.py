@@ -35,7 +35,6 @@ candidate's own in metres, gives its metres per unit to a few per cent at the ri
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -44,8 +43,6 @@ from typing import Any
 import numpy as np
 
 from pnvlad_service.localization.verify import registration as reg
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -75,7 +72,7 @@ class ScaleConfig:
     their drives are steady, the 90th percentile at most this times the 10th
     (:func:`along_drive_spread`; push-broom ``oxford`` maps 1.12-1.17, where a submap is what
     20 m of driving swept; the spinning ``benchmark`` 1.62 and ``demo`` 1.86, where it reaches
-    as far as the sensor sees along the street).
+    as far as the sensor sees along the street); ``None``: never (:meth:`takes_tracks`).
     """
 
     distances: tuple[float, ...] = (12.0, 8.0, 5.0, 3.0, 2.0, 1.0, 0.75)
@@ -89,7 +86,7 @@ class ScaleConfig:
     sweep_steps: int = 7
     track_bounds: tuple[float, float] = (0.85, 1.18)
     track_sweep_steps: int = 5
-    track_spread: float = 1.3
+    track_spread: float | None = 1.3
 
     def __post_init__(self) -> None:
         lo, hi = self.bounds
@@ -110,14 +107,19 @@ class ScaleConfig:
                 f"{self.sweep_bounds}, {self.sweep_steps}"
             )
 
-        if not self.track_spread >= 1.0:
-            raise ValueError(f"track_spread must be at least 1, got {self.track_spread}")
+        if self.track_spread is not None and not self.track_spread >= 1.0:
+            raise ValueError(f"track_spread must be at least 1 or None, got {self.track_spread}")
         t_lo, t_hi = self.track_bounds
         if not 0.0 < t_lo <= 1.0 <= t_hi or self.track_sweep_steps < 1:
             raise ValueError(
                 "track_bounds must satisfy 0 < low <= 1 <= high and track_sweep_steps >= 1, "
                 f"got {self.track_bounds}, {self.track_sweep_steps}"
             )
+
+    def takes_tracks(self, tracks: DriveTracks) -> bool:
+        """Whether a query without a scale starts from the map's drives (``tracks``, the
+        map's :func:`map_tracks`): their extents spread no more than ``track_spread``."""
+        return self.track_spread is not None and tracks.spread <= self.track_spread
 
     def tracked(self) -> ScaleConfig:
         """This config for a start from the candidates' drives (:func:`track_scales`): the
@@ -348,24 +350,21 @@ def along_drive_spread(
     return float(hi / lo) if lo > 0 else math.inf
 
 
-def map_tracks(
-    metadata: Any, metres: Callable[[int], np.ndarray], max_spread: float
-) -> np.ndarray | None:
-    """The direction of travel of each entry of a bundle (its metadata's drives, times and
-    positions: :func:`track_directions`) when its submaps span alike along them
-    (:func:`along_drive_spread` at most ``max_spread``), else ``None``: the start of a query
-    without a scale then stays the candidates' median. Logs which."""
+@dataclass(frozen=True)
+class DriveTracks:
+    """What a map's drives say of its entries: each one's direction of travel
+    (``directions`` float64 [N, 2], :func:`track_directions`) and how alike the submaps span
+    along them (``spread``, :func:`along_drive_spread`)."""
+
+    directions: np.ndarray
+    spread: float
+
+
+def map_tracks(metadata: Any, metres: Callable[[int], np.ndarray]) -> DriveTracks:
+    """The :class:`DriveTracks` of a bundle: its metadata's drives, times and positions, and
+    its entries' points (``metres(i)``, for the spread). A map property: whether a query
+    starts from them is its config's (:meth:`ScaleConfig.takes_tracks`)."""
     directions = track_directions(
         drive_groups(metadata), metadata.timestamp, metadata.easting, metadata.northing
     )
-    spread = along_drive_spread(directions, metres)
-    steady = spread <= max_spread
-    log.info(
-        "queries without a scale start from %s (the submaps' extents along their drives: "
-        "90th percentile %.2f times the 10th, %s %.2f)",
-        "the extent along the candidates' drives" if steady else "the candidates' median scale",
-        spread,
-        "within" if steady else "over",
-        max_spread,
-    )
-    return directions if steady else None
+    return DriveTracks(directions, along_drive_spread(directions, metres))
